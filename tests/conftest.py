@@ -1,0 +1,29 @@
+"""Test set-up: Warp on its CPU device, tile kernels correct on CPU, kernel cache inside the checkout."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".cache" / "warp"))
+os.environ.setdefault("RGS_CACHE", str(ROOT / ".cache" / "rgs_warp"))
+
+import warp as wp  # noqa: E402
+
+wp.config.enable_cpu_blocks = True  # tile kernels give wrong results on CPU without it (DESIGN.md)
+wp.init()
+
+
+@pytest.fixture(scope="session")
+def device():
+    return "cpu"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared real data not found at {SHARED_DATA}")
+    return SHARED_DATA
