@@ -1,0 +1,316 @@
+"""Typed configuration: one dataclass per stage, filled from YAML files under ``configs/`` and from
+Hydra-style command-line overrides (``group=option`` selects a YAML file of a group,
+``a.b=value`` sets a key).
+
+Numbers without a comment are the supplement's Table 1 / §4 values (see docs/config.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+# Groups whose YAML fills one section of the config; ``method`` files are merged at the top level
+# because a method sets values in several stages at once.
+GROUPS = {"dataset": "dataset", "method": None}
+DEFAULTS = {"dataset": "synthetic/room0", "method": "rgs"}
+
+
+class ConfigError(ValueError):
+    """Invalid configuration or override; the message lists the valid choices."""
+
+
+@dataclass
+class DatasetConfig:
+    type: str = "synthetic"  # replica | tum | 7scenes | synthetic
+    name: str = "room0"
+    path: str = ""  # relative to data_root unless absolute; unused for synthetic
+    stride: int = 1
+    start: int = 0
+    max_frames: int | None = None
+    downscale: int = 1
+    prefetch: int = 2
+    # TUM only
+    camera: str = "auto"  # fr1 | fr2 | fr3 | auto (from the folder name)
+    max_dt: float = 0.08  # s, timestamp association tolerance
+    undistort: bool = True
+    # synthetic only
+    width: int = 240
+    height: int = 136
+    n_frames: int = 100
+    depth_noise_m: float = 0.0
+    exposure_drift: bool = False
+    motion_blur: bool = False
+    seed: int = 0
+
+
+@dataclass
+class RenderConfig:
+    sh_degree: int = 2
+    tile_size: int = 16
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass
+class TrackingConfig:
+    iters: int = 30  # §4.2: 30-60 steps a frame
+    lr: float = 5e-3  # centre of the cosine schedule
+    tau_alpha: float = 0.5  # Eq. 7 opacity threshold
+    tau_grad: float = 0.05  # Eq. 8 image-gradient threshold (intensity units per pixel)
+    depth_weight: float = 1.0  # RGB-D depth L1 term
+    downscale: int = 1  # tracking resolution = image / downscale
+
+
+@dataclass
+class KeyframeConfig:
+    iou_threshold: float = 0.8  # Eq. 9 tau
+    alpha_threshold: float = 0.5  # visibility mask: accumulated opacity above this
+    min_translation_m: float = 0.05
+    min_rotation_deg: float = 5.0
+    buffer_size: int = 10  # §4.3: 8-12
+
+
+@dataclass
+class MatchingConfig:
+    backbone: str = "classic"  # classic | xfeat | dinov2 | dinov3
+    weights_path: str = ""  # local weights file for dinov2 / dinov3
+    n_neighbours: int = 3
+    w_sim: float = 1.0  # Eq. 11
+    w_fb: float = 0.5
+    w_epi: float = 0.5
+    gamma0: float = 0.5  # Eq. 12
+    gamma1: float = 1.5
+
+
+@dataclass
+class TriangulationConfig:
+    min_parallax_deg: float = 1.0
+    max_reproj_px: float = 2.0
+
+
+@dataclass
+class SeedingConfig:
+    alpha_min: float = 0.1  # Eq. 14
+    alpha_max: float = 0.9
+    poisson_radius_px: float = 1.0  # Poisson-disk radius in units of the local pixel footprint
+
+
+@dataclass
+class MappingConfig:
+    iters: int = 60
+    window: int = 5
+    init_iters: int = 1050
+    init_window: int = 5
+    lr_color: float = 2e-3
+    lr_opacity: float = 2e-3
+    lr_position: float = 1e-3
+    lr_rotation: float = 1e-3
+    lambda_dssim: float = 0.2
+    grad_clip: float = 1.0
+    opacity_cull: float = 0.05
+    ema_eta: float = 0.1  # Eq. 15
+
+
+@dataclass
+class EvalConfig:
+    every: int = 5  # §3: photometric metrics on every 5th frame, keyframes excluded
+    lpips_weights: str = ""  # local AlexNet-LPIPS weights; LPIPS is reported as n/a without them
+
+
+@dataclass
+class Config:
+    device: str = "auto"  # auto = cuda:0 when Warp sees a GPU, else cpu
+    mode: str = "rgbd"  # rgbd | mono
+    method: str = "rgs"  # rgs | baseline (set by the method group)
+    seed: int = 0
+    data_root: str = ""  # default: $RGS_DATA, else the current directory
+    output_dir: str = "runs"
+    run_name: str = ""  # default: <dataset>-<date>-<time>
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    seeding: SeedingConfig = field(default_factory=SeedingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+    def resolved_data_root(self) -> Path:
+        return Path(self.data_root or os.environ.get("RGS_DATA", "") or ".").expanduser()
+
+    def dataset_path(self) -> Path:
+        p = Path(self.dataset.path).expanduser()
+        return p if p.is_absolute() else self.resolved_data_root() / p
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+CHOICES = {"mode": ("rgbd", "mono"), "dataset.type": ("replica", "tum", "7scenes", "synthetic")}
+
+
+def group_options(group: str) -> list[str]:
+    """Names of the YAML files of a group, e.g. ``['replica/office0', 'synthetic/room0', ...]``."""
+    base = CONFIG_DIR / group
+    return sorted(str(p.relative_to(base).with_suffix("")) for p in base.rglob("*.yaml"))
+
+
+def _suggest(word: str, options, prefix: str = "") -> str:
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.5)
+    return f" Did you mean {prefix + close[0]!r}?" if close else ""
+
+
+def _field_types(cls) -> dict[str, typing.Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(value, tp, key: str):
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", typing.Union)):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(value, inner[0], key)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{key}: expected a list like [0, 0, 0], got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], key) for v in value)
+        if len(value) != len(args):
+            raise ConfigError(f"{key}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, key) for v, a in zip(value, args, strict=True))
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if value is None:
+            return ""
+        return str(value)
+    raise ConfigError(f"{key}: unsupported type {tp}")
+
+
+def _set_tree(obj, tree: dict, prefix: str = "") -> None:
+    """Set the values of a nested dict on a dataclass tree, checking keys and types."""
+    if not isinstance(tree, dict):
+        raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a mapping of keys, got {tree!r}")
+    types = _field_types(type(obj))
+    for k, v in tree.items():
+        key = prefix + str(k)
+        if k not in types:
+            valid = sorted(types)
+            raise ConfigError(f"unknown key {key!r}.{_suggest(str(k), valid, prefix)} Valid keys under "
+                              f"{prefix.rstrip('.') or 'the top level'}: {', '.join(valid)}")
+        current = getattr(obj, k)
+        if dataclasses.is_dataclass(current):
+            _set_tree(current, v, key + ".")
+        else:
+            value = _coerce(v, types[k], key)
+            if key in CHOICES and value not in CHOICES[key]:
+                raise ConfigError(f"{key}: {value!r} is not one of {', '.join(CHOICES[key])}."
+                                  f"{_suggest(value, CHOICES[key])}")
+            setattr(obj, k, value)
+
+
+def _load_yaml(path: Path) -> dict:
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return data
+
+
+def _apply_group(cfg: Config, group: str, option: str) -> None:
+    options = group_options(group)
+    if option not in options:
+        raise ConfigError(f"unknown {group} {option!r}.{_suggest(option, options)} "
+                          f"Valid: {', '.join(options)}")
+    data = _load_yaml(CONFIG_DIR / group / f"{option}.yaml")
+    section = GROUPS[group]
+    if section is None:
+        _set_tree(cfg, data)
+    else:
+        fresh = type(getattr(cfg, section))()  # a group option replaces the whole section
+        setattr(cfg, section, fresh)
+        _set_tree(fresh, data, section + ".")
+
+
+def load_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Defaults, then group selections (``dataset=replica/office0``), then ``key=value`` overrides,
+    each value parsed as YAML (``tracking.iters=40``, ``render.background=[1,1,1]``)."""
+    selections = dict(DEFAULTS)
+    keys: list[tuple[str, object]] = []
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not of the form key=value (see --help)")
+        k, raw = item.split("=", 1)
+        k = k.strip()
+        if k in GROUPS:
+            selections[k] = raw.strip()
+            continue
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError:
+            value = raw
+        keys.append((k, value))
+    cfg = Config()
+    for group, option in selections.items():
+        _apply_group(cfg, group, option)
+    for k, value in keys:
+        tree: dict = {}
+        node = tree
+        parts = k.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+        _set_tree(cfg, tree)
+    return cfg
+
+
+def save_config(cfg: Config, path: Path) -> None:
+    def plain(x):
+        if isinstance(x, dict):
+            return {k: plain(v) for k, v in x.items()}
+        if isinstance(x, tuple):
+            return [plain(v) for v in x]
+        return x
+
+    path.write_text(yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
+
+
+def help_text() -> str:
+    lines = ["Configuration groups (group=option):"]
+    for group in GROUPS:
+        lines.append(f"  {group}: {', '.join(group_options(group))}   (default: {DEFAULTS[group]})")
+    lines.append("")
+    lines.append("Keys (key=value; default shown):")
+
+    def walk(obj, prefix):
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if dataclasses.is_dataclass(v):
+                walk(v, prefix + f.name + ".")
+            else:
+                lines.append(f"  {prefix}{f.name} = {v!r}")
+
+    walk(Config(), "")
+    return "\n".join(lines)

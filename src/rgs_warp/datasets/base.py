@@ -1,0 +1,199 @@
+"""Common machinery of the dataset loaders: lazy frame loading with background prefetch, image
+readers that fail with a clear message, integer downscaling, selection by start/stride/max_frames."""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rgs_warp.types import Camera, Frame
+
+
+class DatasetError(RuntimeError):
+    """A dataset that is missing or malformed; the message names the file and the problem."""
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """HxWx3 float32 RGB in [0, 1] from a JPEG/PNG file (8 or 16 bit)."""
+    data = _read_bytes(path)
+    if path.suffix.lower() in (".jpg", ".jpeg") and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        # OpenCV decodes a truncated JPEG silently (grey bottom rows), so check the end marker.
+        raise DatasetError(f"{path}: truncated JPEG (no end-of-image marker)")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(f"{path}: not a readable image (corrupt or truncated)")
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    if img.shape[2] == 4:
+        img = img[:, :, :3]
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+    return np.ascontiguousarray(img[:, :, ::-1], dtype=np.float32) / np.float32(scale)
+
+
+def read_depth(path: Path, scale: float) -> np.ndarray:
+    """HxW float32 depth in metres (raw / scale; 0 stays 0 = invalid) from a 16-bit PNG."""
+    img = cv2.imdecode(np.frombuffer(_read_bytes(path), np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(f"{path}: not a readable depth image (corrupt or truncated)")
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise DatasetError(
+            f"{path}: expected a single-channel 16-bit depth PNG, got dtype {img.dtype} with shape {img.shape}"
+        )
+    return img.astype(np.float32) / np.float32(scale)
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read ({e.strerror})") from None
+    if not data:
+        raise DatasetError(f"{path}: empty file")
+    return data
+
+
+def check_pose(T: np.ndarray, where: str) -> np.ndarray:
+    """Validate a camera-to-world pose: finite, rigid (orthonormal rotation, last row 0 0 0 1)."""
+    if not np.all(np.isfinite(T)):
+        raise DatasetError(f"{where}: pose has non-finite values")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
+        raise DatasetError(f"{where}: pose rotation is not orthonormal (det {np.linalg.det(R):.4f})")
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
+        raise DatasetError(f"{where}: pose last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    return T
+
+
+def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
+    h, w = rgb.shape[0] // factor, rgb.shape[1] // factor
+    return np.ascontiguousarray(
+        rgb[: h * factor, : w * factor].reshape(h, factor, w, factor, 3).mean(axis=(1, 3), dtype=np.float32)
+    )
+
+
+def downscale_depth(depth: np.ndarray, factor: int, max_rel_spread: float = 0.05) -> np.ndarray:
+    """Block mean of the valid depths; a block that straddles a depth edge (spread above
+    ``max_rel_spread`` of its mean) becomes invalid rather than a flying point between surfaces."""
+    h, w = depth.shape[0] // factor, depth.shape[1] // factor
+    blocks = depth[: h * factor, : w * factor].reshape(h, factor, w, factor).transpose(0, 2, 1, 3)
+    blocks = blocks.reshape(h, w, factor * factor)
+    valid = blocks > 0
+    count = valid.sum(axis=2)
+    mean = np.where(count > 0, blocks.sum(axis=2) / np.maximum(count, 1), 0.0)
+    hi = np.where(valid, blocks, -np.inf).max(axis=2)
+    lo = np.where(valid, blocks, np.inf).min(axis=2)
+    ok = (count > 0) & (hi - lo <= max_rel_spread * mean)
+    return np.where(ok, mean, 0.0).astype(np.float32)
+
+
+class RGBDDataset:
+    """Base of the loaders.  Subclasses fill ``self._items`` (one entry per frame of the full
+    sequence, in order) and implement ``_load_full(item) -> Frame`` at native resolution; this class
+    applies start/stride/max_frames, downscaling, and prefetching iteration.
+
+    ``ds[i]`` loads frame i of the selection; ``iter(ds)`` yields all of them while a background
+    thread reads the next ``prefetch`` frames (OpenCV decodes without holding the GIL).
+    """
+
+    layout = ""  # human description of the expected folder layout, for error messages
+    source = ""  # where the dataset can be obtained
+
+    def __init__(self, root, stride: int = 1, start: int = 0, max_frames: int | None = None,
+                 downscale: int = 1, prefetch: int = 2):
+        self.root = Path(root).expanduser()
+        if stride < 1 or start < 0 or downscale < 1 or prefetch < 0:
+            raise ValueError(f"need stride >= 1, start >= 0, downscale >= 1, prefetch >= 0; got "
+                             f"stride={stride}, start={start}, downscale={downscale}, prefetch={prefetch}")
+        if max_frames is not None and max_frames < 1:
+            raise ValueError(f"max_frames must be >= 1 or None, got {max_frames}")
+        if not self.root.is_dir():
+            raise DatasetError(
+                f"{type(self).__name__}: dataset folder {self.root} does not exist.\n"
+                f"  expected layout: {self.layout}\n  obtain it from: {self.source}"
+            )
+        self.stride, self.start, self.max_frames = stride, start, max_frames
+        self.downscale, self.prefetch = downscale, prefetch
+        self._items: list = []
+        self._native_camera: Camera | None = None
+
+    def _select(self) -> None:
+        """Called by subclasses once ``_items`` and ``_native_camera`` are set."""
+        n_all = len(self._items)
+        if n_all == 0:
+            raise DatasetError(f"{self.root}: no frames found (expected layout: {self.layout})")
+        self._indices = list(range(self.start, n_all, self.stride))
+        if self.max_frames is not None:
+            self._indices = self._indices[: self.max_frames]
+        if not self._indices:
+            raise DatasetError(f"{self.root}: start={self.start} is past the last of {n_all} frames")
+
+    @property
+    def camera(self) -> Camera:
+        return self._native_camera.scaled(self.downscale)
+
+    def __len__(self) -> int:
+        return len(self._indices)
+
+    def __getitem__(self, i: int) -> Frame:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame {i} out of range for {len(self)} frames")
+        i %= len(self)
+        frame = self._load_full(self._items[self._indices[i]])
+        if frame.depth is not None and frame.depth.shape != frame.rgb.shape[:2]:
+            raise DatasetError(
+                f"{self.root}: frame {self._indices[i]}: depth is {frame.depth.shape[1]}x{frame.depth.shape[0]} "
+                f"but colour is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}"
+            )
+        cam = self._native_camera
+        if frame.rgb.shape[:2] != (cam.height, cam.width):
+            raise DatasetError(
+                f"{self.root}: frame {self._indices[i]}: image is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}, "
+                f"calibration says {cam.width}x{cam.height}"
+            )
+        frame.index = i
+        if self.downscale > 1:
+            frame.rgb = downscale_rgb(frame.rgb, self.downscale)
+            if frame.depth is not None:
+                frame.depth = downscale_depth(frame.depth, self.downscale)
+        return frame
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self.prefetch == 0:
+            for i in range(len(self)):
+                yield self[i]
+            return
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="rgs-prefetch") as pool:
+            pending: deque = deque()
+            nxt = 0
+            while nxt < len(self) and len(pending) <= self.prefetch:
+                pending.append(pool.submit(self.__getitem__, nxt))
+                nxt += 1
+            while pending:
+                frame = pending.popleft().result()
+                if nxt < len(self):
+                    pending.append(pool.submit(self.__getitem__, nxt))
+                    nxt += 1
+                yield frame
+
+    def gt_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth camera-to-world poses of the selected frames, or None."""
+        poses = [self._gt_pose(self._items[j]) for j in self._indices]
+        return None if any(p is None for p in poses) else np.stack(poses)
+
+    def _gt_pose(self, item) -> np.ndarray | None:
+        raise NotImplementedError
+
+    def _load_full(self, item) -> Frame:
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        c = self.camera
+        return (f"{type(self).__name__}({str(self.root)!r}, {len(self)} frames, {c.width}x{c.height}, "
+                f"fx={c.fx:g} fy={c.fy:g} cx={c.cx:g} cy={c.cy:g})")

@@ -1,0 +1,151 @@
+"""TUM RGB-D: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (``t tx ty tz qx qy qz qw``); colour,
+depth and ground truth associated by nearest timestamp within a tolerance; depth = value / 5000."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
+from rgs_warp.geometry import pose_from_tq
+from rgs_warp.types import Camera, Frame
+
+TUM_DEPTH_SCALE = 5000.0
+# Calibrations published with the dataset (ROS default intrinsics for fr3, whose images are
+# already undistorted); distortion is OpenCV's (k1, k2, p1, p2, k3).
+TUM_CAMERAS = {
+    "fr1": Camera(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "fr2": Camera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "fr3": Camera(535.4, 539.2, 320.1, 247.6, 640, 480, ()),
+}
+
+
+def read_tum_list(path: Path, n_values: int) -> tuple[np.ndarray, list[list[str]]]:
+    """Timestamps and remaining fields of a TUM list file (``#`` comments skipped)."""
+    try:
+        lines = path.read_text().splitlines()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found (TUM layout needs rgb.txt, depth.txt, groundtruth.txt)") from None
+    stamps, rows = [], []
+    for lineno, line in enumerate(lines, 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != n_values + 1:
+            raise DatasetError(f"{path}:{lineno}: expected {n_values + 1} fields, found {len(parts)}: {line[:80]!r}")
+        try:
+            t = float(parts[0])
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: timestamp {parts[0]!r} is not a number") from None
+        if not np.isfinite(t):
+            raise DatasetError(f"{path}:{lineno}: timestamp is not finite")
+        stamps.append(t)
+        rows.append(parts[1:])
+    return np.array(stamps), rows
+
+
+def associate(t_query: np.ndarray, t_ref: np.ndarray, max_dt: float) -> np.ndarray:
+    """Index into ``t_ref`` of the nearest timestamp to each query, or -1 if farther than max_dt."""
+    if len(t_ref) == 0:
+        return np.full(len(t_query), -1)
+    order = np.argsort(t_ref)
+    ts = t_ref[order]
+    pos = np.clip(np.searchsorted(ts, t_query), 1, len(ts) - 1) if len(ts) > 1 else np.zeros(len(t_query), int)
+    left = np.maximum(pos - 1, 0)
+    choose = np.where(np.abs(ts[left] - t_query) <= np.abs(ts[pos] - t_query), left, pos)
+    best = order[choose]
+    return np.where(np.abs(t_ref[best] - t_query) <= max_dt, best, -1)
+
+
+def camera_for_sequence(root: Path) -> Camera:
+    m = re.search(r"freiburg([123])", root.name)
+    if m is None:
+        raise DatasetError(
+            f"{root}: cannot tell the TUM camera (fr1/fr2/fr3) from the folder name; set dataset.camera"
+        )
+    return TUM_CAMERAS[f"fr{m.group(1)}"]
+
+
+class TUMDataset(RGBDDataset):
+    layout = "<root>/rgb.txt, depth.txt, groundtruth.txt, rgb/<t>.png, depth/<t>.png"
+    source = "https://cvg.cit.tum.de/data/datasets/rgbd-dataset/download (e.g. rgbd_dataset_freiburg1_desk)"
+
+    def __init__(self, root, stride: int = 1, start: int = 0, max_frames: int | None = None,
+                 downscale: int = 1, prefetch: int = 2, camera: str = "auto", max_dt: float = 0.08,
+                 undistort: bool = True, require_depth: bool = True, require_pose: bool = True):
+        super().__init__(root, stride, start, max_frames, downscale, prefetch)
+        if camera == "auto":
+            cam = camera_for_sequence(self.root)
+        elif camera in TUM_CAMERAS:
+            cam = TUM_CAMERAS[camera]
+        else:
+            raise DatasetError(f"unknown TUM camera {camera!r}; valid: auto, {', '.join(TUM_CAMERAS)}")
+        self._undistort_maps = None
+        if undistort and cam.distortion:
+            K = cam.K
+            # Keep the same K after undistortion, as the benchmark's tools do.
+            self._undistort_maps = cv2.initUndistortRectifyMap(
+                K, np.array(cam.distortion), None, K, (cam.width, cam.height), cv2.CV_32FC1
+            )
+            cam = cam.undistorted()
+        self._native_camera = cam
+
+        t_rgb, rgb_rows = read_tum_list(self.root / "rgb.txt", 1)
+        t_dep, dep_rows = read_tum_list(self.root / "depth.txt", 1)
+        gt_path = self.root / "groundtruth.txt"
+        if gt_path.is_file():
+            t_gt, gt_rows = read_tum_list(gt_path, 7)
+        elif require_pose:
+            raise DatasetError(f"{gt_path}: file not found (set dataset.require_pose=false to run without it)")
+        else:
+            t_gt, gt_rows = np.zeros(0), []
+        gt_poses = []
+        for lineno, row in enumerate(gt_rows):
+            try:
+                v = np.array(row, dtype=np.float64)
+            except ValueError:
+                raise DatasetError(f"{gt_path}: pose {lineno + 1}: not numbers: {row}") from None
+            if np.linalg.norm(v[3:]) < 1e-6:
+                raise DatasetError(f"{gt_path}: pose {lineno + 1}: zero quaternion")
+            gt_poses.append(check_pose(pose_from_tq(v[:3], v[3:]), f"{gt_path}: pose {lineno + 1}"))
+        i_dep = associate(t_rgb, t_dep, max_dt)
+        i_gt = associate(t_rgb, t_gt, max_dt)
+        self._items = []
+        for k in range(len(t_rgb)):
+            if (require_depth and i_dep[k] < 0) or (require_pose and i_gt[k] < 0):
+                continue
+            self._items.append((
+                t_rgb[k],
+                self.root / rgb_rows[k][0],
+                self.root / dep_rows[i_dep[k]][0] if i_dep[k] >= 0 else None,
+                gt_poses[i_gt[k]] if i_gt[k] >= 0 else None,
+            ))
+        if not self._items and len(t_rgb):
+            raise DatasetError(
+                f"{self.root}: none of {len(t_rgb)} colour frames has depth and ground truth within "
+                f"{max_dt} s (dataset.max_dt)"
+            )
+        self._select()
+
+    def _load_full(self, item) -> Frame:
+        t, rgb_path, depth_path, pose = item
+        rgb = read_rgb(rgb_path)
+        depth = read_depth(depth_path, TUM_DEPTH_SCALE) if depth_path is not None else None
+        cam = self._native_camera
+        if rgb.shape[:2] != (cam.height, cam.width):
+            raise DatasetError(f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is "
+                               f"{cam.width}x{cam.height}")
+        if self._undistort_maps is not None:
+            mx, my = self._undistort_maps
+            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            if depth is not None:
+                # Nearest: interpolating depth across an edge would invent points between surfaces.
+                depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        return Frame(rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t),
+                     index=0)
+
+    def _gt_pose(self, item):
+        return None if item[3] is None else item[3].copy()
