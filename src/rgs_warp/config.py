@@ -188,6 +188,12 @@ def _coerce(value, tp, key: str):
         if len(value) != len(args):
             raise ConfigError(f"{key}: expected {len(args)} values, got {len(value)}")
         return tuple(_coerce(v, a, key) for v, a in zip(value, args, strict=True))
+    if tp in (int, float) and isinstance(value, str):
+        # YAML 1.1 reads "1e-3" as a string; accept what Python reads as a number.
+        try:
+            value = int(value) if tp is int else float(value)
+        except ValueError:
+            pass
     if tp is bool:
         if isinstance(value, bool):
             return value
@@ -216,16 +222,20 @@ def _set_tree(obj, tree: dict, prefix: str = "") -> None:
         key = prefix + str(k)
         if k not in types:
             valid = sorted(types)
-            raise ConfigError(f"unknown key {key!r}.{_suggest(str(k), valid, prefix)} Valid keys under "
-                              f"{prefix.rstrip('.') or 'the top level'}: {', '.join(valid)}")
+            raise ConfigError(
+                f"unknown key {key!r}.{_suggest(str(k), valid, prefix)} Valid keys under "
+                f"{prefix.rstrip('.') or 'the top level'}: {', '.join(valid)}"
+            )
         current = getattr(obj, k)
         if dataclasses.is_dataclass(current):
             _set_tree(current, v, key + ".")
         else:
             value = _coerce(v, types[k], key)
             if key in CHOICES and value not in CHOICES[key]:
-                raise ConfigError(f"{key}: {value!r} is not one of {', '.join(CHOICES[key])}."
-                                  f"{_suggest(value, CHOICES[key])}")
+                raise ConfigError(
+                    f"{key}: {value!r} is not one of {', '.join(CHOICES[key])}."
+                    f"{_suggest(value, CHOICES[key])}"
+                )
             setattr(obj, k, value)
 
 
@@ -242,8 +252,9 @@ def _load_yaml(path: Path) -> dict:
 def _apply_group(cfg: Config, group: str, option: str) -> None:
     options = group_options(group)
     if option not in options:
-        raise ConfigError(f"unknown {group} {option!r}.{_suggest(option, options)} "
-                          f"Valid: {', '.join(options)}")
+        raise ConfigError(
+            f"unknown {group} {option!r}.{_suggest(option, options)} Valid: {', '.join(options)}"
+        )
     data = _load_yaml(CONFIG_DIR / group / f"{option}.yaml")
     section = GROUPS[group]
     if section is None:

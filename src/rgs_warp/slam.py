@@ -56,7 +56,10 @@ def summarize_sequence(ds) -> dict:
             n_valid += int(valid.sum())
             n_px += valid.size
             if valid.any():
-                d_min, d_max = min(d_min, float(frame.depth[valid].min())), max(d_max, float(frame.depth.max()))
+                d_min, d_max = (
+                    min(d_min, float(frame.depth[valid].min())),
+                    max(d_max, float(frame.depth.max())),
+                )
         if frame.pose_gt is None:
             has_gt = False
         else:
@@ -107,17 +110,21 @@ def main(argv: list[str] | None = None) -> int:
     summary["load_seconds"] = round(time.perf_counter() - t0, 2)
     (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
     print(f"dataset   {summary['dataset']}")
-    print(f"          depth: {summary['depth']}, ground truth: {summary['ground_truth_poses']}, "
-          f"loaded in {summary['load_seconds']} s")
+    print(
+        f"          depth: {summary['depth']}, ground truth: {summary['ground_truth_poses']}, "
+        f"loaded in {summary['load_seconds']} s"
+    )
     for k in ("depth_valid_pct", "depth_range_m", "trajectory_length_m"):
         if k in summary:
             print(f"          {k}: {summary[k]}")
     print(f"device    {device}")
     print(f"mode      {cfg.mode}, method {cfg.method}")
     print(f"run dir   {run_dir}")
-    print("would run: Tracker (iters={t.iters}) -> KeyframeSelector (IoU < {k.iou_threshold}) -> "
-          "DenseMatcher ({m.backbone}) -> Triangulator -> Seeder -> Mapper (iters={p.iters}, window={p.window})"
-          .format(t=cfg.tracking, k=cfg.keyframes, m=cfg.matching, p=cfg.mapping))
+    t, k, m, p = cfg.tracking, cfg.keyframes, cfg.matching, cfg.mapping
+    print(
+        f"would run: Tracker (iters={t.iters}) -> KeyframeSelector (IoU < {k.iou_threshold}) -> "
+        f"DenseMatcher ({m.backbone}) -> Triangulator -> Seeder -> Mapper (iters={p.iters}, window={p.window})"
+    )
     print("note: the SLAM stages are not implemented yet; this run only loaded and checked the sequence.")
     return 0
 

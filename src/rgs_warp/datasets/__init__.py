@@ -25,21 +25,33 @@ def open_dataset(cfg) -> RGBDDataset:
     if d.type != "synthetic":
         path = cfg.dataset_path()
         if not path.is_dir():
-            origin = ("data_root=" + cfg.data_root) if cfg.data_root else (
-                "$RGS_DATA" if os.environ.get("RGS_DATA") else "the current directory (no data_root= or $RGS_DATA)")
+            origin = (
+                ("data_root=" + cfg.data_root)
+                if cfg.data_root
+                else (
+                    "$RGS_DATA"
+                    if os.environ.get("RGS_DATA")
+                    else "the current directory (no data_root= or $RGS_DATA)"
+                )
+            )
             loader = {"replica": ReplicaDataset, "7scenes": SevenScenesDataset, "tum": TUMDataset}.get(d.type)
-            hint = (f"\n  expected layout: {loader.layout}\n  obtain it from: {loader.source}" if loader else "")
+            hint = (
+                f"\n  expected layout: {loader.layout}\n  obtain it from: {loader.source}" if loader else ""
+            )
             raise DatasetError(
                 f"dataset {d.type}/{d.name}: folder {path.resolve()} does not exist\n"
                 f"  (dataset.path={d.path!r} relative to {origin}; set data_root=... or RGS_DATA, or an "
                 f"absolute dataset.path=...){hint}"
             )
-    common = dict(stride=d.stride, start=d.start, max_frames=d.max_frames, downscale=d.downscale,
-                  prefetch=d.prefetch)
+    common = dict(
+        stride=d.stride, start=d.start, max_frames=d.max_frames, downscale=d.downscale, prefetch=d.prefetch
+    )
     if d.type == "replica":
         return ReplicaDataset(cfg.dataset_path(), **common)
     if d.type == "7scenes":
         return SevenScenesDataset(cfg.dataset_path(), **common)
     if d.type == "tum":
-        return TUMDataset(cfg.dataset_path(), camera=d.camera, max_dt=d.max_dt, undistort=d.undistort, **common)
+        return TUMDataset(
+            cfg.dataset_path(), camera=d.camera, max_dt=d.max_dt, undistort=d.undistort, **common
+        )
     raise DatasetError(f"dataset.type {d.type!r} has no loader")

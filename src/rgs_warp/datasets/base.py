@@ -42,7 +42,8 @@ def read_depth(path: Path, scale: float) -> np.ndarray:
         raise DatasetError(f"{path}: not a readable depth image (corrupt or truncated)")
     if img.dtype != np.uint16 or img.ndim != 2:
         raise DatasetError(
-            f"{path}: expected a single-channel 16-bit depth PNG, got dtype {img.dtype} with shape {img.shape}"
+            f"{path}: expected a single-channel 16-bit depth PNG, "
+            f"got dtype {img.dtype} with shape {img.shape}"
         )
     return img.astype(np.float32) / np.float32(scale)
 
@@ -105,12 +106,21 @@ class RGBDDataset:
     layout = ""  # human description of the expected folder layout, for error messages
     source = ""  # where the dataset can be obtained
 
-    def __init__(self, root, stride: int = 1, start: int = 0, max_frames: int | None = None,
-                 downscale: int = 1, prefetch: int = 2):
+    def __init__(
+        self,
+        root,
+        stride: int = 1,
+        start: int = 0,
+        max_frames: int | None = None,
+        downscale: int = 1,
+        prefetch: int = 2,
+    ):
         self.root = Path(root).expanduser()
         if stride < 1 or start < 0 or downscale < 1 or prefetch < 0:
-            raise ValueError(f"need stride >= 1, start >= 0, downscale >= 1, prefetch >= 0; got "
-                             f"stride={stride}, start={start}, downscale={downscale}, prefetch={prefetch}")
+            raise ValueError(
+                f"need stride >= 1, start >= 0, downscale >= 1, prefetch >= 0; got "
+                f"stride={stride}, start={start}, downscale={downscale}, prefetch={prefetch}"
+            )
         if max_frames is not None and max_frames < 1:
             raise ValueError(f"max_frames must be >= 1 or None, got {max_frames}")
         if not self.root.is_dir():
@@ -148,8 +158,8 @@ class RGBDDataset:
         frame = self._load_full(self._items[self._indices[i]])
         if frame.depth is not None and frame.depth.shape != frame.rgb.shape[:2]:
             raise DatasetError(
-                f"{self.root}: frame {self._indices[i]}: depth is {frame.depth.shape[1]}x{frame.depth.shape[0]} "
-                f"but colour is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}"
+                f"{self.root}: frame {self._indices[i]}: "
+                f"depth is {frame.depth.shape[1]}x{frame.depth.shape[0]} but colour is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}"
             )
         cam = self._native_camera
         if frame.rgb.shape[:2] != (cam.height, cam.width):
@@ -195,5 +205,7 @@ class RGBDDataset:
 
     def __repr__(self) -> str:
         c = self.camera
-        return (f"{type(self).__name__}({str(self.root)!r}, {len(self)} frames, {c.width}x{c.height}, "
-                f"fx={c.fx:g} fy={c.fy:g} cx={c.cx:g} cy={c.cy:g})")
+        return (
+            f"{type(self).__name__}({str(self.root)!r}, {len(self)} frames, {c.width}x{c.height}, "
+            f"fx={c.fx:g} fy={c.fy:g} cx={c.cx:g} cy={c.cy:g})"
+        )

@@ -42,11 +42,20 @@ def read_matrix_lines(path: Path, n_rows: int | None = None) -> np.ndarray:
 
 class ReplicaDataset(RGBDDataset):
     layout = "<root>/results/frame000000.jpg, <root>/results/depth000000.png, <root>/traj.txt"
-    source = ("the NICE-SLAM Replica renders (download script 'bash scripts/download_replica.sh' in the "
-              "NICE-SLAM repository, cvg/nice-slam); see data_tools/README.md")
+    source = (
+        "the NICE-SLAM Replica renders (download script 'bash scripts/download_replica.sh' in the "
+        "NICE-SLAM repository, cvg/nice-slam); see data_tools/README.md"
+    )
 
-    def __init__(self, root, stride: int = 1, start: int = 0, max_frames: int | None = None,
-                 downscale: int = 1, prefetch: int = 2):
+    def __init__(
+        self,
+        root,
+        stride: int = 1,
+        start: int = 0,
+        max_frames: int | None = None,
+        downscale: int = 1,
+        prefetch: int = 2,
+    ):
         super().__init__(root, stride, start, max_frames, downscale, prefetch)
         results = self.root / "results"
         if not results.is_dir():
@@ -61,13 +70,13 @@ class ReplicaDataset(RGBDDataset):
             ids.append(int(m.group(1)))
         if ids != list(range(len(ids))):
             missing = sorted(set(range(max(ids, default=-1) + 1)) - set(ids))[:5]
-            raise DatasetError(f"{results}: frame numbers are not consecutive from 0 (missing e.g. {missing})")
+            raise DatasetError(
+                f"{results}: frame numbers are not consecutive from 0 (missing e.g. {missing})"
+            )
         self._camera_and_scale()
         self._poses = read_matrix_lines(self.root / "traj.txt", n_rows=len(frames))
         if len(self._poses) < len(frames):
-            raise DatasetError(
-                f"{self.root / 'traj.txt'}: {len(self._poses)} poses for {len(frames)} images"
-            )
+            raise DatasetError(f"{self.root / 'traj.txt'}: {len(self._poses)} poses for {len(frames)} images")
         self._items = list(range(len(frames)))
         self._select()
 
@@ -77,11 +86,19 @@ class ReplicaDataset(RGBDDataset):
             if cand.is_file():
                 try:
                     c = json.loads(cand.read_text())["camera"]
-                    self._native_camera = Camera(fx=float(c["fx"]), fy=float(c["fy"]), cx=float(c["cx"]),
-                                                 cy=float(c["cy"]), width=int(c["w"]), height=int(c["h"]))
+                    self._native_camera = Camera(
+                        fx=float(c["fx"]),
+                        fy=float(c["fy"]),
+                        cx=float(c["cx"]),
+                        cy=float(c["cy"]),
+                        width=int(c["w"]),
+                        height=int(c["h"]),
+                    )
                     self.depth_scale = float(c.get("scale", REPLICA_DEPTH_SCALE))
                 except (ValueError, KeyError, TypeError) as e:
-                    raise DatasetError(f"{cand}: malformed camera parameters ({type(e).__name__}: {e})") from None
+                    raise DatasetError(
+                        f"{cand}: malformed camera parameters ({type(e).__name__}: {e})"
+                    ) from None
                 self.cam_params_path = cand
                 return
         self.cam_params_path = None

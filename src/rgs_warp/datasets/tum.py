@@ -28,14 +28,18 @@ def read_tum_list(path: Path, n_values: int) -> tuple[np.ndarray, list[list[str]
     try:
         lines = path.read_text().splitlines()
     except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found (TUM layout needs rgb.txt, depth.txt, groundtruth.txt)") from None
+        raise DatasetError(
+            f"{path}: file not found (TUM layout needs rgb.txt, depth.txt, groundtruth.txt)"
+        ) from None
     stamps, rows = [], []
     for lineno, line in enumerate(lines, 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         parts = line.split()
         if len(parts) != n_values + 1:
-            raise DatasetError(f"{path}:{lineno}: expected {n_values + 1} fields, found {len(parts)}: {line[:80]!r}")
+            raise DatasetError(
+                f"{path}:{lineno}: expected {n_values + 1} fields, found {len(parts)}: {line[:80]!r}"
+            )
         try:
             t = float(parts[0])
         except ValueError:
@@ -48,16 +52,24 @@ def read_tum_list(path: Path, n_values: int) -> tuple[np.ndarray, list[list[str]
 
 
 def associate(t_query: np.ndarray, t_ref: np.ndarray, max_dt: float) -> np.ndarray:
-    """Index into ``t_ref`` of the nearest timestamp to each query, or -1 if farther than max_dt."""
-    if len(t_ref) == 0:
-        return np.full(len(t_query), -1)
+    """Index into ``t_ref`` matched to each query timestamp, or -1.
+
+    One-to-one, closest pairs first (as the benchmark's associate.py): a depth image is never
+    given to two colour frames.
+    """
     order = np.argsort(t_ref)
     ts = t_ref[order]
-    pos = np.clip(np.searchsorted(ts, t_query), 1, len(ts) - 1) if len(ts) > 1 else np.zeros(len(t_query), int)
-    left = np.maximum(pos - 1, 0)
-    choose = np.where(np.abs(ts[left] - t_query) <= np.abs(ts[pos] - t_query), left, pos)
-    best = order[choose]
-    return np.where(np.abs(t_ref[best] - t_query) <= max_dt, best, -1)
+    lo = np.searchsorted(ts, t_query - max_dt, side="left")
+    hi = np.searchsorted(ts, t_query + max_dt, side="right")
+    pairs = [(abs(ts[j] - tq), q, order[j]) for q, tq in enumerate(t_query) for j in range(lo[q], hi[q])]
+    pairs.sort()
+    out = np.full(len(t_query), -1)
+    used = set()
+    for _, q, r in pairs:
+        if out[q] < 0 and r not in used:
+            out[q] = r
+            used.add(r)
+    return out
 
 
 def camera_for_sequence(root: Path) -> Camera:
@@ -73,9 +85,20 @@ class TUMDataset(RGBDDataset):
     layout = "<root>/rgb.txt, depth.txt, groundtruth.txt, rgb/<t>.png, depth/<t>.png"
     source = "https://cvg.cit.tum.de/data/datasets/rgbd-dataset/download (e.g. rgbd_dataset_freiburg1_desk)"
 
-    def __init__(self, root, stride: int = 1, start: int = 0, max_frames: int | None = None,
-                 downscale: int = 1, prefetch: int = 2, camera: str = "auto", max_dt: float = 0.08,
-                 undistort: bool = True, require_depth: bool = True, require_pose: bool = True):
+    def __init__(
+        self,
+        root,
+        stride: int = 1,
+        start: int = 0,
+        max_frames: int | None = None,
+        downscale: int = 1,
+        prefetch: int = 2,
+        camera: str = "auto",
+        max_dt: float = 0.08,
+        undistort: bool = True,
+        require_depth: bool = True,
+        require_pose: bool = True,
+    ):
         super().__init__(root, stride, start, max_frames, downscale, prefetch)
         if camera == "auto":
             cam = camera_for_sequence(self.root)
@@ -99,7 +122,9 @@ class TUMDataset(RGBDDataset):
         if gt_path.is_file():
             t_gt, gt_rows = read_tum_list(gt_path, 7)
         elif require_pose:
-            raise DatasetError(f"{gt_path}: file not found (set dataset.require_pose=false to run without it)")
+            raise DatasetError(
+                f"{gt_path}: file not found (set dataset.require_pose=false to run without it)"
+            )
         else:
             t_gt, gt_rows = np.zeros(0), []
         gt_poses = []
@@ -117,12 +142,14 @@ class TUMDataset(RGBDDataset):
         for k in range(len(t_rgb)):
             if (require_depth and i_dep[k] < 0) or (require_pose and i_gt[k] < 0):
                 continue
-            self._items.append((
-                t_rgb[k],
-                self.root / rgb_rows[k][0],
-                self.root / dep_rows[i_dep[k]][0] if i_dep[k] >= 0 else None,
-                gt_poses[i_gt[k]] if i_gt[k] >= 0 else None,
-            ))
+            self._items.append(
+                (
+                    t_rgb[k],
+                    self.root / rgb_rows[k][0],
+                    self.root / dep_rows[i_dep[k]][0] if i_dep[k] >= 0 else None,
+                    gt_poses[i_gt[k]] if i_gt[k] >= 0 else None,
+                )
+            )
         if not self._items and len(t_rgb):
             raise DatasetError(
                 f"{self.root}: none of {len(t_rgb)} colour frames has depth and ground truth within "
@@ -136,16 +163,19 @@ class TUMDataset(RGBDDataset):
         depth = read_depth(depth_path, TUM_DEPTH_SCALE) if depth_path is not None else None
         cam = self._native_camera
         if rgb.shape[:2] != (cam.height, cam.width):
-            raise DatasetError(f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is "
-                               f"{cam.width}x{cam.height}")
+            raise DatasetError(
+                f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is "
+                f"{cam.width}x{cam.height}"
+            )
         if self._undistort_maps is not None:
             mx, my = self._undistort_maps
             rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             if depth is not None:
                 # Nearest: interpolating depth across an edge would invent points between surfaces.
                 depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        return Frame(rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t),
-                     index=0)
+        return Frame(
+            rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t), index=0
+        )
 
     def _gt_pose(self, item):
         return None if item[3] is None else item[3].copy()

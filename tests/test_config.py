@@ -1,0 +1,106 @@
+"""Config: YAML groups, overrides, errors with suggestions, the CLI's handling of them."""
+
+import pytest
+import yaml
+
+from rgs_warp.config import Config, ConfigError, group_options, help_text, load_config, save_config
+from rgs_warp.slam import main
+
+
+def test_defaults_and_overrides():
+    cfg = load_config()
+    assert cfg.dataset.type == "synthetic" and cfg.dataset.name == "room0" and cfg.method == "rgs"
+    cfg = load_config(
+        [
+            "dataset=replica/office0",
+            "tracking.iters=40",
+            "device=cpu",
+            "render.background=[1,1,1]",
+            "dataset.max_frames=10",
+            "mapping.lr_color=1e-3",
+        ]
+    )
+    assert (cfg.dataset.type, cfg.dataset.path, cfg.tracking.iters, cfg.device) == (
+        "replica",
+        "Replica/office0",
+        40,
+        "cpu",
+    )
+    assert cfg.render.background == (1.0, 1.0, 1.0) and cfg.dataset.max_frames == 10
+    assert cfg.mapping.lr_color == pytest.approx(1e-3)
+    assert cfg.tracking.lr == Config().tracking.lr  # untouched keys keep their defaults
+
+
+def test_group_option_replaces_section_and_keys_apply_after():
+    cfg = load_config(["dataset.stride=3", "dataset=7scenes/redkitchen"])
+    assert cfg.dataset.type == "7scenes" and cfg.dataset.stride == 3
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["tracking.iter=3"],
+            r"unknown key 'tracking.iter'. Did you mean 'tracking.iters'\?.*Valid keys under tracking",
+        ),
+        (["dataset=replica/ofice0"], r"unknown dataset 'replica/ofice0'. Did you mean 'replica/office0'\?"),
+        (["tracking.iters=abc"], r"tracking.iters: expected an integer"),
+        (["mode=mnoo"], r"mode: 'mnoo' is not one of rgbd, mono. Did you mean 'mono'"),
+        (["trackingiters"], r"not of the form key=value"),
+        (["render.background=[1,1]"], r"expected 3 values"),
+    ],
+)
+def test_errors(args, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(args)
+
+
+def test_groups_and_help():
+    assert {"replica/office0", "tum/fr1_desk", "synthetic/room0", "7scenes/redkitchen"} <= set(
+        group_options("dataset")
+    )
+    text = help_text()
+    assert "dataset: " in text and "tracking.iters = 30" in text and "mapping.lambda_dssim = 0.2" in text
+
+
+def test_data_root(monkeypatch, tmp_path):
+    monkeypatch.setenv("RGS_DATA", str(tmp_path))
+    assert load_config(["dataset=replica/office0"]).dataset_path() == tmp_path / "Replica" / "office0"
+    cfg = load_config(["dataset=replica/office0", "data_root=/x", "dataset.path=/abs/office0"])
+    assert str(cfg.dataset_path()) == "/abs/office0"
+
+
+def test_saved_config_round_trips(tmp_path):
+    cfg = load_config(["dataset=tum/fr1_desk", "tracking.iters=45"])
+    save_config(cfg, tmp_path / "config.yaml")
+    data = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert data["tracking"]["iters"] == 45 and data["dataset"]["path"] == "TUM/rgbd_dataset_freiburg1_desk"
+    args = [
+        f"{k}.{kk}={vv}"
+        for k, v in data.items()
+        if isinstance(v, dict)
+        for kk, vv in v.items()
+        if vv is not None and not isinstance(vv, list)
+    ]
+    assert load_config(args + ["dataset.path=TUM/rgbd_dataset_freiburg1_desk"]).tracking.iters == 45
+
+
+def test_cli(tmp_path, shared_data, capsys):
+    rc = main(
+        [
+            "dataset=7scenes/redkitchen",
+            f"dataset.path={shared_data / '7scenes-redkitchen'}",
+            "dataset.stride=50",
+            f"output_dir={tmp_path}",
+            "run_name=r",
+            "device=cpu",
+        ]
+    )
+    assert rc == 0
+    assert yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())["dataset"]["stride"] == 50
+    assert "10 frames, 640x480" in capsys.readouterr().out
+    rc = main(["dataset=replica/office0", f"data_root={tmp_path}", f"output_dir={tmp_path}"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "Replica/office0 does not exist" in err and "obtain it from" in err
+    assert main(["tracking.iter=3"]) == 2
+    assert main(["--help"]) == 0 and "Configuration groups" in capsys.readouterr().out

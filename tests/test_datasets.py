@@ -1,0 +1,259 @@
+"""Loaders against the real samples in ../shared/data, and their errors on bad input."""
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from rgs_warp.datasets import DatasetError, ReplicaDataset, SevenScenesDataset, TUMDataset
+from rgs_warp.datasets.base import downscale_depth
+from rgs_warp.datasets.replica import read_matrix_lines
+from rgs_warp.datasets.tum import TUM_CAMERAS, associate, read_tum_list
+from rgs_warp.types import Camera
+
+
+@pytest.fixture(scope="module")
+def replica_root(shared_data):
+    return shared_data / "replica-office0-sample" / "office0"
+
+
+def test_replica_sample_exact(replica_root):
+    ds = ReplicaDataset(replica_root)
+    assert len(ds) == 4  # the trajectory lists 2000 poses: frames are counted from the images
+    cam = ds.camera
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) == (600.0, 600.0, 599.5, 339.5, 1200, 680)
+    f = ds[0]
+    assert f.rgb.shape == (680, 1200, 3) and f.rgb.dtype == np.float32
+    assert 0.0 <= f.rgb.min() and f.rgb.max() <= 1.0
+    raw = cv2.imread(str(replica_root / "results" / "depth000000.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(f.depth, raw.astype(np.float32) / np.float32(6553.5))
+    first = np.array((replica_root / "traj.txt").read_text().splitlines()[0].split(), dtype=np.float64)
+    np.testing.assert_array_equal(f.pose_gt, first.reshape(4, 4))
+    assert f.pose_gt[0, 0] == pytest.approx(0.9062491181555123)
+    last = ds[-1]
+    assert last.index == 3 and last.timestamp == pytest.approx(3 / 30)
+
+
+def _warp_error(src, dst, cam: Camera):
+    """Median colour error of ``dst`` resampled into ``src``'s view with ``src``'s depth."""
+    h, w = src.depth.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    z = src.depth
+    valid = z > 0
+    X_c = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], -1)
+    T = np.linalg.inv(dst.pose_gt) @ src.pose_gt
+    Y = X_c @ T[:3, :3].T + T[:3, 3]
+    uu = cam.fx * Y[..., 0] / Y[..., 2] + cam.cx
+    vv = cam.fy * Y[..., 1] / Y[..., 2] + cam.cy
+    inside = valid & (Y[..., 2] > 0.1) & (uu > 1) & (uu < w - 2) & (vv > 1) & (vv < h - 2)
+    warped = cv2.remap(dst.rgb, uu.astype(np.float32), vv.astype(np.float32), cv2.INTER_LINEAR)
+    # Occlusion: the destination's own depth at the landing pixel must agree with the warped depth.
+    zd = cv2.remap(dst.depth, uu.astype(np.float32), vv.astype(np.float32), cv2.INTER_NEAREST)
+    visible = inside & (np.abs(zd - Y[..., 2]) < 0.05 * Y[..., 2])
+    err = np.abs(warped - src.rgb).mean(-1)[visible]
+    still = np.abs(dst.rgb - src.rgb).mean(-1)[visible]
+    return float(np.median(err)), float(np.median(still)), visible.mean()
+
+
+def test_replica_warp_consistency(replica_root):
+    """Depth, poses (camera-to-world) and intrinsics agree: frame 1 warped into frame 0 reproduces it."""
+    ds = ReplicaDataset(replica_root)
+    err, still, frac = _warp_error(ds[0], ds[1], ds.camera)
+    assert frac > 0.5
+    assert err < 0.02 and err < 0.25 * still, (err, still)
+
+
+def test_replica_warp_detects_wrong_convention(replica_root):
+    """The same check fails with the poses read as world-to-camera: the test can tell."""
+    ds = ReplicaDataset(replica_root)
+    a, b = ds[0], ds[3]
+    a.pose_gt, b.pose_gt = np.linalg.inv(a.pose_gt), np.linalg.inv(b.pose_gt)
+    err_wrong, _, _ = _warp_error(a, b, ds.camera)
+    a, b = ds[0], ds[3]
+    err_right, _, _ = _warp_error(a, b, ds.camera)
+    assert err_right < 0.5 * err_wrong
+
+
+def test_sevenscenes_real(shared_data):
+    root = shared_data / "7scenes-redkitchen"
+    ds = SevenScenesDataset(root)
+    assert len(ds) == 500
+    assert (ds.camera.fx, ds.camera.cx, ds.camera.width) == (585.0, 320.0, 640)
+    f = ds[10]
+    raw = cv2.imread(str(root / "frame-000010.depth.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
+    raw[raw == 65535] = 0
+    np.testing.assert_allclose(f.depth, raw / 1000.0, rtol=1e-6)
+    np.testing.assert_allclose(f.pose_gt, np.loadtxt(root / "frame-000010.pose.txt"))
+    sub = SevenScenesDataset(root, start=100, stride=20, max_frames=5, downscale=2)
+    assert len(sub) == 5 and sub[4].pose_gt is not None
+    np.testing.assert_allclose(sub[4].pose_gt, np.loadtxt(root / "frame-000180.pose.txt"))
+    assert sub[0].rgb.shape == (240, 320, 3) and sub[0].depth.shape == (240, 320)
+    assert sub.camera.cx == pytest.approx(159.75)  # (320 + 0.5) / 2 - 0.5
+    gt = sub.gt_poses()
+    assert gt.shape == (5, 4, 4)
+
+
+def test_prefetch_iteration_equals_indexing(shared_data):
+    ds = SevenScenesDataset(shared_data / "7scenes-redkitchen", stride=50, prefetch=3)
+    frames = list(ds)
+    assert len(frames) == len(ds) == 10
+    for i in (0, 4, 9):
+        np.testing.assert_array_equal(frames[i].rgb, ds[i].rgb)
+        assert frames[i].index == i
+
+
+def _make_tum(tmp_path, shared_data, n=3, dt_depth=0.01):
+    root = tmp_path / "rgbd_dataset_freiburg1_test"
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rgb_lines, depth_lines, gt_lines = (
+        ["# color images"],
+        ["# depth maps"],
+        ["# timestamp tx ty tz qx qy qz qw"],
+    )
+    for k in range(n):
+        t = 1305031102.175304 + 0.2 * k
+        shutil.copy(shared_data / "tum-frame" / "TUM_color.png", root / "rgb" / f"{t:.6f}.png")
+        shutil.copy(shared_data / "tum-frame" / "TUM_depth.png", root / "depth" / f"{t + dt_depth:.6f}.png")
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        depth_lines.append(f"{t + dt_depth:.6f} depth/{t + dt_depth:.6f}.png")
+        gt_lines.append(f"{t - 0.004:.4f} {0.1 * k} 0.2 0.3 0 0 0.3826834 0.9238795")
+    (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (root / "groundtruth.txt").write_text("\n".join(gt_lines) + "\n")
+    return root
+
+
+def test_tum_real_frame(tmp_path, shared_data):
+    root = _make_tum(tmp_path, shared_data)
+    ds = TUMDataset(root, undistort=False)
+    assert len(ds) == 3
+    c = ds.camera
+    assert (c.fx, c.fy, c.cx, c.cy) == (517.3, 516.5, 318.6, 255.3)
+    f = ds[1]
+    raw = cv2.imread(str(shared_data / "tum-frame" / "TUM_depth.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(f.depth, raw.astype(np.float32) / np.float32(5000.0))
+    np.testing.assert_allclose(f.pose_gt[:3, 3], [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(f.pose_gt[:3, :3] @ [1, 0, 0], [np.sqrt(0.5), np.sqrt(0.5), 0], atol=1e-6)
+    assert f.timestamp == pytest.approx(1305031102.175304 + 0.2)
+
+    und = TUMDataset(root, undistort=True)
+    assert und.camera.distortion == ()
+    K, dist = TUM_CAMERAS["fr1"].K, np.array(TUM_CAMERAS["fr1"].distortion)
+    expected = cv2.undistort(f.rgb, K, dist, None, K)
+    inner = (slice(40, -40), slice(40, -40))
+    assert np.abs(und[1].rgb[inner] - expected[inner]).mean() < 2e-3
+    assert np.abs(und[1].rgb[inner] - f.rgb[inner]).mean() > 5e-3  # undistortion did something
+
+
+def test_tum_association_tolerance(tmp_path, shared_data):
+    root = _make_tum(tmp_path, shared_data, dt_depth=0.05)
+    assert len(TUMDataset(root, max_dt=0.08, undistort=False)) == 3
+    with pytest.raises(DatasetError, match="max_dt"):
+        TUMDataset(root, max_dt=0.02, undistort=False)
+
+
+def test_associate_one_to_one():
+    t_ref = np.array([0.0, 1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(associate(np.array([0.1, 1.6, 2.95, 5.0]), t_ref, 0.5), [0, 2, 3, -1])
+    # Two queries near the same reference: the closer one gets it, the other the next within range.
+    np.testing.assert_array_equal(associate(np.array([1.1, 0.95]), t_ref, 0.2), [-1, 1])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(0, 100, allow_nan=False), min_size=1, max_size=30),
+    st.lists(st.floats(0, 100, allow_nan=False), min_size=1, max_size=30),
+    st.floats(0, 5),
+)
+def test_associate_properties(tq, tr, tol):
+    tq, tr = np.array(tq), np.array(tr)
+    got = associate(tq, tr, tol)
+    matched = got[got >= 0]
+    assert len(set(matched.tolist())) == len(matched)  # one-to-one
+    for q, g in zip(tq, got, strict=True):
+        if g >= 0:
+            assert abs(tr[g] - q) <= tol
+        else:  # unmatched only if every reference within range went to a closer query
+            near = np.flatnonzero(np.abs(tr - q) <= tol)
+            assert all(j in matched for j in near)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.text(max_size=200))
+def test_parsers_never_crash_with_bare_errors(tmp_path_factory, text):
+    """Arbitrary file contents either parse or raise a DatasetError naming the file."""
+    path = tmp_path_factory.mktemp("fuzz") / "f.txt"
+    path.write_text(text)
+    for parse in (lambda: read_matrix_lines(path), lambda: read_tum_list(path, 7)):
+        try:
+            parse()
+        except DatasetError as e:
+            assert str(path) in str(e)
+
+
+def _copy_replica(src, dst, n=2):
+    (dst / "results").mkdir(parents=True)
+    for k in range(n):
+        shutil.copy(src / "results" / f"frame{k:06d}.jpg", dst / "results")
+        shutil.copy(src / "results" / f"depth{k:06d}.png", dst / "results")
+    lines = (src / "traj.txt").read_text().splitlines()[:n]
+    (dst / "traj.txt").write_text("\n".join(lines) + "\n")
+    return lines
+
+
+def test_errors_name_file_and_problem(tmp_path, replica_root):
+    with pytest.raises(DatasetError, match="does not exist.*\n.*expected layout.*\n.*obtain it from"):
+        ReplicaDataset(tmp_path / "nope")
+    empty = tmp_path / "empty"
+    (empty / "results").mkdir(parents=True)
+    (empty / "traj.txt").write_text("")
+    with pytest.raises(DatasetError, match="no frames found"):
+        ReplicaDataset(empty)
+
+    root = tmp_path / "r1"
+    lines = _copy_replica(replica_root, root)
+    (root / "traj.txt").write_text(lines[0] + "\n" + lines[1].replace(lines[1].split()[3], "nan", 1) + "\n")
+    with pytest.raises(DatasetError, match=r"traj.txt:2: pose has non-finite"):
+        ReplicaDataset(root)
+    (root / "traj.txt").write_text(lines[0] + "\n1 2 3\n")
+    with pytest.raises(DatasetError, match=r"traj.txt:2: expected 16 numbers"):
+        ReplicaDataset(root)
+    (root / "traj.txt").write_text(lines[0] + "\n")
+    with pytest.raises(DatasetError, match="1 poses for 2 images"):
+        ReplicaDataset(root)
+
+    root = tmp_path / "r2"
+    _copy_replica(replica_root, root)
+    jpg = root / "results" / "frame000001.jpg"
+    jpg.write_bytes(jpg.read_bytes()[:5000])
+    ds = ReplicaDataset(root)
+    with pytest.raises(DatasetError, match=r"frame000001.jpg: truncated JPEG"):
+        ds[1]
+    png = root / "results" / "depth000000.png"
+    png.write_bytes(png.read_bytes()[:300])
+    with pytest.raises(DatasetError, match=r"depth000000.png: not a readable depth image"):
+        ds[0]
+
+    root = tmp_path / "r3"
+    _copy_replica(replica_root, root)
+    d = cv2.imread(str(root / "results" / "depth000000.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(root / "results" / "depth000000.png"), d[::2, ::2])
+    with pytest.raises(DatasetError, match="depth is 600x340 but colour is 1200x680"):
+        ReplicaDataset(root)[0]
+    cv2.imwrite(str(root / "results" / "depth000001.png"), d.astype(np.uint8))
+    with pytest.raises(DatasetError, match="16-bit depth PNG"):
+        ReplicaDataset(root)[1]
+
+
+def test_downscale_depth_keeps_edges_invalid():
+    d = np.zeros((4, 4), np.float32)
+    d[:, :2] = 1.0
+    d[:, 2:] = 3.0
+    d[0, 0] = 0.0  # one invalid pixel: the block mean uses the valid ones
+    d[2, 1] = 3.0  # a block straddling an edge becomes invalid
+    out = downscale_depth(d, 2)
+    np.testing.assert_allclose(out, [[1.0, 3.0], [0.0, 3.0]])
