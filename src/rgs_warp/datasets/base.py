@@ -42,8 +42,7 @@ def read_depth(path: Path, scale: float) -> np.ndarray:
         raise DatasetError(f"{path}: not a readable depth image (corrupt or truncated)")
     if img.dtype != np.uint16 or img.ndim != 2:
         raise DatasetError(
-            f"{path}: expected a single-channel 16-bit depth PNG, "
-            f"got dtype {img.dtype} with shape {img.shape}"
+            f"{path}: expected a single-channel 16-bit depth PNG, got dtype {img.dtype} with shape {img.shape}"
         )
     return img.astype(np.float32) / np.float32(scale)
 
@@ -157,10 +156,8 @@ class RGBDDataset:
         i %= len(self)
         frame = self._load_full(self._items[self._indices[i]])
         if frame.depth is not None and frame.depth.shape != frame.rgb.shape[:2]:
-            raise DatasetError(
-                f"{self.root}: frame {self._indices[i]}: "
-                f"depth is {frame.depth.shape[1]}x{frame.depth.shape[0]} but colour is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}"
-            )
+            (dh, dw), (h, w) = frame.depth.shape, frame.rgb.shape[:2]
+            raise DatasetError(f"{self.root}: frame {self._indices[i]}: depth is {dw}x{dh} but colour is {w}x{h}")
         cam = self._native_camera
         if frame.rgb.shape[:2] != (cam.height, cam.width):
             raise DatasetError(

@@ -1,0 +1,30 @@
+"""Evaluation metrics (supplement §3): ATE, PSNR/SSIM/LPIPS/depth L1, mesh Acc/Comp, run report."""
+
+from rgs_warp.eval.ate import ate, ate_keyframes_and_all, umeyama_alignment
+from rgs_warp.eval.photometric import (
+    LPIPS,
+    depth_l1_cm,
+    eval_frame_indices,
+    photometric_metrics,
+    psnr,
+    ssim,
+)
+from rgs_warp.eval.reconstruction import mesh_metrics, sample_surface, tsdf_fuse
+from rgs_warp.eval.report import plot_trajectory_topview, write_report
+
+__all__ = [
+    "LPIPS",
+    "ate",
+    "ate_keyframes_and_all",
+    "depth_l1_cm",
+    "eval_frame_indices",
+    "mesh_metrics",
+    "photometric_metrics",
+    "plot_trajectory_topview",
+    "psnr",
+    "sample_surface",
+    "ssim",
+    "tsdf_fuse",
+    "umeyama_alignment",
+    "write_report",
+]
