@@ -121,7 +121,11 @@ class MappingConfig:
 @dataclass
 class EvalConfig:
     every: int = 5  # §3: photometric metrics on every 5th frame, keyframes excluded
-    lpips_weights: str = ""  # local AlexNet-LPIPS weights; LPIPS is reported as n/a without them
+    # LPIPS needs local weights (nothing is downloaded): torchvision's AlexNet
+    # (alexnet-owt-7be5be79.pth) and LPIPS v0.1's linear layers (alex.pth; may stay empty when the
+    # `lpips` package, which ships them, is installed). Without them LPIPS is reported as n/a.
+    lpips_alexnet_path: str = ""
+    lpips_linear_path: str = ""
 
 
 @dataclass

@@ -1,0 +1,220 @@
+"""Host-side image metrics for evaluation (supplement §3): PSNR, SSIM, LPIPS (AlexNet), depth L1.
+
+SSIM here is the reference the differentiable Warp SSIM (mapping loss) is tested against: Wang et
+al. 2004 with an 11x11 Gaussian window of sigma 1.5, K1 = 0.01, K2 = 0.03, population covariances,
+computed on the valid region only (no padding: the map is (H-10) x (W-10)), per channel, averaged.
+This equals ``skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
+use_sample_covariance=False, data_range=1)``. It is single-scale SSIM, not MS-SSIM; and not the
+zero-padded 'same' variant of the 3DGS training code, which differs near the border.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+
+
+def _check_pair(img: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    img = np.asarray(img, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    if img.shape != ref.shape:
+        raise ValueError(f"image shape {img.shape} differs from reference shape {ref.shape}")
+    if img.ndim not in (2, 3):
+        raise ValueError(f"expected HxW or HxWxC images, got shape {img.shape}")
+    return img, ref
+
+
+def psnr(img: np.ndarray, ref: np.ndarray) -> float:
+    """Peak signal-to-noise ratio in dB of images in [0, 1] (peak 1), MSE over all pixels and
+    channels; ``inf`` for identical images."""
+    img, ref = _check_pair(img, ref)
+    mse = float(np.mean((img - ref) ** 2))
+    return float("inf") if mse == 0.0 else -10.0 * np.log10(mse)
+
+
+def _gaussian_window_1d() -> np.ndarray:
+    x = np.arange(SSIM_WINDOW, dtype=np.float64) - (SSIM_WINDOW - 1) / 2
+    w = np.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+    return w / w.sum()
+
+
+def _filter_valid(x: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """Separable Gaussian filtering of an HxW(xC) array, keeping only the pixels whose whole window
+    lies inside the image (the boundary mode then never matters)."""
+    r = (SSIM_WINDOW - 1) // 2
+    y = correlate1d(correlate1d(x, window, axis=0, mode="nearest"), window, axis=1, mode="nearest")
+    return y[r:-r, r:-r]
+
+
+def ssim(img: np.ndarray, ref: np.ndarray) -> float:
+    """Mean SSIM of images in [0, 1] (HxW or HxWxC; channels averaged); see the module docstring."""
+    img, ref = _check_pair(img, ref)
+    if min(img.shape[:2]) < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {img.shape[:2]}")
+    window = _gaussian_window_1d()
+    mu_x, mu_y = _filter_valid(img, window), _filter_valid(ref, window)
+    var_x = _filter_valid(img * img, window) - mu_x**2
+    var_y = _filter_valid(ref * ref, window) - mu_y**2
+    cov_xy = _filter_valid(img * ref, window) - mu_x * mu_y
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return float(ssim_map.mean())
+
+
+def depth_l1_cm(depth_m: np.ndarray, ref_m: np.ndarray) -> float:
+    """Mean absolute depth difference in cm over pixels valid (finite, > 0) in both HxW maps."""
+    depth_m, ref_m = _check_pair(depth_m, ref_m)
+    valid = np.isfinite(depth_m) & np.isfinite(ref_m) & (depth_m > 0) & (ref_m > 0)
+    if not valid.any():
+        raise ValueError("no pixel has a valid depth in both maps")
+    return float(100.0 * np.mean(np.abs(depth_m[valid] - ref_m[valid])))
+
+
+def eval_frame_indices(n_frames: int, keyframe_indices: Sequence[int], every: int = 5) -> np.ndarray:
+    """Frames scored by the photometric metrics (§3): every ``every``-th frame (0, every, 2*every,
+    ...), keyframes excluded, since the map was fitted to them."""
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    candidates = np.arange(0, n_frames, every)
+    return candidates[~np.isin(candidates, np.asarray(keyframe_indices, dtype=np.int64))]
+
+
+class LPIPS:
+    """LPIPS with the AlexNet backbone (Zhang et al. 2018, v0.1 linear heads), in plain torch.
+
+    Needs two local weight files and downloads nothing: ``alexnet_path``, torchvision's ImageNet
+    AlexNet state dict (``alexnet-owt-7be5be79.pth``, keys ``features.N.weight/bias``), and
+    ``linear_path``, the LPIPS v0.1 heads (``alex.pth``, keys ``linK.model.1.weight``); when
+    ``linear_path`` is None the heads are taken from an installed ``lpips`` package, which ships
+    them. If anything is missing, ``available`` is False, ``reason`` says why and ``__call__``
+    returns None: a metric it cannot compute is reported as "n/a", never as a number.
+    """
+
+    # ImageNet-style input normalisation of LPIPS for inputs in [-1, 1].
+    _SHIFT = (-0.030, -0.088, -0.188)
+    _SCALE = (0.458, 0.448, 0.450)
+    # (out channels, kernel, stride, padding) of AlexNet's five convolutions; torchvision indices
+    # 0, 3, 6, 8, 10 in ``features``; max-pooling (3, stride 2) precedes conv 2 and conv 3.
+    _CONVS = ((64, 11, 4, 2), (192, 5, 1, 2), (384, 3, 1, 1), (256, 3, 1, 1), (256, 3, 1, 1))
+    _FEATURE_INDICES = (0, 3, 6, 8, 10)
+
+    def __init__(self, alexnet_path: str | Path | None, linear_path: str | Path | None = None, device: str = "cpu"):
+        self.available = False
+        self.reason: str | None = None
+        self._device = device
+        try:
+            import torch
+        except ImportError as e:
+            self.reason = f"torch is not importable ({e})"
+            return
+        self._torch = torch
+        if alexnet_path is None:
+            self.reason = "no AlexNet weights path configured"
+            return
+        if not Path(alexnet_path).is_file():
+            self.reason = f"AlexNet weights not found at {alexnet_path}"
+            return
+        if linear_path is None:
+            linear_path = self._lpips_package_heads()
+            if linear_path is None:
+                self.reason = "no LPIPS linear-head weights path configured and the lpips package is not installed"
+                return
+        if not Path(linear_path).is_file():
+            self.reason = f"LPIPS linear-head weights not found at {linear_path}"
+            return
+        try:
+            backbone = torch.load(alexnet_path, map_location=device, weights_only=True)
+            heads = torch.load(linear_path, map_location=device, weights_only=True)
+            self._conv_weights = [
+                (backbone[f"features.{i}.weight"].float(), backbone[f"features.{i}.bias"].float())
+                for i in self._FEATURE_INDICES
+            ]
+            self._head_weights = [heads[f"lin{k}.model.1.weight"].float() for k in range(5)]
+        except (KeyError, RuntimeError, OSError) as e:
+            self.reason = f"could not load LPIPS weights ({type(e).__name__}: {e})"
+            return
+        for (w, _), (channels, kernel, _, _), head in zip(
+            self._conv_weights, self._CONVS, self._head_weights, strict=True
+        ):
+            if w.shape[0] != channels or w.shape[-1] != kernel or head.shape != (1, channels, 1, 1):
+                self.reason = "LPIPS weights do not have AlexNet's layer shapes"
+                return
+        self.available = True
+
+    @staticmethod
+    def _lpips_package_heads() -> Path | None:
+        try:
+            import lpips
+        except ImportError:
+            return None
+        return Path(lpips.__file__).parent / "weights" / "v0.1" / "alex.pth"
+
+    def _features(self, x):
+        F = self._torch.nn.functional
+        taps = []
+        for k, ((w, b), (_, _, stride, padding)) in enumerate(zip(self._conv_weights, self._CONVS, strict=True)):
+            if k in (1, 2):
+                x = F.max_pool2d(x, kernel_size=3, stride=2)
+            x = F.relu(F.conv2d(x, w, b, stride=stride, padding=padding))
+            taps.append(x)
+        return taps
+
+    def __call__(self, img: np.ndarray, ref: np.ndarray) -> float | None:
+        """LPIPS distance of two HxWx3 images in [0, 1] (lower is more similar), or None when
+        unavailable (see ``reason``)."""
+        if not self.available:
+            return None
+        img, ref = _check_pair(img, ref)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise ValueError(f"LPIPS needs HxWx3 images, got {img.shape}")
+        torch = self._torch
+        shift = torch.tensor(self._SHIFT, device=self._device).view(1, 3, 1, 1)
+        scale = torch.tensor(self._SCALE, device=self._device).view(1, 3, 1, 1)
+        batch = torch.from_numpy(np.stack([img, ref]).transpose(0, 3, 1, 2).astype(np.float32))
+        batch = ((2.0 * batch.to(self._device) - 1.0) - shift) / scale
+        with torch.no_grad():
+            distance = 0.0
+            for feats, head in zip(self._features(batch), self._head_weights, strict=True):
+                # Unit-normalise each feature vector across channels (eps as in LPIPS).
+                feats = feats / (torch.sqrt(torch.sum(feats**2, dim=1, keepdim=True)) + 1e-10)
+                diff_sq = (feats[0:1] - feats[1:2]) ** 2
+                distance += float(torch.nn.functional.conv2d(diff_sq, head).mean())
+        return distance
+
+
+def photometric_metrics(
+    renders: Sequence[np.ndarray],
+    refs: Sequence[np.ndarray],
+    lpips_model: LPIPS | None = None,
+    depths_m: Sequence[np.ndarray] | None = None,
+    ref_depths_m: Sequence[np.ndarray] | None = None,
+) -> dict:
+    """Means over the scored frames (pick them with ``eval_frame_indices``) of PSNR, SSIM, LPIPS
+    and depth L1, for ``write_report``. A metric that cannot be computed is None with its reason
+    under ``<name>_na_reason``."""
+    if len(renders) != len(refs) or not renders:
+        raise ValueError(f"need matching non-empty render/reference lists, got {len(renders)}, {len(refs)}")
+    out: dict = {
+        "n_frames": len(renders),
+        "psnr_db": float(np.mean([psnr(x, y) for x, y in zip(renders, refs, strict=True)])),
+        "ssim": float(np.mean([ssim(x, y) for x, y in zip(renders, refs, strict=True)])),
+    }
+    if lpips_model is not None and lpips_model.available:
+        out["lpips"] = float(np.mean([lpips_model(x, y) for x, y in zip(renders, refs, strict=True)]))
+    else:
+        out["lpips"] = None
+        out["lpips_na_reason"] = lpips_model.reason if lpips_model is not None else "no LPIPS model given"
+    if depths_m is None or ref_depths_m is None:
+        out["depth_l1_cm"] = None
+        out["depth_l1_cm_na_reason"] = "no depth given (monocular run or no ground-truth depth)"
+    else:
+        out["depth_l1_cm"] = float(np.mean([depth_l1_cm(d, r) for d, r in zip(depths_m, ref_depths_m, strict=True)]))
+    return out

@@ -1,0 +1,182 @@
+"""PSNR, SSIM (against skimage), LPIPS (against the lpips package), depth L1, the §3 frame protocol,
+and the report writer's handling of metrics that are not available."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from skimage.metrics import structural_similarity
+
+from rgs_warp.eval import (
+    LPIPS,
+    depth_l1_cm,
+    eval_frame_indices,
+    photometric_metrics,
+    psnr,
+    ssim,
+    write_report,
+)
+
+
+@pytest.fixture(scope="module")
+def frames(shared_data):
+    folder = shared_data / "7scenes-redkitchen"
+    return [cv2.imread(str(folder / f"frame-{i:06d}.color.jpg"))[..., ::-1].astype(np.float64) / 255.0 for i in (0, 10)]
+
+
+def _skimage_ssim(a, b):
+    return structural_similarity(
+        a,
+        b,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+        data_range=1.0,
+        channel_axis=-1 if a.ndim == 3 else None,
+    )
+
+
+def test_ssim_matches_skimage(frames):
+    a, b = frames
+    rng = np.random.default_rng(0)
+    noisy = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
+    blurred = cv2.GaussianBlur(a, (7, 7), 2.0)
+    pairs = [(a, b), (a, noisy), (a, blurred), (a[:37, 5:300, 1], b[:37, 5:300, 1]), (a[::7, ::5], noisy[::7, ::5])]
+    for x, y in pairs:
+        ours = ssim(x.astype(np.float32), y.astype(np.float32))
+        assert abs(ours - _skimage_ssim(x.astype(np.float32), y.astype(np.float32))) < 1e-6
+    assert ssim(a, a) == pytest.approx(1.0, abs=1e-12)
+    assert ssim(a, blurred) > ssim(a, noisy) > ssim(a, b) > 0.0
+
+
+def test_ssim_rejects_bad_input(frames):
+    with pytest.raises(ValueError, match="differs"):
+        ssim(frames[0], frames[0][:-1])
+    with pytest.raises(ValueError, match="at least 11x11"):
+        ssim(frames[0][:10], frames[1][:10])
+
+
+def test_psnr_hand_computed():
+    ref = np.zeros((10, 10, 3))
+    assert psnr(ref + 0.1, ref) == pytest.approx(20.0, abs=1e-12)  # MSE 0.01
+    img = ref.copy()
+    img[3, 4, 1] = 0.5  # MSE = 0.25 / 300
+    assert psnr(img, ref) == pytest.approx(10.0 * np.log10(1200.0), abs=1e-12)
+    assert psnr(ref, ref) == float("inf")
+
+
+def test_depth_l1_on_valid_pixels_only():
+    ref = np.array([[1.0, 2.0, 0.0], [4.0, np.nan, 3.0]], dtype=np.float32)
+    depth = np.array([[1.5, 1.0, 9.0], [0.0, 1.0, 3.25]], dtype=np.float32)
+    # Valid in both: (0,0) 0.5 m, (0,1) 1.0 m, (1,2) 0.25 m.
+    assert depth_l1_cm(depth, ref) == pytest.approx(100.0 * 1.75 / 3, rel=1e-6)
+    with pytest.raises(ValueError, match="no pixel"):
+        depth_l1_cm(np.zeros((2, 2)), np.ones((2, 2)))
+
+
+def test_eval_frame_indices():
+    np.testing.assert_array_equal(eval_frame_indices(23, [0, 10, 12]), [5, 15, 20])
+    np.testing.assert_array_equal(eval_frame_indices(10, [], every=3), [0, 3, 6, 9])
+    with pytest.raises(ValueError):
+        eval_frame_indices(10, [], every=0)
+
+
+_CONVS = ((3, 64, 11), (64, 192, 5), (192, 384, 3), (384, 256, 3), (256, 256, 3))
+
+
+def _synthetic_lpips_weights(tmp_path):
+    """AlexNet-shaped random weights (torchvision key names) and non-negative LPIPS heads."""
+    import torch
+
+    rng = np.random.default_rng(0)
+    backbone, heads = {}, {}
+    for (cin, cout, k), i in zip(_CONVS, (0, 3, 6, 8, 10), strict=True):
+        weight = rng.normal(0, np.sqrt(2 / (cin * k * k)), (cout, cin, k, k))
+        backbone[f"features.{i}.weight"] = torch.from_numpy(weight.astype(np.float32))
+        backbone[f"features.{i}.bias"] = torch.from_numpy(rng.normal(0, 0.01, cout).astype(np.float32))
+    for n, (_, cout, _) in enumerate(_CONVS):
+        heads[f"lin{n}.model.1.weight"] = torch.from_numpy(
+            np.abs(rng.normal(0, 0.1, (1, cout, 1, 1))).astype(np.float32)
+        )
+    torch.save(backbone, tmp_path / "alexnet.pth")
+    torch.save(heads, tmp_path / "heads.pth")
+    return tmp_path / "alexnet.pth", tmp_path / "heads.pth"
+
+
+def test_lpips_matches_reference_value(frames, tmp_path):
+    # Reference: lpips 0.1.4 (LPIPS(net="alex"), normalize=True) with these same synthetic weights
+    # loaded into its AlexNet slices and linear heads, on the same two frames.
+    reference = 0.029268525540828705
+    model = LPIPS(*_synthetic_lpips_weights(tmp_path))
+    assert model.available and model.reason is None
+    a, b = frames
+    assert model(a, b) == pytest.approx(reference, rel=1e-5)
+    assert model(b, a) == pytest.approx(reference, rel=1e-5)
+    assert model(a, a) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_lpips_package_agrees_when_installed(frames, tmp_path):
+    lpips = pytest.importorskip("lpips")
+    import torch
+
+    alexnet_path, heads_path = _synthetic_lpips_weights(tmp_path)
+    backbone, heads = torch.load(alexnet_path), torch.load(heads_path)
+    reference = lpips.LPIPS(net="alex", pretrained=False, pnet_rand=True, verbose=False).eval()
+    for i, k in zip((0, 3, 6, 8, 10), range(1, 6), strict=True):
+        conv = getattr(reference.net, f"slice{k}")._modules[str(i)]
+        conv.weight.data.copy_(backbone[f"features.{i}.weight"])
+        conv.bias.data.copy_(backbone[f"features.{i}.bias"])
+    for n in range(5):
+        getattr(reference, f"lin{n}").model[1].weight.data.copy_(heads[f"lin{n}.model.1.weight"])
+    a, b = (torch.from_numpy(x.transpose(2, 0, 1)[None].astype(np.float32)) for x in frames)
+    with torch.no_grad():
+        expected = reference(a, b, normalize=True).item()
+    assert LPIPS(alexnet_path, heads_path)(*frames) == pytest.approx(expected, rel=1e-5)
+
+
+def test_lpips_unavailable_is_reported_not_invented(frames, tmp_path):
+    model = LPIPS(None)
+    assert not model.available and "no AlexNet weights path" in model.reason
+    assert model(*frames) is None
+    missing = tmp_path / "nowhere" / "alexnet.pth"
+    model = LPIPS(missing, tmp_path / "heads.pth")
+    assert model(*frames) is None and str(missing) in model.reason
+    torch = pytest.importorskip("torch")
+    alexnet_path, heads_path = _synthetic_lpips_weights(tmp_path)
+    torch.save({"features.0.weight": torch.zeros(3)}, tmp_path / "broken.pth")
+    assert "could not load" in LPIPS(tmp_path / "broken.pth", heads_path).reason
+    wrong_heads = {f"lin{n}.model.1.weight": torch.zeros(1, 7, 1, 1) for n in range(5)}
+    torch.save(wrong_heads, tmp_path / "wrong_heads.pth")
+    assert "layer shapes" in LPIPS(alexnet_path, tmp_path / "wrong_heads.pth").reason
+
+
+def test_photometric_metrics_and_report(frames, tmp_path):
+    a, b = frames
+    depth = np.full(a.shape[:2], 2.0, dtype=np.float32)
+    out = photometric_metrics([a, b], [a, a], LPIPS(None), [depth, depth], [depth + 0.01, depth])
+    assert out["psnr_db"] == float("inf")  # a frame identical to its reference
+    assert out["ssim"] == pytest.approx((1.0 + ssim(b, a)) / 2, abs=1e-12)
+    assert out["depth_l1_cm"] == pytest.approx(0.5, abs=1e-5)
+    assert out["lpips"] is None and "no AlexNet weights path" in out["lpips_na_reason"]
+
+    out["psnr_db"] = psnr(b, a)
+    metrics = {
+        "dataset": "redkitchen",
+        "ate": {"keyframes": {"rmse_cm": 1.23456, "n_poses": 12}, "all_frames": {"rmse_cm": 2.5}},
+        "photometric": out,
+        "align_T": np.eye(4),
+    }
+    json_path, md_path = write_report(tmp_path / "run", metrics)
+    loaded = json.loads(json_path.read_text())
+    assert loaded["photometric"]["lpips"] is None
+    assert loaded["align_T"] == np.eye(4).tolist()
+    markdown = md_path.read_text()
+    assert "| psnr (dB) | ssim | lpips | depth_l1 (cm) |" in markdown
+    assert f"n/a ({out['lpips_na_reason']})" in markdown
+    assert "| keyframes | 1.235 | 12 |" in markdown and "| all_frames | 2.5 |  |" in markdown
+
+    with pytest.raises(ValueError, match="photometric.lpips is None without a reason"):
+        write_report(tmp_path / "bad", {"photometric": {"lpips": None}})
+    json_path, _ = write_report(tmp_path / "inf", {"psnr_db": float("inf")})
+    assert json.loads(json_path.read_text())["psnr_db"] == "inf"
