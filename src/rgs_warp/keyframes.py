@@ -1,0 +1,113 @@
+"""Keyframe scheduling by co-visibility (supplement §4.3) and the bounded keyframe buffer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from rgs_warp.config import KeyframeConfig
+from rgs_warp.geometry import invert_pose, rotation_angle_deg
+from rgs_warp.kernels.covisibility import visibility_iou
+
+
+@dataclass
+class KeyframeDecision:
+    is_keyframe: bool
+    iou: float  # Eq. 9 against the last keyframe (1.0 before the first keyframe has a mask)
+    translation_m: float  # relative to the last keyframe
+    rotation_deg: float
+    reason: str
+
+
+class KeyframeSelector:
+    """A frame becomes a keyframe when its visibility IoU with the last keyframe falls below
+    ``iou_threshold`` AND it moved by more than ``min_translation_m`` or ``min_rotation_deg``
+    (the bounds keep near-duplicate viewpoints out, which would add cost but no baseline).
+    The first frame is always a keyframe."""
+
+    def __init__(self, cfg: KeyframeConfig, width: int, height: int, device: str):
+        self.cfg = cfg
+        self.device = device
+        self._last_mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
+        self._mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
+        self._counts = wp.zeros(2, dtype=wp.int32, device=device)
+        self._last_pose: np.ndarray | None = None
+
+    def should_add(self, alpha: wp.array2d, T_WC: np.ndarray) -> KeyframeDecision:
+        """Decide on a tracked frame from its rendered accumulated opacity and pose."""
+        if alpha.shape != self._mask.shape:
+            raise ValueError(f"alpha is {alpha.shape}, the selector was built for {self._mask.shape}")
+        if self._last_pose is None:
+            visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
+            return KeyframeDecision(True, 1.0, 0.0, 0.0, "first frame")
+        visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
+        inter, union = self._counts.numpy()
+        iou = float(inter) / float(union) if union > 0 else 0.0
+        rel = invert_pose(self._last_pose) @ T_WC
+        dt = float(np.linalg.norm(rel[:3, 3]))
+        drot = rotation_angle_deg(rel[:3, :3])
+        moved = dt > self.cfg.min_translation_m or drot > self.cfg.min_rotation_deg
+        if iou < self.cfg.iou_threshold and moved:
+            return KeyframeDecision(True, iou, dt, drot, f"IoU {iou:.3f} < {self.cfg.iou_threshold}")
+        reason = "overlap high" if iou >= self.cfg.iou_threshold else "motion below bounds"
+        return KeyframeDecision(False, iou, dt, drot, reason)
+
+    def accept(self, T_WC: np.ndarray) -> None:
+        """Make the frame last passed to ``should_add`` the reference keyframe."""
+        wp.copy(self._last_mask, self._mask)
+        self._last_pose = np.array(T_WC, dtype=np.float64)
+
+
+class KeyframeBuffer:
+    """Bounded buffer of the most recent keyframes (§4.3: 8-12), in preallocated device slots.
+
+    Eviction: when full, the oldest keyframe leaves (first in, first out). The buffer serves
+    triangulation baselines and the local mapping window, both of which want recent viewpoints;
+    long-range revisits are the map's job, not the buffer's.
+    """
+
+    def __init__(self, capacity: int, width: int, height: int, device: str):
+        if not 2 <= capacity:
+            raise ValueError(f"keyframe buffer capacity must be >= 2, got {capacity}")
+        self.capacity = capacity
+        self.device = device
+        self.rgb = wp.zeros((capacity, height, width), dtype=wp.vec3, device=device)
+        self.depth = wp.zeros((capacity, height, width), dtype=wp.float32, device=device)
+        self.poses = np.tile(np.eye(4), (capacity, 1, 1))  # camera-to-world, refined by mapping
+        self.exposure = np.tile(np.array([1.0, 0.0]), (capacity, 1))  # (g, b) of Eq. 3
+        self.frame_ids = np.full(capacity, -1, dtype=np.int64)
+        self.descriptors: list = [None] * capacity  # filled by the DenseMatcher
+        self._order: list[int] = []  # slots, oldest first
+
+    def __len__(self) -> int:
+        return len(self._order)
+
+    def slots(self) -> list[int]:
+        """Occupied slots, oldest first."""
+        return list(self._order)
+
+    def add(self, frame_id: int, T_WC: np.ndarray, rgb, depth=None, exposure=(1.0, 0.0)) -> int:
+        """Store a keyframe (rgb HxWx3 / depth HxW as NumPy or device arrays); returns its slot."""
+        if len(self._order) == self.capacity:
+            slot = self._order.pop(0)
+        else:
+            slot = next(s for s in range(self.capacity) if s not in self._order)
+        _copy_into(self.rgb, slot, rgb, wp.vec3)
+        if depth is not None:
+            _copy_into(self.depth, slot, depth, wp.float32)
+        else:
+            self.depth[slot].zero_()
+        self.poses[slot] = T_WC
+        self.exposure[slot] = exposure
+        self.frame_ids[slot] = frame_id
+        self.descriptors[slot] = None
+        self._order.append(slot)
+        return slot
+
+
+def _copy_into(dst: wp.array, slot: int, src, dtype) -> None:
+    if isinstance(src, np.ndarray):
+        src = wp.array(np.ascontiguousarray(src, dtype=np.float32), dtype=dtype, device=dst.device)
+    wp.copy(dst[slot], src)

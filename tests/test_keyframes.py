@@ -1,0 +1,68 @@
+"""Co-visibility IoU on the device against NumPy; keyframe decisions; FIFO keyframe buffer."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from rgs_warp.config import KeyframeConfig
+from rgs_warp.geometry import se3_exp
+from rgs_warp.kernels.covisibility import visibility_iou
+from rgs_warp.keyframes import KeyframeBuffer, KeyframeSelector
+
+
+def test_visibility_iou_matches_numpy(device):
+    rng = np.random.default_rng(0)
+    alpha = rng.random((37, 53)).astype(np.float32)
+    last = (rng.random((37, 53)) > 0.4).astype(np.uint8)
+    mask = wp.zeros((37, 53), dtype=wp.uint8, device=device)
+    counts = wp.zeros(2, dtype=wp.int32, device=device)
+    for _ in range(2):  # counts are reset on every call
+        visibility_iou(wp.array(alpha, device=device), wp.array(last, device=device), 0.3, mask, counts)
+    vis = alpha > 0.3
+    np.testing.assert_array_equal(mask.numpy(), vis.astype(np.uint8))
+    np.testing.assert_array_equal(counts.numpy(), [(vis & (last > 0)).sum(), (vis | (last > 0)).sum()])
+
+
+def _alpha(width, height, x0, x1, device):
+    a = np.zeros((height, width), np.float32)
+    a[:, x0:x1] = 0.9
+    return wp.array(a, device=device)
+
+
+def test_selector_decisions(device):
+    cfg = KeyframeConfig(iou_threshold=0.8, alpha_threshold=0.5, min_translation_m=0.05, min_rotation_deg=5.0)
+    sel = KeyframeSelector(cfg, 40, 10, device)
+    T0 = np.eye(4)
+    d = sel.should_add(_alpha(40, 10, 0, 20, device), T0)
+    assert d.is_keyframe and d.reason == "first frame"
+    sel.accept(T0)
+    # Same view: IoU 1, no keyframe.
+    d = sel.should_add(_alpha(40, 10, 0, 20, device), T0)
+    assert not d.is_keyframe and d.iou == pytest.approx(1.0)
+    # Half the visible area changed (IoU 10/30) and moved 10 cm: keyframe.
+    T1 = se3_exp(np.array([0.1, 0, 0, 0, 0, 0]))
+    d = sel.should_add(_alpha(40, 10, 10, 30, device), T1)
+    assert d.is_keyframe and d.iou == pytest.approx(1 / 3) and d.translation_m == pytest.approx(0.1)
+    # Same low overlap but hardly moved: rejected by the motion bounds.
+    T2 = se3_exp(np.array([0.01, 0, 0, 0, 0.01, 0]))
+    d = sel.should_add(_alpha(40, 10, 10, 30, device), T2)
+    assert not d.is_keyframe and d.reason == "motion below bounds"
+    # A rotation above the bound alone suffices.
+    T3 = se3_exp(np.array([0, 0, 0, 0, np.radians(8), 0]))
+    d = sel.should_add(_alpha(40, 10, 10, 30, device), T3)
+    assert d.is_keyframe and d.rotation_deg == pytest.approx(8.0)
+    sel.accept(T3)
+    d = sel.should_add(_alpha(40, 10, 10, 30, device), T3)
+    assert d.iou == pytest.approx(1.0)  # the accepted frame's mask is now the reference
+
+
+def test_buffer_fifo(device):
+    buf = KeyframeBuffer(3, 4, 2, device)
+    for k in range(5):
+        rgb = np.full((2, 4, 3), k, np.float32)
+        buf.add(frame_id=10 * k, T_WC=np.eye(4) * (k + 1), rgb=rgb, depth=np.full((2, 4), k, np.float32))
+    assert len(buf) == 3
+    slots = buf.slots()
+    assert [buf.frame_ids[s] for s in slots] == [20, 30, 40]
+    np.testing.assert_array_equal(buf.rgb.numpy()[slots[-1]], np.full((2, 4, 3), 4))
+    np.testing.assert_array_equal(buf.depth.numpy()[slots[0]], np.full((2, 4), 2))
