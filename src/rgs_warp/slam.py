@@ -93,12 +93,12 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    device = resolve_device(cfg.device)
     try:
-        ds = open_dataset(cfg)
+        ds = open_dataset(cfg, device=device)
     except (DatasetError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    device = resolve_device(cfg.device)
     run_dir = make_run_dir(cfg)
     save_config(cfg, run_dir / "config.yaml")
     t0 = time.perf_counter()

@@ -7,6 +7,7 @@ import os
 from rgs_warp.datasets.base import DatasetError, RGBDDataset
 from rgs_warp.datasets.replica import ReplicaDataset
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
+from rgs_warp.datasets.synthetic import SyntheticDataset
 from rgs_warp.datasets.tum import TUMDataset
 
 __all__ = [
@@ -14,13 +15,15 @@ __all__ = [
     "RGBDDataset",
     "ReplicaDataset",
     "SevenScenesDataset",
+    "SyntheticDataset",
     "TUMDataset",
     "open_dataset",
 ]
 
 
-def open_dataset(cfg) -> RGBDDataset:
-    """The dataset named by a ``Config`` (its ``dataset`` section and ``data_root``)."""
+def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
+    """The dataset named by a ``Config`` (its ``dataset`` section and ``data_root``); ``device`` is
+    where a synthetic sequence is rendered if it is not cached yet."""
     d = cfg.dataset
     if d.type != "synthetic":
         path = cfg.dataset_path()
@@ -29,29 +32,34 @@ def open_dataset(cfg) -> RGBDDataset:
                 ("data_root=" + cfg.data_root)
                 if cfg.data_root
                 else (
-                    "$RGS_DATA"
-                    if os.environ.get("RGS_DATA")
-                    else "the current directory (no data_root= or $RGS_DATA)"
+                    "$RGS_DATA" if os.environ.get("RGS_DATA") else "the current directory (no data_root= or $RGS_DATA)"
                 )
             )
             loader = {"replica": ReplicaDataset, "7scenes": SevenScenesDataset, "tum": TUMDataset}.get(d.type)
-            hint = (
-                f"\n  expected layout: {loader.layout}\n  obtain it from: {loader.source}" if loader else ""
-            )
+            hint = f"\n  expected layout: {loader.layout}\n  obtain it from: {loader.source}" if loader else ""
             raise DatasetError(
                 f"dataset {d.type}/{d.name}: folder {path.resolve()} does not exist\n"
                 f"  (dataset.path={d.path!r} relative to {origin}; set data_root=... or RGS_DATA, or an "
                 f"absolute dataset.path=...){hint}"
             )
-    common = dict(
-        stride=d.stride, start=d.start, max_frames=d.max_frames, downscale=d.downscale, prefetch=d.prefetch
-    )
+    common = dict(stride=d.stride, start=d.start, max_frames=d.max_frames, downscale=d.downscale, prefetch=d.prefetch)
     if d.type == "replica":
         return ReplicaDataset(cfg.dataset_path(), **common)
     if d.type == "7scenes":
         return SevenScenesDataset(cfg.dataset_path(), **common)
     if d.type == "tum":
-        return TUMDataset(
-            cfg.dataset_path(), camera=d.camera, max_dt=d.max_dt, undistort=d.undistort, **common
+        return TUMDataset(cfg.dataset_path(), camera=d.camera, max_dt=d.max_dt, undistort=d.undistort, **common)
+    if d.type == "synthetic":
+        return SyntheticDataset(
+            d.name,
+            width=d.width,
+            height=d.height,
+            n_frames=d.n_frames,
+            depth_noise_m=d.depth_noise_m,
+            exposure_drift=d.exposure_drift,
+            motion_blur=d.motion_blur,
+            seed=d.seed,
+            device=device,
+            **common,
         )
     raise DatasetError(f"dataset.type {d.type!r} has no loader")

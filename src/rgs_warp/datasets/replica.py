@@ -40,6 +40,23 @@ def read_matrix_lines(path: Path, n_rows: int | None = None) -> np.ndarray:
     return np.array(poses).reshape(-1, 4, 4)
 
 
+def read_cam_params(path: Path, default_scale: float = REPLICA_DEPTH_SCALE) -> tuple[Camera, float]:
+    """Camera and depth scale from a NICE-SLAM style ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}``."""
+    try:
+        c = json.loads(path.read_text())["camera"]
+        cam = Camera(
+            fx=float(c["fx"]),
+            fy=float(c["fy"]),
+            cx=float(c["cx"]),
+            cy=float(c["cy"]),
+            width=int(c["w"]),
+            height=int(c["h"]),
+        )
+        return cam, float(c.get("scale", default_scale))
+    except (ValueError, KeyError, TypeError) as e:
+        raise DatasetError(f"{path}: malformed camera parameters ({type(e).__name__}: {e})") from None
+
+
 class ReplicaDataset(RGBDDataset):
     layout = "<root>/results/frame000000.jpg, <root>/results/depth000000.png, <root>/traj.txt"
     source = (
@@ -70,9 +87,7 @@ class ReplicaDataset(RGBDDataset):
             ids.append(int(m.group(1)))
         if ids != list(range(len(ids))):
             missing = sorted(set(range(max(ids, default=-1) + 1)) - set(ids))[:5]
-            raise DatasetError(
-                f"{results}: frame numbers are not consecutive from 0 (missing e.g. {missing})"
-            )
+            raise DatasetError(f"{results}: frame numbers are not consecutive from 0 (missing e.g. {missing})")
         self._camera_and_scale()
         self._poses = read_matrix_lines(self.root / "traj.txt", n_rows=len(frames))
         if len(self._poses) < len(frames):
@@ -82,26 +97,12 @@ class ReplicaDataset(RGBDDataset):
 
     def _camera_and_scale(self) -> None:
         self._native_camera, self.depth_scale = REPLICA_CAMERA, REPLICA_DEPTH_SCALE
+        self.cam_params_path = None
         for cand in (self.root / "cam_params.json", self.root.parent / "cam_params.json"):
             if cand.is_file():
-                try:
-                    c = json.loads(cand.read_text())["camera"]
-                    self._native_camera = Camera(
-                        fx=float(c["fx"]),
-                        fy=float(c["fy"]),
-                        cx=float(c["cx"]),
-                        cy=float(c["cy"]),
-                        width=int(c["w"]),
-                        height=int(c["h"]),
-                    )
-                    self.depth_scale = float(c.get("scale", REPLICA_DEPTH_SCALE))
-                except (ValueError, KeyError, TypeError) as e:
-                    raise DatasetError(
-                        f"{cand}: malformed camera parameters ({type(e).__name__}: {e})"
-                    ) from None
+                self._native_camera, self.depth_scale = read_cam_params(cand, REPLICA_DEPTH_SCALE)
                 self.cam_params_path = cand
                 return
-        self.cam_params_path = None
 
     def _load_full(self, j: int) -> Frame:
         res = self.root / "results"

@@ -16,9 +16,7 @@ KINECT_FPS = 30.0
 
 
 class SevenScenesDataset(RGBDDataset):
-    layout = (
-        "<root>/frame-000000.color.jpg, frame-000000.depth.png, frame-000000.pose.txt (one sequence folder)"
-    )
+    layout = "<root>/frame-000000.color.jpg, frame-000000.depth.png, frame-000000.pose.txt (one sequence folder)"
     source = "https://www.microsoft.com/en-us/research/project/rgb-d-dataset-7-scenes/ (seq-XX folders)"
 
     def __init__(
@@ -40,9 +38,7 @@ class SevenScenesDataset(RGBDDataset):
         if not colour:
             seqs = sorted(p.name for p in self.root.glob("seq-*") if p.is_dir())
             hint = f" It has sequence folders {seqs}: point the path at one of them." if seqs else ""
-            raise DatasetError(
-                f"{self.root}: no frame-XXXXXX.color.jpg files (expected layout: {self.layout}).{hint}"
-            )
+            raise DatasetError(f"{self.root}: no frame-XXXXXX.color.jpg files (expected layout: {self.layout}).{hint}")
         self._native_camera = self._read_intrinsics()
         self._items = [(colour[k], self._read_pose(colour[k])) for k in sorted(colour)]
         self._select()
@@ -80,9 +76,7 @@ class SevenScenesDataset(RGBDDataset):
         depth = read_depth(self._sibling(colour_path, ".depth.png"), 1000.0)
         depth[depth >= 65.535] = 0.0  # 65535 marks missing depth in 7-Scenes
         idx = int(colour_path.name[6:12])
-        return Frame(
-            rgb=read_rgb(colour_path), depth=depth, pose_gt=pose.copy(), timestamp=idx / KINECT_FPS, index=idx
-        )
+        return Frame(rgb=read_rgb(colour_path), depth=depth, pose_gt=pose.copy(), timestamp=idx / KINECT_FPS, index=idx)
 
     def _gt_pose(self, item) -> np.ndarray:
         return item[1].copy()

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
+from rgs_warp.datasets.replica import read_cam_params
 from rgs_warp.geometry import pose_from_tq
 from rgs_warp.types import Camera, Frame
 
@@ -28,18 +29,14 @@ def read_tum_list(path: Path, n_values: int) -> tuple[np.ndarray, list[list[str]
     try:
         lines = path.read_text().splitlines()
     except FileNotFoundError:
-        raise DatasetError(
-            f"{path}: file not found (TUM layout needs rgb.txt, depth.txt, groundtruth.txt)"
-        ) from None
+        raise DatasetError(f"{path}: file not found (TUM layout needs rgb.txt, depth.txt, groundtruth.txt)") from None
     stamps, rows = [], []
     for lineno, line in enumerate(lines, 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         parts = line.split()
         if len(parts) != n_values + 1:
-            raise DatasetError(
-                f"{path}:{lineno}: expected {n_values + 1} fields, found {len(parts)}: {line[:80]!r}"
-            )
+            raise DatasetError(f"{path}:{lineno}: expected {n_values + 1} fields, found {len(parts)}: {line[:80]!r}")
         try:
             t = float(parts[0])
         except ValueError:
@@ -76,7 +73,8 @@ def camera_for_sequence(root: Path) -> Camera:
     m = re.search(r"freiburg([123])", root.name)
     if m is None:
         raise DatasetError(
-            f"{root}: cannot tell the TUM camera (fr1/fr2/fr3) from the folder name; set dataset.camera"
+            f"{root}: cannot tell the TUM camera (fr1/fr2/fr3) from the folder name; set dataset.camera "
+            f"or put a cam_params.json ({{'camera': {{'w', 'h', 'fx', 'fy', 'cx', 'cy'}}}}) in the folder"
         )
     return TUM_CAMERAS[f"fr{m.group(1)}"]
 
@@ -100,7 +98,9 @@ class TUMDataset(RGBDDataset):
         require_pose: bool = True,
     ):
         super().__init__(root, stride, start, max_frames, downscale, prefetch)
-        if camera == "auto":
+        if camera == "auto" and (self.root / "cam_params.json").is_file():
+            cam = read_cam_params(self.root / "cam_params.json")[0]
+        elif camera == "auto":
             cam = camera_for_sequence(self.root)
         elif camera in TUM_CAMERAS:
             cam = TUM_CAMERAS[camera]
@@ -122,9 +122,7 @@ class TUMDataset(RGBDDataset):
         if gt_path.is_file():
             t_gt, gt_rows = read_tum_list(gt_path, 7)
         elif require_pose:
-            raise DatasetError(
-                f"{gt_path}: file not found (set dataset.require_pose=false to run without it)"
-            )
+            raise DatasetError(f"{gt_path}: file not found (set dataset.require_pose=false to run without it)")
         else:
             t_gt, gt_rows = np.zeros(0), []
         gt_poses = []
@@ -164,8 +162,7 @@ class TUMDataset(RGBDDataset):
         cam = self._native_camera
         if rgb.shape[:2] != (cam.height, cam.width):
             raise DatasetError(
-                f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is "
-                f"{cam.width}x{cam.height}"
+                f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is {cam.width}x{cam.height}"
             )
         if self._undistort_maps is not None:
             mx, my = self._undistort_maps
@@ -173,9 +170,7 @@ class TUMDataset(RGBDDataset):
             if depth is not None:
                 # Nearest: interpolating depth across an edge would invent points between surfaces.
                 depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        return Frame(
-            rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t), index=0
-        )
+        return Frame(rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t), index=0)
 
     def _gt_pose(self, item):
         return None if item[3] is None else item[3].copy()
