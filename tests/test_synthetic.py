@@ -14,7 +14,7 @@ import pytest
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig, SyntheticDataset, build_scene, write_sequence
 from rgs_warp.datasets.synthetic import dataset as synthetic_dataset
 from rgs_warp.datasets.synthetic.render import SceneRenderer
-from rgs_warp.datasets.tum import associate, read_tum_list
+from rgs_warp.datasets.tum import TUMDataset, associate, read_tum_list
 from rgs_warp.geometry import invert_pose, quat_to_matrix, rotation_angle_deg
 
 SMALL = dict(width=96, height=54)
@@ -213,6 +213,12 @@ def test_tum_layout_parses_and_associates(tmp_path, device):
     T[:3, :3], T[:3, 3] = quat_to_matrix(gt[k, 3:]), gt[k, :3]
     rel = invert_pose(T) @ seq.poses[4]
     assert np.linalg.norm(rel[:3, 3]) < 0.02 and rotation_angle_deg(rel[:3, :3]) < 1.0
+
+    # The real loader reads the folder: camera from cam_params.json, depth / 5000, associated poses.
+    ds = TUMDataset(tmp_path, max_dt=0.02)
+    assert len(ds) == 8 and (ds.camera.width, ds.camera.height, ds.camera.cx) == (96, 54, cfg.cx or 47.5)
+    np.testing.assert_allclose(ds[4].depth, depth.astype(np.float32) / 5000.0)
+    np.testing.assert_allclose(ds[4].pose_gt, T, atol=1e-9)
 
 
 def test_images_have_texture_and_textureless_regions(room):
