@@ -1,0 +1,493 @@
+"""Per-Gaussian stages of the rasterizer: EWA projection, SH colour, tile binning, and their backward.
+
+Every adjoint here is written by hand (the pose gradient is the analytic one of supplement §4.2 and
+must be reduced per block, which auto-generated adjoints cannot do), so the module compiles no
+backward code.
+
+Projection (3DGS, Zwicker et al. EWA splatting), for a Gaussian with mean m, unit quaternion q,
+scales s = exp(log_s), camera-from-world rotation W and translation t:
+    X = W m + t,  Sigma = R(q) S S^T R(q)^T,  Sigma_c = W Sigma W^T,
+    J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]  (x/z, y/z clamped to the widened frustum),
+    Sigma_2d = J Sigma_c J^T + 0.3 I  (low-pass dilation),  conic = Sigma_2d^-1,
+    mean2d = (fx x/z + cx, fy y/z + cy)  (pixel centres at integer coordinates, see types.py).
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+TILE_SIZE = 16
+# Skip threshold of the compositing (3DGS): contributions with alpha below 1/255 are invisible in
+# 8-bit output and are dropped; the projection's radius is derived from the same threshold.
+ALPHA_MIN = 1.0 / 255.0
+COV2D_DILATION = 0.3
+# Frustum widening for the Jacobian clamp (3DGS/gsplat: 1.3 x the half field of view): bounds the
+# linearisation error of Gaussians far outside the image, whose x/z would otherwise explode J.
+FRUSTUM_MARGIN = 0.3
+PROJECT_BLOCK = 256
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2_0 = 1.0925484305920792
+SH_C2_1 = -1.0925484305920792
+SH_C2_2 = 0.31539156525252005
+SH_C2_3 = -1.0925484305920792
+SH_C2_4 = 0.5462742152960396
+SH_C3_0 = -0.5900435899266435
+SH_C3_1 = 2.890611442640554
+SH_C3_2 = -0.4570457994644658
+SH_C3_3 = 0.3731763325901154
+SH_C3_4 = -0.4570457994644658
+SH_C3_5 = 1.445305721320277
+SH_C3_6 = -0.5900435899266435
+
+# Per-Gaussian screen-space gradient accumulated by the compositing backward:
+# (d/du, d/dv, d/dconic_a, d/dconic_b, d/dconic_c, d/dopacity, d/dr, d/dg, d/db, d/ddepth).
+vec10 = wp.types.vector(length=10, dtype=wp.float32)
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
+
+
+@wp.struct
+class CameraParams:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
+    near: float
+    # clamp range of x/z and y/z in the projection Jacobian
+    tan_x_min: float
+    tan_x_max: float
+    tan_y_min: float
+    tan_y_max: float
+
+
+@wp.func
+def quat_to_rot(q: wp.quat):
+    x = q[0]
+    y = q[1]
+    z = q[2]
+    w = q[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - z * w),
+        2.0 * (x * z + y * w),
+        2.0 * (x * y + z * w),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - x * w),
+        2.0 * (x * z - y * w),
+        2.0 * (y * z + x * w),
+        1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+@wp.func
+def quat_to_rot_vjp(q: wp.quat, g: wp.mat33):
+    """Gradient w.r.t. the (unit) quaternion of <g, quat_to_rot(q)>."""
+    x = q[0]
+    y = q[1]
+    z = q[2]
+    w = q[3]
+    gx = 2.0 * (y * (g[0, 1] + g[1, 0]) + z * (g[0, 2] + g[2, 0]) + w * (g[2, 1] - g[1, 2])) - 4.0 * x * (
+        g[1, 1] + g[2, 2]
+    )
+    gy = 2.0 * (x * (g[0, 1] + g[1, 0]) + z * (g[1, 2] + g[2, 1]) + w * (g[0, 2] - g[2, 0])) - 4.0 * y * (
+        g[0, 0] + g[2, 2]
+    )
+    gz = 2.0 * (x * (g[0, 2] + g[2, 0]) + y * (g[1, 2] + g[2, 1]) + w * (g[1, 0] - g[0, 1])) - 4.0 * z * (
+        g[0, 0] + g[1, 1]
+    )
+    gw = 2.0 * (z * (g[1, 0] - g[0, 1]) + y * (g[0, 2] - g[2, 0]) + x * (g[2, 1] - g[1, 2]))
+    return wp.quat(gx, gy, gz, gw)
+
+
+@wp.func
+def sh_basis(k: int, d: wp.vec3):
+    """Real SH basis function k (3DGS constants and signs) at unit direction d, and its gradient in d
+    (taken with x, y, z independent; the caller projects out the radial part)."""
+    x = d[0]
+    y = d[1]
+    z = d[2]
+    if k == 0:
+        return SH_C0, wp.vec3(0.0)
+    if k == 1:
+        return -SH_C1 * y, wp.vec3(0.0, -SH_C1, 0.0)
+    if k == 2:
+        return SH_C1 * z, wp.vec3(0.0, 0.0, SH_C1)
+    if k == 3:
+        return -SH_C1 * x, wp.vec3(-SH_C1, 0.0, 0.0)
+    if k == 4:
+        return SH_C2_0 * x * y, SH_C2_0 * wp.vec3(y, x, 0.0)
+    if k == 5:
+        return SH_C2_1 * y * z, SH_C2_1 * wp.vec3(0.0, z, y)
+    if k == 6:
+        return SH_C2_2 * (2.0 * z * z - x * x - y * y), SH_C2_2 * wp.vec3(-2.0 * x, -2.0 * y, 4.0 * z)
+    if k == 7:
+        return SH_C2_3 * x * z, SH_C2_3 * wp.vec3(z, 0.0, x)
+    if k == 8:
+        return SH_C2_4 * (x * x - y * y), SH_C2_4 * wp.vec3(2.0 * x, -2.0 * y, 0.0)
+    if k == 9:
+        return SH_C3_0 * y * (3.0 * x * x - y * y), SH_C3_0 * wp.vec3(6.0 * x * y, 3.0 * (x * x - y * y), 0.0)
+    if k == 10:
+        return SH_C3_1 * x * y * z, SH_C3_1 * wp.vec3(y * z, x * z, x * y)
+    if k == 11:
+        return SH_C3_2 * y * (4.0 * z * z - x * x - y * y), SH_C3_2 * wp.vec3(
+            -2.0 * x * y, 4.0 * z * z - x * x - 3.0 * y * y, 8.0 * y * z
+        )
+    if k == 12:
+        return SH_C3_3 * z * (2.0 * z * z - 3.0 * x * x - 3.0 * y * y), SH_C3_3 * wp.vec3(
+            -6.0 * x * z, -6.0 * y * z, 6.0 * z * z - 3.0 * x * x - 3.0 * y * y
+        )
+    if k == 13:
+        return SH_C3_4 * x * (4.0 * z * z - x * x - y * y), SH_C3_4 * wp.vec3(
+            4.0 * z * z - 3.0 * x * x - y * y, -2.0 * x * y, 8.0 * x * z
+        )
+    if k == 14:
+        return SH_C3_5 * z * (x * x - y * y), SH_C3_5 * wp.vec3(2.0 * x * z, -2.0 * y * z, x * x - y * y)
+    return SH_C3_6 * x * (x * x - 3.0 * y * y), SH_C3_6 * wp.vec3(3.0 * (x * x - y * y), -6.0 * x * y, 0.0)
+
+
+@wp.func
+def exp3(v: wp.vec3):
+    return wp.vec3(wp.exp(v[0]), wp.exp(v[1]), wp.exp(v[2]))
+
+
+@wp.func
+def tile_rect(mean2d: wp.vec2, radii: wp.vec2i, cam: CameraParams):
+    """Tiles [x0, x1) x [y0, y1) holding the pixels within radii of mean2d (pixel px is in tile px // 16)."""
+    ts = float(TILE_SIZE)
+    fx0 = wp.clamp((mean2d[0] - float(radii[0])) / ts, -1.0, float(cam.tiles_x))
+    fx1 = wp.clamp((mean2d[0] + float(radii[0])) / ts, -1.0, float(cam.tiles_x))
+    fy0 = wp.clamp((mean2d[1] - float(radii[1])) / ts, -1.0, float(cam.tiles_y))
+    fy1 = wp.clamp((mean2d[1] + float(radii[1])) / ts, -1.0, float(cam.tiles_y))
+    x0 = wp.clamp(int(wp.floor(fx0)), 0, cam.tiles_x)
+    x1 = wp.clamp(int(wp.floor(fx1)) + 1, 0, cam.tiles_x)
+    y0 = wp.clamp(int(wp.floor(fy0)), 0, cam.tiles_y)
+    y1 = wp.clamp(int(wp.floor(fy1)) + 1, 0, cam.tiles_y)
+    return wp.vec4i(x0, x1, y0, y1)
+
+
+@wp.func
+def view_direction(mean: wp.vec3, view: wp.mat44):
+    """Unnormalised direction from the camera centre C = -W^T t to the mean, and W, t."""
+    W = wp.mat33(
+        view[0, 0], view[0, 1], view[0, 2], view[1, 0], view[1, 1], view[1, 2], view[2, 0], view[2, 1], view[2, 2]
+    )
+    t = wp.vec3(view[0, 3], view[1, 3], view[2, 3])
+    return mean + wp.transpose(W) @ t, W, t
+
+
+@wp.func
+def projection_jacobian(X: wp.vec3, cam: CameraParams):
+    z = X[2]
+    u = wp.clamp(X[0] / z, cam.tan_x_min, cam.tan_x_max)
+    v = wp.clamp(X[1] / z, cam.tan_y_min, cam.tan_y_max)
+    return mat23(cam.fx / z, 0.0, -cam.fx * u / z, 0.0, cam.fy / z, -cam.fy * v / z)
+
+
+@wp.kernel
+def project_gaussians(
+    # in: Gaussian map
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacity_logits: wp.array(dtype=float),
+    sh: wp.array2d(dtype=wp.vec3),
+    num_sh: int,
+    # in: camera-from-world pose (1 element) and intrinsics
+    view: wp.array(dtype=wp.mat44),
+    cam: CameraParams,
+    # out: screen-space Gaussians (xy_opacity_depth = u, v, opacity, z)
+    xy_opacity_depth_out: wp.array(dtype=wp.vec4),
+    depth_out: wp.array(dtype=float),
+    conic_out: wp.array(dtype=wp.vec3),
+    color_out: wp.array(dtype=wp.vec3),
+    radii_out: wp.array(dtype=wp.vec2i),
+    tiles_touched_out: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    radii_out[i] = wp.vec2i(0, 0)
+    tiles_touched_out[i] = 0
+
+    mean = means[i]
+    V = view[0]
+    dir_raw, W, t = view_direction(mean, V)
+    X = W @ mean + t
+    z = X[2]
+    if z < cam.near:
+        return
+    opacity = 1.0 / (1.0 + wp.exp(-opacity_logits[i]))
+    if opacity < ALPHA_MIN:
+        return
+
+    q = wp.normalize(rotations[i])
+    R = quat_to_rot(q)
+    s = exp3(log_scales[i])
+    M = R @ wp.diag(s)
+    cov_c = W @ (M @ wp.transpose(M)) @ wp.transpose(W)
+    J = projection_jacobian(X, cam)
+    cov2d = J @ cov_c @ wp.transpose(J)
+    a = cov2d[0, 0] + COV2D_DILATION
+    b = cov2d[0, 1]
+    c = cov2d[1, 1] + COV2D_DILATION
+    det = a * c - b * b
+    if det <= 0.0:
+        return
+
+    # Axis-aligned half extent of the ellipse where opacity * G = 1/255: outside it the compositing
+    # skips the Gaussian anyway, so tile culling drops nothing the dense composite would keep
+    # (3 sigma in 3DGS; here sqrt(2 ln(255 o)) <= 3.33 sigma, exact for the 1/255 rule).
+    extent = wp.sqrt(2.0 * wp.log(opacity / ALPHA_MIN))
+    rx = int(wp.ceil(wp.min(extent * wp.sqrt(a), 1.0e6)))
+    ry = int(wp.ceil(wp.min(extent * wp.sqrt(c), 1.0e6)))
+    mean2d = wp.vec2(cam.fx * X[0] / z + cam.cx, cam.fy * X[1] / z + cam.cy)
+    radii = wp.vec2i(rx, ry)
+    rect = tile_rect(mean2d, radii, cam)
+    touched = (rect[1] - rect[0]) * (rect[3] - rect[2])
+    if touched <= 0:
+        return
+
+    d = wp.normalize(dir_raw)
+    color = wp.vec3(0.0)
+    for k in range(num_sh):
+        y, dy = sh_basis(k, d)
+        color += y * sh[i, k]
+    # 3DGS: the SH value is offset by 0.5 and clamped at 0 (no upper clamp).
+    color = wp.vec3(wp.max(color[0] + 0.5, 0.0), wp.max(color[1] + 0.5, 0.0), wp.max(color[2] + 0.5, 0.0))
+
+    xy_opacity_depth_out[i] = wp.vec4(mean2d[0], mean2d[1], opacity, z)
+    depth_out[i] = z
+    conic_out[i] = wp.vec3(c / det, -b / det, a / det)
+    color_out[i] = color
+    radii_out[i] = radii
+    tiles_touched_out[i] = touched
+
+
+@wp.kernel
+def emit_intersections(
+    # in: projected Gaussians (depth_bits: the float32 depths reinterpreted as int32)
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    depth_bits: wp.array(dtype=wp.int32),
+    radii: wp.array(dtype=wp.vec2i),
+    tiles_touched: wp.array(dtype=wp.int32),
+    offsets_inclusive: wp.array(dtype=wp.int32),
+    cam: CameraParams,
+    # out: unsorted (tile << 32 | depth bits) keys and Gaussian ids
+    keys_out: wp.array(dtype=wp.int64),
+    ids_out: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    n = tiles_touched[i]
+    if n == 0:
+        return
+    xyod = xy_opacity_depth[i]
+    rect = tile_rect(wp.vec2(xyod[0], xyod[1]), radii[i], cam)
+    # Positive IEEE floats order like their bit patterns, so the low word sorts by depth exactly.
+    zbits = wp.int64(depth_bits[i])
+    j = offsets_inclusive[i] - n
+    for ty in range(rect[2], rect[3]):
+        for tx in range(rect[0], rect[1]):
+            keys_out[j] = (wp.int64(ty * cam.tiles_x + tx) << wp.int64(32)) | zbits
+            ids_out[j] = wp.int32(i)
+            j += 1
+
+
+@wp.kernel
+def tile_ranges_from_keys(
+    # in: sorted keys
+    keys: wp.array(dtype=wp.int64),
+    count: int,
+    # out: [start, end) of each tile's run in the sorted list (zeroed beforehand)
+    ranges_out: wp.array2d(dtype=wp.int32),
+):
+    j = wp.tid()
+    tile = int(keys[j] >> wp.int64(32))
+    if j == 0:
+        ranges_out[tile, 0] = 0
+    else:
+        prev = int(keys[j - 1] >> wp.int64(32))
+        if prev != tile:
+            ranges_out[prev, 1] = j
+            ranges_out[tile, 0] = j
+    if j == count - 1:
+        ranges_out[tile, 1] = count
+
+
+@wp.kernel
+def project_gaussians_backward(
+    # in: Gaussian map
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacity_logits: wp.array(dtype=float),
+    sh: wp.array2d(dtype=wp.vec3),
+    num_sh: int,
+    count: int,
+    # in: pose, intrinsics, forward results
+    view: wp.array(dtype=wp.mat44),
+    cam: CameraParams,
+    radii: wp.array(dtype=wp.vec2i),
+    conic: wp.array(dtype=wp.vec3),
+    # in: screen-space gradients from the compositing backward
+    grad2d: wp.array(dtype=vec10),
+    # in: what to produce
+    pose_only: int,
+    accumulate: int,
+    # out: parameter gradients (skipped when pose_only) and the twist gradient (rho, phi)
+    grad_means_out: wp.array(dtype=wp.vec3),
+    grad_rotations_out: wp.array(dtype=wp.quat),
+    grad_log_scales_out: wp.array(dtype=wp.vec3),
+    grad_opacity_logits_out: wp.array(dtype=float),
+    grad_sh_out: wp.array2d(dtype=wp.vec3),
+    grad_pose_out: wp.array(dtype=float),
+):
+    block, lane = wp.tid()
+    i = block * PROJECT_BLOCK + lane
+    g_pose = vec6()
+    g_mean = wp.vec3(0.0)
+    g_quat = wp.quat(0.0, 0.0, 0.0, 0.0)
+    g_log_s = wp.vec3(0.0)
+    g_logit = wp.float32(0.0)
+    live = i < count
+    if live:
+        live = radii[i][0] > 0
+    if live:
+        g = grad2d[i]
+        mean = means[i]
+        V = view[0]
+        dir_raw, W, t = view_direction(mean, V)
+        X = W @ mean + t
+        z = X[2]
+
+        # conic = Sigma2d^-1: dL/dSigma2d = -Q G Q with G the symmetric gradient of the conic matrix
+        # (the stored off-diagonal b enters the quadratic form twice, hence g_b / 2 per entry).
+        cn = conic[i]
+        Q = wp.mat22(cn[0], cn[1], cn[1], cn[2])
+        G = wp.mat22(g[2], 0.5 * g[3], 0.5 * g[3], g[4])
+        g_cov2d = -(Q @ G @ Q)
+
+        q_raw = rotations[i]
+        q = wp.normalize(q_raw)
+        R = quat_to_rot(q)
+        s = exp3(log_scales[i])
+        M = R @ wp.diag(s)
+        cov_w = M @ wp.transpose(M)
+        cov_c = W @ cov_w @ wp.transpose(W)
+        J = projection_jacobian(X, cam)
+        g_cov_c = wp.transpose(J) @ g_cov2d @ J
+        g_J = 2.0 * (g_cov2d @ J @ cov_c)
+
+        # J's dependence on X (through the clamped tangents u = x/z, v = y/z)
+        ux = X[0] / z
+        vy = X[1] / z
+        u = wp.clamp(ux, cam.tan_x_min, cam.tan_x_max)
+        v = wp.clamp(vy, cam.tan_y_min, cam.tan_y_max)
+        du_dx = wp.where(ux == u, 1.0 / z, 0.0)
+        dv_dy = wp.where(vy == v, 1.0 / z, 0.0)
+        du_dz = wp.where(ux == u, -ux / z, 0.0)
+        dv_dz = wp.where(vy == v, -vy / z, 0.0)
+        z2 = z * z
+        g_X = wp.vec3(
+            g_J[0, 2] * (-cam.fx / z) * du_dx,
+            g_J[1, 2] * (-cam.fy / z) * dv_dy,
+            -g_J[0, 0] * cam.fx / z2
+            - g_J[1, 1] * cam.fy / z2
+            + g_J[0, 2] * cam.fx * (u / z2 - du_dz / z)
+            + g_J[1, 2] * cam.fy * (v / z2 - dv_dz / z),
+        )
+        # mean2d = (fx x / z + cx, fy y / z + cy), depth = z
+        g_X += wp.vec3(
+            g[0] * cam.fx / z,
+            g[1] * cam.fy / z,
+            -(g[0] * cam.fx * X[0] + g[1] * cam.fy * X[1]) / z2 + g[9],
+        )
+
+        # colour = max(sum_k Y_k(d) sh_k + 0.5, 0), d = dir_raw / |dir_raw|
+        d = wp.normalize(dir_raw)
+        raw = wp.vec3(0.0)
+        for k in range(num_sh):
+            y, dy = sh_basis(k, d)
+            raw += y * sh[i, k]
+        g_col = wp.vec3(
+            wp.where(raw[0] + 0.5 > 0.0, g[6], 0.0),
+            wp.where(raw[1] + 0.5 > 0.0, g[7], 0.0),
+            wp.where(raw[2] + 0.5 > 0.0, g[8], 0.0),
+        )
+        g_d = wp.vec3(0.0)
+        for k in range(num_sh):
+            y, dy = sh_basis(k, d)
+            g_d += wp.dot(g_col, sh[i, k]) * dy
+            if pose_only == 0:
+                g_sh_k = y * g_col
+                if accumulate != 0:
+                    g_sh_k += grad_sh_out[i, k]
+                grad_sh_out[i, k] = g_sh_k
+        g_dir = (g_d - d * wp.dot(d, g_d)) / wp.length(dir_raw)
+
+        # Twist xi = (rho, phi), T_CW <- Exp(xi) T_CW: dX = rho + phi x X, dW = [phi]x W, so
+        # dSigma_c = [phi]x Sigma_c - Sigma_c [phi]x and the camera centre moves by -W^T rho
+        # (the view direction by +W^T rho).
+        A = g_cov_c @ cov_c
+        g_phi = wp.cross(X, g_X) + 2.0 * wp.vec3(A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1])
+        g_rho = g_X + W @ g_dir
+        g_pose = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
+
+        if pose_only == 0:
+            g_mean = wp.transpose(W) @ g_X + g_dir
+            g_cov_w = wp.transpose(W) @ g_cov_c @ W
+            g_M = 2.0 * (g_cov_w @ M)
+            g_R = g_M @ wp.diag(s)
+            g_s = wp.vec3(
+                R[0, 0] * g_M[0, 0] + R[1, 0] * g_M[1, 0] + R[2, 0] * g_M[2, 0],
+                R[0, 1] * g_M[0, 1] + R[1, 1] * g_M[1, 1] + R[2, 1] * g_M[2, 1],
+                R[0, 2] * g_M[0, 2] + R[1, 2] * g_M[1, 2] + R[2, 2] * g_M[2, 2],
+            )
+            g_log_s = wp.cw_mul(g_s, s)
+            g_qn = quat_to_rot_vjp(q, g_R)
+            # normalisation q = q_raw / |q_raw|: project out the radial component
+            g_quat = (g_qn - q * wp.dot(q, g_qn)) / wp.length(q_raw)
+            opacity = 1.0 / (1.0 + wp.exp(-opacity_logits[i]))
+            g_logit = g[5] * opacity * (1.0 - opacity)
+    elif i < count and pose_only == 0:
+        for k in range(num_sh):
+            if accumulate == 0:
+                grad_sh_out[i, k] = wp.vec3(0.0)
+
+    if i < count and pose_only == 0:
+        if accumulate != 0:
+            g_mean += grad_means_out[i]
+            g_quat += grad_rotations_out[i]
+            g_log_s += grad_log_scales_out[i]
+            g_logit += grad_opacity_logits_out[i]
+        grad_means_out[i] = g_mean
+        grad_rotations_out[i] = g_quat
+        grad_log_scales_out[i] = g_log_s
+        grad_opacity_logits_out[i] = g_logit
+
+    # One atomic per block for the 6-vector shared by all Gaussians.
+    total = wp.tile_extract(wp.tile_sum(wp.tile(g_pose, preserve_type=True)), 0)
+    if lane == 0:
+        for c in range(6):
+            wp.atomic_add(grad_pose_out, c, total[c])
+
+
+@wp.kernel
+def invert_rigid(
+    # in: camera-to-world pose
+    T_WC: wp.array(dtype=wp.mat44),
+    # out: camera-from-world pose
+    T_CW_out: wp.array(dtype=wp.mat44),
+):
+    T = T_WC[0]
+    Rt = wp.mat33(T[0, 0], T[1, 0], T[2, 0], T[0, 1], T[1, 1], T[2, 1], T[0, 2], T[1, 2], T[2, 2])
+    t = -(Rt @ wp.vec3(T[0, 3], T[1, 3], T[2, 3]))
+    T_CW_out[0] = wp.mat44(
+        Rt[0, 0], Rt[0, 1], Rt[0, 2], t[0],
+        Rt[1, 0], Rt[1, 1], Rt[1, 2], t[1],
+        Rt[2, 0], Rt[2, 1], Rt[2, 2], t[2],
+        0.0, 0.0, 0.0, 1.0,
+    )  # fmt: skip

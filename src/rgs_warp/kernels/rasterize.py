@@ -1,0 +1,382 @@
+"""Front-to-back alpha compositing of depth-sorted screen-space Gaussians, and its hand-written adjoint.
+
+Per pixel p and Gaussian i (sorted by depth within the pixel's 16x16 tile):
+    alpha_i = min(0.99, o_i exp(-0.5 d^T Q_i d)),  d = mean2d_i - p,
+    skipped when alpha_i < 1/255; compositing stops before the Gaussian that would bring the
+    transmittance T below 1e-4 (3DGS's rules), w_i = alpha_i T_i, T_{i+1} = T_i (1 - alpha_i):
+    colour = sum_i w_i c_i + T_final * background,  depth = sum_i w_i z_i,  alpha = 1 - T_final.
+
+The backward walks the same list back to front, recovering T_i = T_{i+1} / (1 - alpha_i) (the
+3DGS/gsplat scheme), so no per-pixel list is stored: only T_final and the number of entries up to
+the last contributor. wp.Tape cannot differentiate these loops (loop-carried transmittance in a
+dynamic loop comes out wrong), hence the explicit adjoint.
+
+Two implementations share the per-splat math: a tiled one (one 256-thread block per image tile,
+batches of Gaussians gathered into shared memory, per-Gaussian gradients reduced over the block
+before one global atomic) for speed, and a plain per-pixel one used as a second reference.
+"""
+
+import warp as wp
+
+from rgs_warp.kernels.projection import ALPHA_MIN, TILE_SIZE, vec10
+
+wp.set_module_options({"enable_backward": False})
+
+BLOCK = TILE_SIZE * TILE_SIZE
+ALPHA_MAX = 0.99
+# Transmittance at which a pixel is saturated (3DGS): later Gaussians change it by < 1e-4.
+T_MIN = 1.0e-4
+
+
+# Warp-level reduction of the backward's per-splat gradients (gsplat's scheme): 32 lanes fold their
+# vec10 with shuffles and one lane adds the sum to global memory, 8x fewer atomics than per pixel
+# and no block barrier per splat.  On the CPU (lanes run as fibers, no shuffles) every lane is its
+# own leader and adds its own value: same result.
+_WARP_SUM = """
+#if defined(__CUDA_ARCH__)
+    for (int offset = 16; offset > 0; offset >>= 1) {
+        for (int c = 0; c < 10; ++c) {
+            v.c[c] += __shfl_down_sync(0xffffffffu, v.c[c], offset);
+        }
+    }
+#endif
+    return v;
+"""
+_WARP_ANY = """
+#if defined(__CUDA_ARCH__)
+    return __any_sync(0xffffffffu, flag) ? 1 : 0;
+#else
+    return flag;
+#endif
+"""
+_WARP_LEADER = """
+#if defined(__CUDA_ARCH__)
+    return (lane & 31) == 0 ? 1 : 0;
+#else
+    return 1;
+#endif
+"""
+
+
+@wp.func_native(_WARP_SUM)
+def warp_sum(v: vec10) -> vec10: ...
+
+
+@wp.func_native(_WARP_ANY)
+def warp_any(flag: int) -> int: ...
+
+
+@wp.func_native(_WARP_LEADER)
+def warp_leader(lane: int) -> int: ...
+
+
+@wp.func
+def splat_alpha(xyod: wp.vec4, con: wp.vec3, px: float, py: float):
+    dx = xyod[0] - px
+    dy = xyod[1] - py
+    power = -0.5 * (con[0] * dx * dx + con[2] * dy * dy) - con[1] * dx * dy
+    return wp.min(ALPHA_MAX, xyod[2] * wp.exp(power)), dx, dy
+
+
+@wp.func
+def splat_grad(
+    xyod: wp.vec4,
+    con: wp.vec3,
+    col: wp.vec3,
+    dx: float,
+    dy: float,
+    alpha: float,
+    t_i: float,
+    t_final: float,
+    acc_color: wp.vec3,
+    acc_depth: float,
+    g_color: wp.vec3,
+    g_depth: float,
+    g_alpha: float,
+):
+    """Screen-space gradient (vec10 layout of projection.vec10) of one splat at one pixel.
+
+    acc_color / acc_depth hold what lies behind splat i (sum_{j>i} w_j c_j + T_final bg, and
+    sum_{j>i} w_j z_j); every w_j behind i carries a factor (1 - alpha_i).
+    """
+    one_minus = 1.0 - alpha
+    w = alpha * t_i
+    g_a = (
+        wp.dot(g_color, t_i * col - acc_color / one_minus)
+        + g_depth * (t_i * xyod[3] - acc_depth / one_minus)
+        + g_alpha * t_final / one_minus
+    )
+    out = vec10()
+    out[6] = w * g_color[0]
+    out[7] = w * g_color[1]
+    out[8] = w * g_color[2]
+    out[9] = w * g_depth
+    opacity = xyod[2]
+    if alpha < ALPHA_MAX:
+        out[5] = g_a * alpha / opacity
+        # alpha = o exp(power): dL/dpower = dL/dalpha * alpha
+        g_power = g_a * alpha
+        out[0] = -g_power * (con[0] * dx + con[1] * dy)
+        out[1] = -g_power * (con[1] * dx + con[2] * dy)
+        out[2] = -0.5 * g_power * dx * dx
+        out[3] = -g_power * dx * dy
+        out[4] = -0.5 * g_power * dy * dy
+    return out
+
+
+@wp.kernel
+def rasterize_tiles(
+    # in: per-tile [start, end) into the depth-sorted Gaussian ids
+    ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    # in: screen-space Gaussians
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    conic: wp.array(dtype=wp.vec3),
+    color: wp.array(dtype=wp.vec3),
+    # in: image
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    # out: images and the per-pixel state the backward needs
+    color_out: wp.array2d(dtype=wp.vec3),
+    depth_out: wp.array2d(dtype=float),
+    alpha_out: wp.array2d(dtype=float),
+    final_t_out: wp.array2d(dtype=float),
+    n_contrib_out: wp.array2d(dtype=wp.int32),
+):
+    tile, lane = wp.tid()
+    ty = tile // tiles_x
+    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    py_i = ty * TILE_SIZE + lane // TILE_SIZE
+    inside = px_i < width and py_i < height
+    px = float(px_i)
+    py = float(py_i)
+    start = ranges[tile, 0]
+    end = ranges[tile, 1]
+    n_batches = (end - start + BLOCK - 1) // BLOCK
+
+    T = wp.float32(1.0)
+    acc_color = wp.vec3(0.0)
+    acc_depth = wp.float32(0.0)
+    last = wp.int32(0)
+    done = not inside
+    for b in range(n_batches):
+        # Block-wide early exit; the reduction is also the barrier before the shared tiles are reused.
+        n_done = wp.tile_extract(wp.tile_sum(wp.tile(wp.where(done, 1, 0))), 0)
+        if n_done == BLOCK:
+            break
+        batch_start = start + b * BLOCK
+        ids = wp.tile_load(sorted_ids, shape=BLOCK, offset=batch_start, storage="shared")
+        s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(BLOCK,), storage="shared")
+        s_conic = wp.tile_load_indexed(conic, ids, shape=(BLOCK,), storage="shared")
+        s_color = wp.tile_load_indexed(color, ids, shape=(BLOCK,), storage="shared")
+        count = wp.min(BLOCK, end - batch_start)
+        for k in range(count):
+            if done:
+                break
+            xyod = wp.tile_extract(s_xyod, k)
+            alpha, dx, dy = splat_alpha(xyod, wp.tile_extract(s_conic, k), px, py)
+            if alpha < ALPHA_MIN:
+                continue
+            t_next = T * (1.0 - alpha)
+            if t_next < T_MIN:
+                done = True
+                break
+            w = alpha * T
+            acc_color += w * wp.tile_extract(s_color, k)
+            acc_depth += w * xyod[3]
+            T = t_next
+            last = batch_start + k + 1 - start
+
+    if inside:
+        color_out[py_i, px_i] = acc_color + T * background
+        depth_out[py_i, px_i] = acc_depth
+        alpha_out[py_i, px_i] = 1.0 - T
+        final_t_out[py_i, px_i] = T
+        n_contrib_out[py_i, px_i] = last
+
+
+@wp.kernel
+def rasterize_tiles_backward(
+    # in: per-tile [start, end) into the depth-sorted Gaussian ids
+    ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    # in: screen-space Gaussians
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    conic: wp.array(dtype=wp.vec3),
+    color: wp.array(dtype=wp.vec3),
+    # in: image and forward per-pixel state
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    final_t: wp.array2d(dtype=float),
+    n_contrib: wp.array2d(dtype=wp.int32),
+    # in: loss gradients w.r.t. the rendered images
+    grad_color: wp.array2d(dtype=wp.vec3),
+    grad_depth: wp.array2d(dtype=float),
+    grad_alpha: wp.array2d(dtype=float),
+    # out: screen-space gradients per Gaussian (zeroed beforehand)
+    grad2d_out: wp.array(dtype=vec10),
+):
+    tile, lane = wp.tid()
+    ty = tile // tiles_x
+    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    py_i = ty * TILE_SIZE + lane // TILE_SIZE
+    inside = px_i < width and py_i < height
+    px = float(px_i)
+    py = float(py_i)
+    start = ranges[tile, 0]
+
+    last = wp.int32(0)
+    T = wp.float32(1.0)
+    g_color = wp.vec3(0.0)
+    g_depth = wp.float32(0.0)
+    g_alpha = wp.float32(0.0)
+    if inside:
+        last = n_contrib[py_i, px_i]
+        T = final_t[py_i, px_i]
+        g_color = grad_color[py_i, px_i]
+        g_depth = grad_depth[py_i, px_i]
+        g_alpha = grad_alpha[py_i, px_i]
+    t_final = T
+    acc_color = T * background
+    acc_depth = wp.float32(0.0)
+
+    block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
+    n_batches = (block_last + BLOCK - 1) // BLOCK
+    for bb in range(n_batches):
+        b = n_batches - 1 - bb
+        batch_start = start + b * BLOCK
+        ids = wp.tile_load(sorted_ids, shape=BLOCK, offset=batch_start, storage="shared")
+        s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(BLOCK,), storage="shared")
+        s_conic = wp.tile_load_indexed(conic, ids, shape=(BLOCK,), storage="shared")
+        s_color = wp.tile_load_indexed(color, ids, shape=(BLOCK,), storage="shared")
+        count = wp.min(BLOCK, block_last - b * BLOCK)
+        for kk in range(count):
+            k = count - 1 - kk
+            g = vec10()
+            hit = wp.int32(0)
+            if b * BLOCK + k < last:
+                xyod = wp.tile_extract(s_xyod, k)
+                con = wp.tile_extract(s_conic, k)
+                alpha, dx, dy = splat_alpha(xyod, con, px, py)
+                if alpha >= ALPHA_MIN:
+                    T = T / (1.0 - alpha)
+                    col = wp.tile_extract(s_color, k)
+                    g = splat_grad(
+                        xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha
+                    )
+                    w = alpha * T
+                    acc_color += w * col
+                    acc_depth += w * xyod[3]
+                    hit = 1
+            if warp_any(hit) != 0:
+                total = warp_sum(g)
+                if warp_leader(lane) != 0:
+                    wp.atomic_add(grad2d_out, wp.tile_extract(ids, k), total)
+
+
+@wp.kernel
+def rasterize_pixels(
+    # in: per-tile [start, end) into the depth-sorted Gaussian ids
+    ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    # in: screen-space Gaussians
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    conic: wp.array(dtype=wp.vec3),
+    color: wp.array(dtype=wp.vec3),
+    # in: image
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    # out: images and the per-pixel state the backward needs
+    color_out: wp.array2d(dtype=wp.vec3),
+    depth_out: wp.array2d(dtype=float),
+    alpha_out: wp.array2d(dtype=float),
+    final_t_out: wp.array2d(dtype=float),
+    n_contrib_out: wp.array2d(dtype=wp.int32),
+):
+    py_i, px_i = wp.tid()
+    tile = (py_i // TILE_SIZE) * tiles_x + px_i // TILE_SIZE
+    px = float(px_i)
+    py = float(py_i)
+    start = ranges[tile, 0]
+    end = ranges[tile, 1]
+    T = wp.float32(1.0)
+    acc_color = wp.vec3(0.0)
+    acc_depth = wp.float32(0.0)
+    last = wp.int32(0)
+    for j in range(start, end):
+        i = sorted_ids[j]
+        xyod = xy_opacity_depth[i]
+        alpha, dx, dy = splat_alpha(xyod, conic[i], px, py)
+        if alpha < ALPHA_MIN:
+            continue
+        t_next = T * (1.0 - alpha)
+        if t_next < T_MIN:
+            break
+        w = alpha * T
+        acc_color += w * color[i]
+        acc_depth += w * xyod[3]
+        T = t_next
+        last = j + 1 - start
+    color_out[py_i, px_i] = acc_color + T * background
+    depth_out[py_i, px_i] = acc_depth
+    alpha_out[py_i, px_i] = 1.0 - T
+    final_t_out[py_i, px_i] = T
+    n_contrib_out[py_i, px_i] = last
+
+
+@wp.kernel
+def rasterize_pixels_backward(
+    # in: per-tile [start, end) into the depth-sorted Gaussian ids
+    ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    # in: screen-space Gaussians
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    conic: wp.array(dtype=wp.vec3),
+    color: wp.array(dtype=wp.vec3),
+    # in: image and forward per-pixel state
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    final_t: wp.array2d(dtype=float),
+    n_contrib: wp.array2d(dtype=wp.int32),
+    # in: loss gradients w.r.t. the rendered images
+    grad_color: wp.array2d(dtype=wp.vec3),
+    grad_depth: wp.array2d(dtype=float),
+    grad_alpha: wp.array2d(dtype=float),
+    # out: screen-space gradients per Gaussian (zeroed beforehand)
+    grad2d_out: wp.array(dtype=vec10),
+):
+    py_i, px_i = wp.tid()
+    tile = (py_i // TILE_SIZE) * tiles_x + px_i // TILE_SIZE
+    px = float(px_i)
+    py = float(py_i)
+    start = ranges[tile, 0]
+    T = final_t[py_i, px_i]
+    t_final = T
+    acc_color = T * background
+    acc_depth = wp.float32(0.0)
+    g_color = grad_color[py_i, px_i]
+    g_depth = grad_depth[py_i, px_i]
+    g_alpha = grad_alpha[py_i, px_i]
+    last = n_contrib[py_i, px_i]
+    for jj in range(last):
+        i = sorted_ids[start + last - 1 - jj]
+        xyod = xy_opacity_depth[i]
+        con = conic[i]
+        alpha, dx, dy = splat_alpha(xyod, con, px, py)
+        if alpha < ALPHA_MIN:
+            continue
+        T = T / (1.0 - alpha)
+        col = color[i]
+        g = splat_grad(xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha)
+        wp.atomic_add(grad2d_out, i, g)
+        w = alpha * T
+        acc_color += w * col
+        acc_depth += w * xyod[3]
