@@ -183,9 +183,14 @@ class GaussianMap:
             field_ = getattr(self, name)
             tmp = wp.empty_like(field_)
             if name == "sh":
-                wp.launch(scatter_kept_rows, dim=(n, self.num_sh), inputs=[field_, mask, removed_before, tmp])
+                wp.launch(
+                    scatter_kept_rows,
+                    dim=(n, self.num_sh),
+                    inputs=[field_, mask, removed_before, tmp],
+                    device=self.device,
+                )
             else:
-                wp.launch(scatter_kept, dim=n, inputs=[field_, mask, removed_before, tmp])
+                wp.launch(scatter_kept, dim=n, inputs=[field_, mask, removed_before, tmp], device=self.device)
             rows = self.num_sh if name == "sh" else 1
             wp.copy(field_, tmp, count=(n - removed) * rows)
         self.count = n - removed
