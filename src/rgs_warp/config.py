@@ -60,12 +60,24 @@ class RenderConfig:
 
 @dataclass
 class TrackingConfig:
-    iters: int = 30  # §4.2: 30-60 steps a frame
-    lr: float = 5e-3  # centre of the cosine schedule
+    iters: int = 30  # §4.2: 30-60 Adam steps a frame
+    lr: float = 5e-3  # §4.2: centre (mean) of the cosine schedule
+    lr_amplitude: float = 1.0  # lr_k = lr (1 + a cos(pi k / iters)): 2 lr down to ~0 (experiments/results/tracking.md)
+    lr_rotation_scale: float = 1.0  # lr of phi (rad) relative to rho (m)
+    adam_beta1: float = 0.9  # Table 1
+    adam_beta2: float = 0.999  # Table 1
+    adam_eps: float = 1e-8  # PyTorch's default; far below the twist gradients (~1e-5 .. 1e-2)
     tau_alpha: float = 0.5  # Eq. 7 opacity threshold
-    tau_grad: float = 0.05  # Eq. 8 image-gradient threshold (intensity units per pixel)
-    depth_weight: float = 1.0  # RGB-D depth L1 term
+    tau_grad: float = 0.05  # Eq. 8 luminance-gradient threshold (intensity units per pixel); <= 0: off
+    depth_weight: float = 1.0  # RGB-D depth L1 term (per metre) against the colour L1 (per channel)
+    brightness: bool = True  # Eq. 3-4 affine (g, b); false: g = 1, b = 0 (ablation)
+    brightness_ridge: float = 1e-3  # pull of (g, b) towards (1, 0), relative to the Eq. 4 weight sum
     downscale: int = 1  # tracking resolution = image / downscale
+    min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
+    max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
+    converged_translation_m: float = 1e-3  # converged: motion over the last quarter of the steps ...
+    converged_rotation_deg: float = 0.05  # ... below both bounds
+    depth_edge_spread: float = 0.05  # downscaling: block depth invalid above this relative spread
 
 
 @dataclass
@@ -79,14 +91,32 @@ class KeyframeConfig:
 
 @dataclass
 class MatchingConfig:
-    backbone: str = "classic"  # classic | xfeat | dinov2 | dinov3
+    # Numbers marked "measured" come from experiments/matching_precision.py (docs/matching.md).
+    backbone: str = "classic"  # classic | xfeat | dinov2 | dinov3; measured (docs/matching.md)
     weights_path: str = ""  # local weights file for dinov2 / dinov3
-    n_neighbours: int = 3
+    classic_stride: int = 4  # classic descriptor grid = image / stride; measured
+    n_neighbours: int = 3  # |N_r|
+    max_view_angle_deg: float = 45.0  # neighbours: optical axes closer than this (overlap proxy)
+    target_parallax_deg: float = 5.0  # neighbours: preferred parallax at scene_depth_m
+    scene_depth_m: float = 2.0  # parallax of a neighbour is judged at this depth (indoor scenes)
+    min_depth_m: float = 0.1  # epipolar segment without depth: from min_depth_m ...
+    max_depth_m: float = 10.0  # ... to max_depth_m (indoor sensors' range)
+    depth_rel_tol: float = 0.05  # with depth: segment d * (1 -/+ tol) (Kinect noise, registration)
+    min_search_radius: float = 2.0  # feature px: segment extended to at least +/- this around its middle
+    band: int = 1  # feature px either side of the epipolar line (pose error); measured
+    max_steps: int = 512  # samples along a segment (longer ones are sampled coarser)
+    refine_radius: float = 0.75  # feature px: image-resolution ZNCC refinement within +/- ceil(this * stride) px
+    patch_radius_px: int = 3  # ZNCC patch (2r+1)^2; measured
+    # Eq. 11-12, calibrated on Replica office0 frames 0-3 (docs/matching.md): confidence 0.5 at
+    # score 2.0, i.e. for a similarity near 1 the forward-backward and epipolar terms must add to 1.
     w_sim: float = 1.0  # Eq. 11
-    w_fb: float = 0.5
-    w_epi: float = 0.5
-    gamma0: float = 0.5  # Eq. 12
-    gamma1: float = 1.5
+    w_fb: float = 1.0
+    w_epi: float = 1.0
+    sigma_fb_px: float = 0.5  # rho_fb = exp(-e_fb^2 / (2 sigma_fb^2)), e_fb in image px; measured
+    sigma_epi_px: float = 0.5  # rho_epi = exp(-d_epi^2 / (2 sigma_epi^2)), d_epi in image px; measured
+    gamma0: float = 1.5  # Eq. 12; measured
+    gamma1: float = 2.5
+    thin_spacing: float = 2.0  # feature px between kept pixels after blue-noise thinning
 
 
 @dataclass
@@ -99,7 +129,22 @@ class TriangulationConfig:
 class SeedingConfig:
     alpha_min: float = 0.1  # Eq. 14
     alpha_max: float = 0.9
-    poisson_radius_px: float = 1.0  # Poisson-disk radius in units of the local pixel footprint
+    # Poisson-disk radius in units of the local pixel footprint (depth / focal at the reference view):
+    # the seed spacing, at least the matcher's thinning spacing in image pixels
+    poisson_radius_px: float = 1.0
+    # Eq. 13 tangential scale s_perp in Poisson radii (measured, experiments/results/seeding.md)
+    tangential_scale: float = 0.8
+    # plane fit (§4.5): triangulated neighbours within this many pixel footprints; the patch must be
+    # wide against the depth noise (~2 footprints at 0.3 px and 10 deg parallax; measured,
+    # experiments/results/seeding.md).  With fewer than the minimum the normal is the viewing
+    # direction (3 define a plane; 6 keep one noisy neighbour from tilting it)
+    plane_radius_px: float = 8.0
+    plane_min_neighbours: int = 6
+    # Eq. 13 axial scale: floor of the per-point pixel-noise estimate (sub-pixel matching accuracy),
+    # and the clip of s_parallel relative to s_perp (a flat disc at best, never a needle)
+    min_residual_px: float = 0.25
+    axial_min_ratio: float = 0.1
+    axial_max_ratio: float = 1.0
 
 
 @dataclass
@@ -237,8 +282,7 @@ def _set_tree(obj, tree: dict, prefix: str = "") -> None:
             value = _coerce(v, types[k], key)
             if key in CHOICES and value not in CHOICES[key]:
                 raise ConfigError(
-                    f"{key}: {value!r} is not one of {', '.join(CHOICES[key])}."
-                    f"{_suggest(value, CHOICES[key])}"
+                    f"{key}: {value!r} is not one of {', '.join(CHOICES[key])}.{_suggest(value, CHOICES[key])}"
                 )
             setattr(obj, k, value)
 
@@ -256,9 +300,7 @@ def _load_yaml(path: Path) -> dict:
 def _apply_group(cfg: Config, group: str, option: str) -> None:
     options = group_options(group)
     if option not in options:
-        raise ConfigError(
-            f"unknown {group} {option!r}.{_suggest(option, options)} Valid: {', '.join(options)}"
-        )
+        raise ConfigError(f"unknown {group} {option!r}.{_suggest(option, options)} Valid: {', '.join(options)}")
     data = _load_yaml(CONFIG_DIR / group / f"{option}.yaml")
     section = GROUPS[group]
     if section is None:

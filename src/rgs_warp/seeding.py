@@ -1,18 +1,27 @@
 """Seeding (supplement §4.4-4.5): blue-noise thinning of matches in image space, Poisson-disk
-subsampling of triangulated seeds in world space.
+subsampling of triangulated seeds in world space, and the ``Seeder`` stage that turns the
+Triangulator's points into Gaussians (Eq. 13-14).
 
-Both are rounds of prioritised dart throwing (``kernels/poisson.py`` explains the scheme and its
-guarantees) driven by ``wp.capture_while`` on a device counter of undecided points: inside a CUDA
-graph capture the loop is a conditional node, with no host round trip; outside one, Warp reads the
-counter after every round.
+Thinning and Poisson-disk subsampling are rounds of prioritised dart throwing
+(``kernels/poisson.py`` explains the scheme and its guarantees) driven by ``wp.capture_while`` on a
+device counter of undecided points: inside a CUDA graph capture the loop is a conditional node, with
+no host round trip; outside one, Warp reads the counter after every round.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import warp as wp
 
+from rgs_warp.config import SeedingConfig
+from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels.poisson import poisson_accept, poisson_init, poisson_reject, scatter_kept
+from rgs_warp.kernels.seeding import MAX_VIEWS, SeedParams, seed_footprint, seed_gaussians
 from rgs_warp.kernels.thinning import thinning_accept, thinning_init, thinning_reject
+from rgs_warp.keyframes import KeyframeBuffer
+from rgs_warp.triangulation import TriangulatedPoints
+from rgs_warp.types import Camera, GaussianMap
 
 # Confidence levels of the dart priority: finer levels follow the confidence more closely but allow
 # longer chains of rounds (a chain climbs at most one level per round); 32 levels resolve Eq. 12's
@@ -150,3 +159,172 @@ def compact_mask(
     wp.utils.array_scan(flat, offsets, inclusive=False)
     wp.launch(scatter_kept, dim=n, inputs=[flat, offsets], outputs=[indices_out, count_out], device=device)
     return indices_out, count_out
+
+
+class Seeder:
+    """Initialises one Gaussian per Poisson-disk-subsampled triangulated point (supplement §4.5).
+
+    Per point: mean = the triangulated point; rotation = the frame U = [t1, t2, v] of a plane
+    fitted to the valid triangulated neighbours within ``plane_radius_px`` pixel footprints (v the
+    normal, facing the reference camera; the viewing direction when fewer than
+    ``plane_min_neighbours``); scales (Eq. 13) s_perp = ``tangential_scale`` x the Poisson radius
+    (``poisson_radius_px`` one-pixel footprints z / f at the reference view) and s_parallel = the
+    depth uncertainty along the normal from the baseline angle and residual
+    (``kernels/seeding.py: axial_scale``); colour = per-channel median over the supporting views of
+    exposure-corrected bilinear samples, as SH DC with higher bands zero; opacity = Eq. 14 of the
+    aggregated confidence, as a logit.
+
+    Host synchronisation: one read of the number of Gaussians added, at the end, because
+    ``GaussianMap.count`` is a host integer that every later launch is sized by.  Everything before
+    it (footprints, subsampling, compaction, initialisation, the writes into the map) runs on the
+    device without a read-back: the map is reserved for the worst case (every point kept) and the
+    initialisation kernel reads the kept count from the device.  The hash grid's cell size (a
+    performance parameter only) is the mean plane-fit radius of the previous call, read with the
+    count; the first call reads it before building the grid.
+    """
+
+    def __init__(self, cfg: SeedingConfig, camera: Camera, device=None):
+        if not 0.0 < cfg.alpha_min <= cfg.alpha_max < 1.0:
+            raise ValueError(f"need 0 < alpha_min <= alpha_max < 1, got {cfg.alpha_min}, {cfg.alpha_max}")
+        self.cfg = cfg
+        self.camera = camera
+        self.device = wp.get_device(device)
+        p = SeedParams()
+        p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
+        p.width, p.height = camera.width, camera.height
+        p.poisson_radius_px, p.plane_radius_px = cfg.poisson_radius_px, cfg.plane_radius_px
+        p.plane_min_neighbours, p.tangential_scale = cfg.plane_min_neighbours, cfg.tangential_scale
+        p.min_residual_px, p.axial_min_ratio, p.axial_max_ratio = (
+            cfg.min_residual_px,
+            cfg.axial_min_ratio,
+            cfg.axial_max_ratio,
+        )
+        p.alpha_min, p.alpha_max = cfg.alpha_min, cfg.alpha_max
+        self._params = p
+        kw = {"device": self.device}
+        host = {"device": "cpu", "pinned": self.device.is_cuda}
+        self._grid = wp.HashGrid(128, 128, 128, device=self.device)
+        self._counters = wp.zeros(2, dtype=wp.int32, **kw)
+        self._radius_max = wp.zeros(1, dtype=wp.float32, **kw)
+        self._count = wp.zeros(1, dtype=wp.int32, **kw)
+        self._plane_radius_stats = wp.zeros(2, dtype=wp.float32, **kw)
+        self._count_host = wp.zeros(1, dtype=wp.int32, **host)
+        self._plane_radius_stats_host = wp.zeros(2, dtype=wp.float32, **host)
+        self._view_T_CW = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **kw)
+        self._view_slot = wp.zeros(MAX_VIEWS, dtype=wp.int32, **kw)
+        self._view_exposure = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **kw)
+        self._view_T_CW_host = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **host)
+        self._view_slot_host = wp.zeros(MAX_VIEWS, dtype=wp.int32, **host)
+        self._view_exposure_host = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **host)
+        self._cell_size: float | None = None
+        self._capacity = 0
+        self._ensure(1024)
+
+    def _ensure(self, n: int) -> None:
+        if n <= self._capacity:
+            return
+        cap = max(self._capacity, 1024)
+        while cap < n:
+            cap *= 2
+        kw = {"device": self.device}
+        self._points = wp.zeros(cap, dtype=wp.vec3, **kw)
+        self._footprint = wp.zeros(cap, dtype=wp.float32, **kw)
+        self._radius = wp.zeros(cap, dtype=wp.float32, **kw)
+        self._keep = wp.zeros(cap, dtype=wp.int32, **kw)
+        self._indices = wp.zeros(cap, dtype=wp.int32, **kw)
+        self._offsets = wp.zeros(cap, dtype=wp.int32, **kw)
+        self.seed_index = wp.zeros(cap, dtype=wp.int32, **kw)
+        self._capacity = cap
+
+    def _upload_views(self, keyframes: KeyframeBuffer, view_slots: Sequence[int]) -> int:
+        views = len(view_slots)
+        if not 1 <= views < MAX_VIEWS:
+            raise ValueError(f"need the reference and at most {MAX_VIEWS - 2} neighbours, got {views} views")
+        self._view_T_CW_host.numpy()[:views] = [invert_pose(keyframes.poses[s]) for s in view_slots]
+        self._view_slot_host.numpy()[:views] = view_slots
+        self._view_exposure_host.numpy()[:views] = keyframes.exposure[list(view_slots)]
+        for dst, src in (
+            (self._view_T_CW, self._view_T_CW_host),
+            (self._view_slot, self._view_slot_host),
+            (self._view_exposure, self._view_exposure_host),
+        ):
+            wp.copy(dst, src, count=views)
+        return views
+
+    def seed(
+        self,
+        points: TriangulatedPoints,
+        confidence: wp.array,
+        keyframes: KeyframeBuffer,
+        view_slots: Sequence[int],
+        gmap: GaussianMap,
+    ) -> int:
+        """Append Gaussians seeded from the Triangulator's N points to ``gmap``; returns how many.
+
+        points: the Triangulator's output for a reference keyframe; confidence: (N,) float32
+        aggregated confidence (Eq. 12, the matcher's per-pixel aggregate); view_slots: the keyframe
+        slots of the Triangulator's views in its order (the reference first, then neighbour n at
+        position n + 1, as the support bits count them): their colours, poses (camera-to-world) and
+        exposures (g, b) are read from ``keyframes``, whose images have this stage's camera size.
+        ``self.seed_index[:added]`` holds the point index of each Gaussian added (map rows
+        ``len(gmap) - added ..``).
+        """
+        n = points.X.shape[0]
+        if keyframes.rgb.shape[1:] != (self.camera.height, self.camera.width):
+            raise ValueError(f"keyframes are {keyframes.rgb.shape[1:]}, the Seeder's camera is {self.camera}")
+        if confidence.shape[0] != n:
+            raise ValueError(f"confidence has {confidence.shape[0]} entries for {n} points")
+        if n == 0:
+            return 0
+        dev = self.device
+        views = self._upload_views(keyframes, view_slots)
+        view_T_CW = self._view_T_CW[:views]
+        self._ensure(n)
+        pts, footprint, radius, keep = self._points[:n], self._footprint[:n], self._radius[:n], self._keep[:n]
+        self._plane_radius_stats.zero_()
+        wp.launch(
+            seed_footprint,
+            dim=n,
+            inputs=[points.X, points.valid, view_T_CW, self._params],
+            outputs=[pts, footprint, radius, self._plane_radius_stats],
+            device=dev,
+        )
+        if self._cell_size is None:
+            # any positive size will do when no point is valid: nothing is queried
+            self._cell_size = self._read_cell_size() or 1.0
+        poisson_disk_subsample(
+            pts,
+            radius,
+            confidence,
+            candidate=points.valid,
+            cell_size=self._cell_size,
+            grid=self._grid,
+            keep_out=keep,
+            counters=self._counters,
+            radius_max=self._radius_max,
+        )
+        compact_mask(keep, self._indices, self._count, self._offsets[:n])
+        row0 = len(gmap)
+        gmap.reserve(row0 + n)
+        wp.launch(
+            seed_gaussians,
+            dim=n,
+            inputs=[self._grid.id, self._indices, self._count, pts, footprint, points.residual_px]
+            + [points.parallax_deg, points.support, confidence, keyframes.rgb, view_T_CW]
+            + [self._view_slot[:views], self._view_exposure[:views], self._params, row0],
+            outputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh, self.seed_index],
+            device=dev,
+        )
+        wp.copy(self._count_host, self._count)
+        self._cell_size = self._read_cell_size() or self._cell_size
+        added = int(self._count_host.numpy()[0])
+        gmap.count = row0 + added
+        return added
+
+    def _read_cell_size(self) -> float:
+        """Mean plane-fit query radius of this call's valid points (0.0 when there are none); the
+        one synchronisation also completes any copy to the host queued before it."""
+        wp.copy(self._plane_radius_stats_host, self._plane_radius_stats)
+        wp.synchronize_device(self.device)
+        total, count = self._plane_radius_stats_host.numpy()
+        return float(total / count) if count > 0 else 0.0
