@@ -1,0 +1,413 @@
+"""Dense matching kernels (supplement §4.4): epipolar-constrained descriptor search with sub-pixel
+refinement, descriptor sampling for the backward search, the score and confidence of Eq. 11-12,
+and the aggregation across neighbours.
+
+Coordinates: image pixels follow ``types.py`` (pixel centres at integers); feature pixel (i, j) of
+stride s is centred at image coordinates (s*j + (s-1)/2, s*i + (s-1)/2).  Searches run on the
+feature grid; positions they return are in image pixels.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+# Similarity of a query without a match (its segment leaves the image, or it was skipped).
+NO_MATCH = wp.constant(-2.0)
+MIN_Z_M = wp.constant(0.05)  # points closer than this to a camera are not searched for
+
+
+@wp.func
+def to_grid(u: float, stride: int) -> float:
+    return (u - 0.5 * float(stride - 1)) / float(stride)
+
+
+@wp.func
+def to_image(g: float, stride: int) -> float:
+    return g * float(stride) + 0.5 * float(stride - 1)
+
+
+@wp.func
+def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float, max_rel_spread: float) -> float:
+    """Bilinear depth at image point (u, v); 0 where any of the 4 pixels is invalid or they spread by
+    more than ``max_rel_spread`` of their mean (a depth edge: interpolating there invents depth)."""
+    H = depth.shape[0]
+    W = depth.shape[1]
+    if u < 0.0 or v < 0.0 or u > float(W - 1) or v > float(H - 1):
+        return 0.0
+    x0 = wp.min(int(u), W - 2)
+    y0 = wp.min(int(v), H - 2)
+    fx = u - float(x0)
+    fy = v - float(y0)
+    d00 = depth[y0, x0]
+    d01 = depth[y0, x0 + 1]
+    d10 = depth[y0 + 1, x0]
+    d11 = depth[y0 + 1, x0 + 1]
+    lo = wp.min(wp.min(d00, d01), wp.min(d10, d11))
+    hi = wp.max(wp.max(d00, d01), wp.max(d10, d11))
+    if lo <= 0.0 or hi - lo > max_rel_spread * 0.5 * (hi + lo):
+        return 0.0
+    return (1.0 - fy) * ((1.0 - fx) * d00 + fx * d01) + fy * ((1.0 - fx) * d10 + fx * d11)
+
+
+@wp.func
+def similarity(
+    query: wp.array2d(dtype=wp.float32), row: int, target: wp.array3d(dtype=wp.float32), y: int, x: int
+) -> float:
+    """Eq. 10: inner product of L2-normalised descriptors."""
+    s = float(0.0)
+    for k in range(query.shape[1]):
+        s += query[row, k] * target[y, x, k]
+    return s
+
+
+@wp.func
+def parabola_peak(s_minus: float, s0: float, s_plus: float) -> float:
+    """Offset in [-0.5, 0.5] of the vertex of the parabola through (-1, s-), (0, s0), (1, s+)."""
+    curvature = s_minus - 2.0 * s0 + s_plus
+    if curvature >= 0.0:
+        return 0.0
+    return wp.clamp(0.5 * (s_minus - s_plus) / curvature, -0.5, 0.5)
+
+
+@wp.func
+def grey_bilinear(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
+    H = rgb.shape[0]
+    W = rgb.shape[1]
+    uc = wp.clamp(u, 0.0, float(W - 1))
+    vc = wp.clamp(v, 0.0, float(H - 1))
+    x0 = wp.min(int(uc), W - 2)
+    y0 = wp.min(int(vc), H - 2)
+    fx = uc - float(x0)
+    fy = vc - float(y0)
+    c = (1.0 - fy) * ((1.0 - fx) * rgb[y0, x0] + fx * rgb[y0, x0 + 1]) + fy * (
+        (1.0 - fx) * rgb[y0 + 1, x0] + fx * rgb[y0 + 1, x0 + 1]
+    )
+    return (c[0] + c[1] + c[2]) / 3.0
+
+
+@wp.func
+def patch_zncc(
+    query_rgb: wp.array2d(dtype=wp.vec3),
+    q: wp.vec2,
+    target_rgb: wp.array2d(dtype=wp.vec3),
+    t: wp.vec2,
+    radius: int,
+) -> float:
+    """Zero-mean normalised cross-correlation of the grey (2r+1)^2 patches at q and t (bilinear);
+    NO_MATCH when either patch is flat (below 1e-4 grey-level variance: JPEG noise)."""
+    sa = float(0.0)
+    sb = float(0.0)
+    saa = float(0.0)
+    sbb = float(0.0)
+    sab = float(0.0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            a = grey_bilinear(query_rgb, q[0] + float(dx), q[1] + float(dy))
+            b = grey_bilinear(target_rgb, t[0] + float(dx), t[1] + float(dy))
+            sa += a
+            sb += b
+            saa += a * a
+            sbb += b * b
+            sab += a * b
+    n = float((2 * radius + 1) * (2 * radius + 1))
+    va = saa - sa * sa / n
+    vb = sbb - sb * sb / n
+    if va < 1e-4 * n or vb < 1e-4 * n:
+        return NO_MATCH
+    return (sab - sa * sb / n) / wp.sqrt(va * vb)
+
+
+@wp.func
+def project(K: wp.vec4, X: wp.vec3) -> wp.vec2:
+    return wp.vec2(K[0] * X[0] / X[2] + K[2], K[1] * X[1] / X[2] + K[3])
+
+
+@wp.func
+def refine_zncc(
+    query_rgb: wp.array2d(dtype=wp.vec3),
+    q: wp.vec2,
+    target_rgb: wp.array2d(dtype=wp.vec3),
+    coarse: wp.vec2,
+    refine_radius: int,
+    patch_radius: int,
+) -> wp.vec2:
+    """Image-resolution refinement of a match around ``coarse`` by patch ZNCC (see epipolar_search)."""
+    best = float(NO_MATCH)
+    bx = int(0)
+    by = int(0)
+    for dy in range(-refine_radius, refine_radius + 1):
+        for dx in range(-refine_radius, refine_radius + 1):
+            c = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(dx), float(dy)), patch_radius)
+            if c > best:
+                best = c
+                bx = dx
+                by = dy
+    if best <= NO_MATCH:
+        return coarse
+    off_x = float(0.0)
+    off_y = float(0.0)
+    if wp.abs(bx) < refine_radius:
+        left = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx - 1), float(by)), patch_radius)
+        right = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx + 1), float(by)), patch_radius)
+        off_x = parabola_peak(left, best, right)
+    if wp.abs(by) < refine_radius:
+        up = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx), float(by - 1)), patch_radius)
+        down = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx), float(by + 1)), patch_radius)
+        off_y = parabola_peak(up, best, down)
+    return coarse + wp.vec2(float(bx) + off_x, float(by) + off_y)
+
+
+@wp.kernel
+def epipolar_search(
+    # in:
+    query_desc: wp.array2d(dtype=wp.float32),
+    query_uv: wp.array(dtype=wp.vec2),
+    query_sim: wp.array(dtype=wp.float32),
+    query_depth: wp.array2d(dtype=wp.float32),
+    query_rgb: wp.array2d(dtype=wp.vec3),
+    target_desc: wp.array3d(dtype=wp.float32),
+    target_rgb: wp.array2d(dtype=wp.vec3),
+    K: wp.vec4,
+    R_tq: wp.mat33,
+    t_tq: wp.vec3,
+    stride: int,
+    depth_range: wp.vec2,
+    depth_rel_tol: float,
+    min_radius: float,
+    band: int,
+    max_steps: int,
+    refine_radius: int,
+    patch_radius: int,
+    # out:
+    match_uv_out: wp.array(dtype=wp.vec2),
+    sim_out: wp.array(dtype=wp.float32),
+    epi_dist_out: wp.array(dtype=wp.float32),
+):
+    """For query i (descriptor row i at image point query_uv[i]; skipped when query_sim[i] is
+    NO_MATCH), the best match in the target image along the epipolar segment of its ray between
+    the depths the query's depth allows (d (1 -/+ depth_rel_tol), else depth_range), widened by
+    ``band`` feature pixels either side, refined to sub-pixel by a parabola fit of the similarity in
+    x and y, then at image resolution: the best patch ZNCC of the grey images over integer shifts
+    within +/- refine_radius px, refined by a parabola fit of the ZNCC (where both patches are flat
+    the descriptor estimate stays).
+    R_tq, t_tq map query-camera points into the target camera.  Writes the match (image px), its
+    similarity (Eq. 10, NO_MATCH if none) and its distance to the epipolar line (image px)."""
+    i = wp.tid()
+    match_uv_out[i] = wp.vec2(0.0, 0.0)
+    sim_out[i] = NO_MATCH
+    epi_dist_out[i] = 0.0
+    if query_sim[i] <= NO_MATCH:
+        return
+    Hf = target_desc.shape[0]
+    Wf = target_desc.shape[1]
+    uv = query_uv[i]
+    ray = R_tq @ wp.vec3((uv[0] - K[2]) / K[0], (uv[1] - K[3]) / K[1], 1.0)
+    d = sample_depth(query_depth, uv[0], uv[1], depth_rel_tol)
+    d_near = depth_range[0]
+    d_far = depth_range[1]
+    if d > 0.0:
+        d_near = d * (1.0 - depth_rel_tol)
+        d_far = d * (1.0 + depth_rel_tol)
+    # Keep the segment in front of the target camera: z(d) = d * ray.z + t.z >= MIN_Z_M.
+    if ray[2] > 0.0:
+        d_near = wp.max(d_near, (MIN_Z_M - t_tq[2]) / ray[2])
+    elif ray[2] < 0.0:
+        d_far = wp.min(d_far, (MIN_Z_M - t_tq[2]) / ray[2])
+    elif t_tq[2] < MIN_Z_M:
+        return
+    if d_near >= d_far:
+        return
+    p_near = project(K, d_near * ray + t_tq)
+    p_far = project(K, d_far * ray + t_tq)
+    g0 = wp.vec2(to_grid(p_near[0], stride), to_grid(p_near[1], stride))
+    g1 = wp.vec2(to_grid(p_far[0], stride), to_grid(p_far[1], stride))
+    length = wp.length(g1 - g0)
+    direction = wp.vec2(1.0, 0.0)
+    if length > 1e-6:
+        direction = (g1 - g0) / length
+    normal = wp.vec2(-direction[1], direction[0])
+    line_point = g0
+    # Without parallax (or with a tight depth prior) the segment is short: search at least
+    # +/- min_radius around its middle so the sub-pixel fit and the band have room.
+    if length < 2.0 * min_radius:
+        middle = 0.5 * (g0 + g1)
+        g0 = middle - min_radius * direction
+        length = 2.0 * min_radius
+    # Clip the segment to the grid (widened by the band) by its parameter range.
+    margin = float(band) + 0.5
+    t_lo = float(0.0)
+    t_hi = float(length)
+    for axis in range(2):
+        lo = -margin
+        hi = float(Wf - 1) + margin
+        if axis == 1:
+            hi = float(Hf - 1) + margin
+        if wp.abs(direction[axis]) > 1e-9:
+            ta = (lo - g0[axis]) / direction[axis]
+            tb = (hi - g0[axis]) / direction[axis]
+            t_lo = wp.max(t_lo, wp.min(ta, tb))
+            t_hi = wp.min(t_hi, wp.max(ta, tb))
+        elif g0[axis] < lo or g0[axis] > hi:
+            t_hi = -1.0
+    if t_lo > t_hi:
+        return
+    n_steps = wp.min(int(wp.ceil(t_hi - t_lo)) + 1, max_steps)
+    step = (t_hi - t_lo) / float(wp.max(n_steps - 1, 1))
+    best = float(NO_MATCH)
+    bx = int(-1)
+    by = int(-1)
+    for s in range(n_steps):
+        p = g0 + (t_lo + float(s) * step) * direction
+        for k in range(-band, band + 1):
+            q = p + float(k) * normal
+            x = int(wp.round(q[0]))
+            y = int(wp.round(q[1]))
+            if x >= 0 and y >= 0 and x < Wf and y < Hf:
+                sim = similarity(query_desc, i, target_desc, y, x)
+                if sim > best:
+                    best = sim
+                    bx = x
+                    by = y
+    if bx < 0:
+        return
+    s_left = best
+    s_right = best
+    s_up = best
+    s_down = best
+    if bx > 0:
+        s_left = similarity(query_desc, i, target_desc, by, bx - 1)
+    if bx < Wf - 1:
+        s_right = similarity(query_desc, i, target_desc, by, bx + 1)
+    if by > 0:
+        s_up = similarity(query_desc, i, target_desc, by - 1, bx)
+    if by < Hf - 1:
+        s_down = similarity(query_desc, i, target_desc, by + 1, bx)
+    g = wp.vec2(float(bx) + parabola_peak(s_left, best, s_right), float(by) + parabola_peak(s_up, best, s_down))
+    coarse = wp.vec2(to_image(g[0], stride), to_image(g[1], stride))
+    fine = refine_zncc(query_rgb, uv, target_rgb, coarse, refine_radius, patch_radius)
+    match_uv_out[i] = fine
+    sim_out[i] = best
+    g_fine = wp.vec2(to_grid(fine[0], stride), to_grid(fine[1], stride))
+    epi_dist_out[i] = wp.abs(wp.dot(g_fine - line_point, normal)) * float(stride)  # image px
+
+
+@wp.kernel
+def sample_descriptors(
+    # in:
+    desc: wp.array3d(dtype=wp.float32),
+    uv: wp.array(dtype=wp.vec2),
+    stride: int,
+    # out:
+    sampled_out: wp.array2d(dtype=wp.float32),
+):
+    """Bilinear descriptor at image point uv[i] (grid borders clamped), renormalised: the query of
+    the backward search starts from where the forward search landed, not from a rounded cell."""
+    i = wp.tid()
+    Hf = desc.shape[0]
+    Wf = desc.shape[1]
+    gx = wp.clamp(to_grid(uv[i][0], stride), 0.0, float(Wf - 1))
+    gy = wp.clamp(to_grid(uv[i][1], stride), 0.0, float(Hf - 1))
+    x0 = wp.min(int(gx), Wf - 2)
+    y0 = wp.min(int(gy), Hf - 2)
+    fx = gx - float(x0)
+    fy = gy - float(y0)
+    sq = float(0.0)
+    for k in range(desc.shape[2]):
+        top = (1.0 - fx) * desc[y0, x0, k] + fx * desc[y0, x0 + 1, k]
+        bottom = (1.0 - fx) * desc[y0 + 1, x0, k] + fx * desc[y0 + 1, x0 + 1, k]
+        v = (1.0 - fy) * top + fy * bottom
+        sampled_out[i, k] = v
+        sq += v * v
+    scale = wp.where(sq > 1e-12, 1.0 / wp.sqrt(wp.max(sq, 1e-12)), 0.0)
+    for k in range(desc.shape[2]):
+        sampled_out[i, k] = sampled_out[i, k] * scale
+
+
+@wp.func
+def match_confidence(
+    sim: float,
+    fb_err: float,
+    epi_dist: float,
+    weights: wp.vec3,
+    sigma_fb: float,
+    sigma_epi: float,
+    gamma0: float,
+    gamma1: float,
+) -> float:
+    """Eq. 11-12: kappa = clip((w_sim s + w_fb rho_fb + w_epi rho_epi - gamma0) / (gamma1 - gamma0), 0, 1),
+    rho = exp(-e^2 / (2 sigma^2)) of the forward-backward error and the epipolar distance."""
+    rho_fb = wp.exp(-0.5 * (fb_err / sigma_fb) * (fb_err / sigma_fb))
+    rho_epi = wp.exp(-0.5 * (epi_dist / sigma_epi) * (epi_dist / sigma_epi))
+    score = weights[0] * sim + weights[1] * rho_fb + weights[2] * rho_epi
+    return wp.clamp((score - gamma0) / (gamma1 - gamma0), 0.0, 1.0)
+
+
+@wp.kernel
+def score_matches(
+    # in:
+    ref_uv: wp.array(dtype=wp.vec2),
+    fwd_uv: wp.array(dtype=wp.vec2),
+    fwd_sim: wp.array(dtype=wp.float32),
+    fwd_epi_dist: wp.array(dtype=wp.float32),
+    bwd_uv: wp.array(dtype=wp.vec2),
+    bwd_sim: wp.array(dtype=wp.float32),
+    column: int,
+    weights: wp.vec3,
+    sigma_fb: float,
+    sigma_epi: float,
+    gamma0: float,
+    gamma1: float,
+    # out:
+    match_uv_out: wp.array2d(dtype=wp.vec2d),
+    confidence_out: wp.array2d(dtype=wp.float32),
+):
+    """Column ``column`` (one neighbour) of the match and confidence tables.  The forward-backward
+    error and the epipolar distance are in image pixels: matches are refined at image resolution,
+    so their consistency is judged there whatever the backbone's grid."""
+    i = wp.tid()
+    m = fwd_uv[i]
+    match_uv_out[i, column] = wp.vec2d(wp.float64(m[0]), wp.float64(m[1]))
+    confidence_out[i, column] = 0.0
+    if fwd_sim[i] <= NO_MATCH or bwd_sim[i] <= NO_MATCH:
+        return
+    fb_err = wp.length(bwd_uv[i] - ref_uv[i])
+    confidence_out[i, column] = match_confidence(
+        fwd_sim[i], fb_err, fwd_epi_dist[i], weights, sigma_fb, sigma_epi, gamma0, gamma1
+    )
+
+
+@wp.kernel
+def aggregate_confidence(
+    # in:
+    confidence: wp.array2d(dtype=wp.float32),
+    n_neighbours: int,
+    # out:
+    aggregated_out: wp.array(dtype=wp.float32),
+):
+    """kappa_bar(p): mean confidence over the neighbours, so agreement of more views counts more."""
+    i = wp.tid()
+    acc = float(0.0)
+    for n in range(n_neighbours):
+        acc += confidence[i, n]
+    aggregated_out[i] = acc / float(n_neighbours)
+
+
+@wp.kernel
+def apply_thinning(
+    # in:
+    keep: wp.array(dtype=wp.int32),
+    n_neighbours: int,
+    # out:
+    confidence_out: wp.array2d(dtype=wp.float32),
+    aggregated_out: wp.array(dtype=wp.float32),
+    kept_count_out: wp.array(dtype=wp.int32),
+):
+    """Zero the confidences of pixels the blue-noise thinning dropped; count the matched survivors."""
+    i = wp.tid()
+    if keep[i] == 1:
+        if aggregated_out[i] > 0.0:
+            wp.atomic_add(kept_count_out, 0, 1)
+        return
+    aggregated_out[i] = 0.0
+    for n in range(n_neighbours):
+        confidence_out[i, n] = 0.0

@@ -1,0 +1,228 @@
+"""DenseMatcher: Eq. 11-12 against hand computations, matches of known flow (translated images and
+a rendered synthetic pair with ground-truth poses and depth), forward-backward rejection of
+occluded pixels, aggregation and thinning, neighbour selection, and the Triangulator hand-off."""
+
+import cv2
+import numpy as np
+import pytest
+import warp as wp
+
+from rgs_warp.config import MatchingConfig, TriangulationConfig
+from rgs_warp.geometry import invert_pose, se3_exp
+from rgs_warp.kernels.matching import NO_MATCH, score_matches
+from rgs_warp.keyframes import KeyframeBuffer
+from rgs_warp.matching import DenseMatcher
+from rgs_warp.triangulation import Triangulator
+from rgs_warp.types import Camera
+
+H, W = 72, 112
+CAM = Camera(fx=56.0, fy=56.0, cx=55.5, cy=35.5, width=W, height=H)
+DEPTH_M = 2.0
+
+
+def _texture(h, w, seed=0):
+    rng = np.random.default_rng(seed)
+    noise = rng.random((h // 3 + 1, w // 3 + 1, 3)).astype(np.float32)
+    return cv2.resize(noise, (w, h), interpolation=cv2.INTER_CUBIC).clip(0, 1)
+
+
+def _translated(T_x_m: float):
+    """Pose moved right by T_x_m; on the fronto-parallel plane at DEPTH_M the image content moves
+    left by disparity = fx * T_x_m / DEPTH_M."""
+    T = np.eye(4)
+    T[0, 3] = T_x_m
+    return T
+
+
+def _shifted(big, disparity_px: int):
+    return big[:, 16 + disparity_px : 16 + disparity_px + W]
+
+
+def _buffer(images, poses, device, depth=True):
+    buf = KeyframeBuffer(len(images), W, H, device)
+    for i, (img, T) in enumerate(zip(images, poses, strict=True)):
+        buf.add(i, T, img, np.full((H, W), DEPTH_M, np.float32) if depth else None)
+    return buf
+
+
+def _scene(disparities, seed=0):
+    big = _texture(H, W + 48, seed)
+    images = [_shifted(big, 0)] + [_shifted(big, d) for d in disparities]
+    poses = [np.eye(4)] + [_translated(d * DEPTH_M / CAM.fx) for d in disparities]
+    return images, poses
+
+
+def test_eq11_eq12_against_hand_computation(device):
+    # weights (1, 0.5, 0.25), sigma_fb = 1 px, sigma_epi = 2 px, gamma (0.5, 1.5)
+    ref = [(10.0, 20.0)] * 5
+    fwd = [(15.0, 20.0)] * 5
+    sim = [0.8, 0.8, 0.8, 1.0, -0.5]
+    epi = [2.0, 2.0, 2.0, 0.0, 40.0]
+    bwd = [(11.0, 20.0), (30.0, 20.0), (10.0, 20.0), (10.0, 20.0), (50.0, 20.0)]
+    bwd_sim = [0.9, 0.9, NO_MATCH, 0.9, 0.9]
+    # e^-0.5 = 0.6065307: fb error 1 px, epipolar distance 2 px (one sigma each)
+    want = [
+        (0.8 + 0.5 * 0.6065307 + 0.25 * 0.6065307 - 0.5) / 1.0,  # 0.7548980
+        (0.8 + 0.0 + 0.25 * 0.6065307 - 0.5) / 1.0,  # fb error 20 px: rho_fb ~ 0 -> 0.4516327
+        0.0,  # no backward match
+        1.0,  # score 1.75 clipped
+        0.0,  # score -0.5 clipped
+    ]
+    n = len(ref)
+    kw = {"device": device}
+    match_uv = wp.zeros((n, 2), dtype=wp.vec2d, **kw)
+    conf = wp.zeros((n, 2), dtype=wp.float32, **kw)
+    wp.launch(
+        score_matches,
+        dim=n,
+        inputs=[
+            wp.array(ref, dtype=wp.vec2, **kw),
+            wp.array(fwd, dtype=wp.vec2, **kw),
+            wp.array(sim, dtype=wp.float32, **kw),
+            wp.array(epi, dtype=wp.float32, **kw),
+            wp.array(bwd, dtype=wp.vec2, **kw),
+            wp.array(bwd_sim, dtype=wp.float32, **kw),
+            1,
+            wp.vec3(1.0, 0.5, 0.25),
+            1.0,
+            2.0,
+            0.5,
+            1.5,
+        ],
+        outputs=[match_uv, conf],
+        **kw,
+    )
+    np.testing.assert_allclose(conf.numpy()[:, 1], want, atol=1e-6)
+    np.testing.assert_array_equal(conf.numpy()[:, 0], 0.0)
+    np.testing.assert_array_equal(match_uv.numpy()[:, 1], fwd)
+
+
+@pytest.mark.parametrize("use_depth", [True, False])
+def test_translated_pair_matches_known_disparity(device, use_depth):
+    images, poses = _scene([6])
+    buf = _buffer(images, poses, device)
+    matcher = DenseMatcher(MatchingConfig(n_neighbours=1), CAM, device)
+    m = matcher.match(0, buf, neighbours=[1], use_depth=use_depth, thin=False)
+    ref = m.ref_uv.numpy()
+    uv = m.match_uv.numpy()[:, 0]
+    conf = m.confidence.numpy()[:, 0]
+    truth = ref - [6.0, 0.0]
+    interior = (truth[:, 0] > 12) & (truth[:, 0] < W - 13) & (ref[:, 1] > 8) & (ref[:, 1] < H - 9)
+    good = interior & (conf > 0.5)
+    assert good.sum() > 0.8 * interior.sum()
+    err = np.linalg.norm(uv[good] - truth[good], axis=1)
+    assert np.median(err) < 0.15 and np.mean(err < 2.0) > 0.99, np.percentile(err, [50, 99])
+    # ref pixels whose match would leave the neighbour image get no confident match
+    outside = ref[:, 0] - 6.0 < -3.0
+    assert outside.any() and np.all(conf[outside] < 0.5)
+
+
+def test_rendered_pair_with_ground_truth(device):
+    """A SyntheticDataset-style pair (office0, 8 cm apart): confident matches land on the true
+    correspondence computed from the ground-truth depth and poses."""
+    from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
+
+    config = SyntheticConfig(scene="office0", width=192, height=108, n_frames=60, supersample=2)
+    seq = SequenceRenderer(config, device)
+    cam = config.camera
+    frames = [seq.render(i) for i in (10, 13)]
+    for use_depth in (True, False):
+        buf = KeyframeBuffer(2, cam.width, cam.height, device)
+        for i, (rgb, depth) in zip((10, 13), frames, strict=True):
+            buf.add(i, seq.poses[i], rgb, depth)
+        m = DenseMatcher(MatchingConfig(n_neighbours=1), cam, device).match(
+            0, buf, [1], use_depth=use_depth, thin=False
+        )
+        ref = m.ref_uv.numpy()
+        uv = m.match_uv.numpy()[:, 0]
+        conf = m.confidence.numpy()[:, 0]
+        depth0 = frames[0][1]
+        d = depth0[np.round(ref[:, 1]).astype(int), np.round(ref[:, 0]).astype(int)]
+        X = np.stack([(ref[:, 0] - cam.cx) / cam.fx * d, (ref[:, 1] - cam.cy) / cam.fy * d, d], 1)
+        T = invert_pose(seq.poses[13]) @ seq.poses[10]
+        Xn = X @ T[:3, :3].T + T[:3, 3]
+        truth = np.stack([cam.fx * Xn[:, 0] / Xn[:, 2] + cam.cx, cam.fy * Xn[:, 1] / Xn[:, 2] + cam.cy], 1)
+        good = conf > 0.5
+        err = np.linalg.norm(uv[good] - truth[good], axis=1)
+        assert good.sum() > 150, good.sum()
+        assert np.mean(err < 2.0) > 0.9, (use_depth, np.mean(err < 2.0), np.percentile(err, [50, 90]))
+
+
+def test_forward_backward_rejects_non_mutual_matches(device):
+    """The reference shows a patch twice on one row (a slightly noisy copy, e.g. a repeated
+    texture); in the neighbour the copy is occluded.  The copy's pixels then match the original's
+    position on their epipolar line with high similarity and no epipolar error, and only the
+    forward-backward term (the backward search returns to the original) rejects them."""
+    rng = np.random.default_rng(3)
+    big = _texture(H, W + 48)
+    big[24:48, 82:106] = 0.9 * big[24:48, 36:60] + 0.05 + rng.normal(0, 0.02, (24, 24, 3)).astype(np.float32)
+    ref, nb = _shifted(big, 0), _shifted(big, 6).copy()
+    nb[20:52, 58:86] = _texture(32, 28, seed=9)  # occludes the copy (neighbour columns 60-83)
+    buf = _buffer([ref, nb], [np.eye(4), _translated(6 * DEPTH_M / CAM.fx)], device, depth=False)
+    ref_u, ref_v = np.meshgrid(np.arange(28) * 4 + 1.5, np.arange(18) * 4 + 1.5)
+    copy = ((ref_v >= 28) & (ref_v < 44) & (ref_u >= 70) & (ref_u < 86)).ravel()
+    conf = {}
+    for w_fb in (1.0, 0.0):
+        # without the fb term, gamma moves down by its weight: the other terms face the same bar
+        cfg = MatchingConfig(n_neighbours=1, w_fb=w_fb, gamma0=0.5 + w_fb, gamma1=1.5 + w_fb)
+        m = DenseMatcher(cfg, CAM, device).match(0, buf, [1], use_depth=False, thin=False)
+        conf[w_fb] = m.confidence.numpy()[:, 0].copy()
+        if w_fb == 0.0:
+            matched = m.match_uv.numpy()[copy, 0, 0]
+    ref_u = ref_u.ravel()
+    assert np.median(np.abs(matched - (ref_u[copy] - 52))) < 1.0  # the copy matched the original
+    assert np.mean(conf[0.0][copy] > 0.5) > 0.6  # edge pixels of the copy see different surroundings
+    assert np.mean(conf[1.0][copy] > 0.5) < 0.1
+
+
+def test_aggregation_thinning_and_triangulation(device):
+    images, poses = _scene([6, 10])
+    buf = _buffer(images, poses, device)
+    matcher = DenseMatcher(MatchingConfig(n_neighbours=3, thin_spacing=2.0), CAM, device)  # room for 3, given 2
+    raw = matcher.match(0, buf, neighbours=[1, 2], thin=False)
+    raw_conf = raw.confidence.numpy().copy()
+    assert raw_conf.shape == raw.match_uv.shape == (28 * 18, 2) and raw.P.shape == (3,)
+    np.testing.assert_allclose(raw.aggregated.numpy(), raw_conf.mean(1), atol=1e-6)
+    assert int(raw.kept_count.numpy()[0]) == int((raw_conf.mean(1) > 0).sum())
+
+    m = matcher.match(0, buf, neighbours=[1, 2], thin=True)
+    conf = m.confidence.numpy()
+    agg = m.aggregated.numpy()
+    kept = agg > 0
+    assert int(m.kept_count.numpy()[0]) == kept.sum() > 50
+    np.testing.assert_allclose(conf[kept], raw_conf[kept], atol=1e-6)  # survivors keep their confidences
+    assert np.all(conf[~kept] == 0)
+    hf, wf = m.grid
+    ys, xs = np.divmod(np.nonzero(kept)[0], wf)
+    dist = np.hypot(ys[:, None] - ys[None], xs[:, None] - xs[None]) + 1e9 * np.eye(kept.sum())
+    assert dist.min() >= 2.0  # blue-noise spacing on the feature grid
+    # every matched pixel lies within the spacing of a kept one (thinning, not deletion)
+    yc, xc = np.divmod(np.nonzero(raw_conf.mean(1) > 0)[0], wf)
+    assert np.hypot(yc[:, None] - ys[None], xc[:, None] - xs[None]).min(1).max() < 2.0
+
+    tri = Triangulator(TriangulationConfig(), device).triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
+    valid = tri.valid.numpy() == 1
+    confident = agg > 0.5
+    assert np.mean(valid[confident]) > 0.9
+    z = tri.X.numpy()[valid & confident][:, 2]
+    assert np.median(np.abs(z - DEPTH_M)) < 0.01 * DEPTH_M
+
+
+def test_select_neighbours_by_proximity_and_parallax(device):
+    cfg = MatchingConfig(n_neighbours=2, target_parallax_deg=5.0, scene_depth_m=2.0, max_view_angle_deg=45.0)
+    poses = {
+        "ref": np.eye(4),
+        "tiny": _translated(0.005),  # 0.14 deg: no parallax
+        "ideal": _translated(0.17),  # 4.9 deg
+        "wide": _translated(0.7),  # 19.3 deg
+        "turned": se3_exp(np.array([0.17, 0, 0, 0, np.pi / 2, 0])),  # looks elsewhere
+    }
+    buf = KeyframeBuffer(5, W, H, device)
+    slots = {name: buf.add(i, T, np.zeros((H, W, 3), np.float32)) for i, (name, T) in enumerate(poses.items())}
+    names = {v: k for k, v in slots.items()}
+    matcher = DenseMatcher(cfg, CAM, device)
+    assert [names[s] for s in matcher.select_neighbours(slots["ref"], buf)] == ["ideal", "wide"]
+    matcher.cfg.n_neighbours = 4
+    assert [names[s] for s in matcher.select_neighbours(slots["ref"], buf)] == ["ideal", "wide", "tiny"]
+    # judged at a scene 8 m away, the 0.7 m baseline gives the 5 deg and comes first
+    assert [names[s] for s in matcher.select_neighbours(slots["ref"], buf, scene_depth_m=8.0)][0] == "wide"
