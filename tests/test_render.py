@@ -113,3 +113,38 @@ def test_binning_and_sort(device):
         ]
         assert sorted(lst.tolist()) == expected
     assert total == result.num_intersections > 150
+
+
+def test_intersection_capacity_and_overflow(device):
+    """Capacity comes from the previous render's count; a render that needs more drops the excess,
+    says so, and the next one grows the buffers and is exact again."""
+    rng = np.random.default_rng(12)
+    scene = random_scene(rng, 120, T_WC)
+    gmap = to_map(scene, device)
+    renderer = Renderer(device, isect_margin=1.1)
+    first = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND)  # no count to go by: sized exactly
+    needed = first.num_intersections
+    assert not first.overflowed and needed <= first.intersection_capacity <= 1.1 * needed + 2
+    _check_images(first, render_reference(scene, CAMERA, T_WC, BACKGROUND))
+
+    # same map size and camera, larger splats: the capacity from the previous count is too small
+    big = dict(scene, log_scales=scene["log_scales"] + 0.7)
+    big_map = to_map(big, device)
+    ref = render_reference(big, CAMERA, T_WC, BACKGROUND)
+    truncated = renderer.forward(big_map, CAMERA, T_WC, BACKGROUND)
+    assert truncated.overflowed and renderer.intersections_overflowed()
+    assert truncated.num_intersections > truncated.intersection_capacity == first.intersection_capacity
+    assert np.abs(truncated.color.numpy() - ref[0]).max() > TOL
+    again = renderer.forward(big_map, CAMERA, T_WC, BACKGROUND)
+    assert not again.overflowed and again.intersection_capacity >= again.num_intersections
+    _check_images(again, ref)
+
+    # back to the small splats: the capacity shrinks (the sort covers all of it), results stay exact
+    small = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND)
+    small = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND)
+    assert small.intersection_capacity < again.intersection_capacity and not small.overflowed
+    _check_images(small, render_reference(scene, CAMERA, T_WC, BACKGROUND))
+
+    # reserving ahead (as before capturing a graph) keeps the capacity until a count says otherwise
+    renderer.reserve_intersections(10 * needed)
+    assert renderer._isect_capacity >= 10 * needed and renderer._isect_alloc >= 10 * needed

@@ -118,6 +118,31 @@ def test_pose_only_path(device, problem):
     assert (renderer.grads.means.numpy() == 7.0).all()  # per-Gaussian storage untouched
 
 
+@pytest.mark.parametrize("jacobians_in_forward", [True, False])
+def test_pose_only_fast_path(device, problem, jacobians_in_forward):
+    """The pose-only compositing backward (per-Gaussian pose Jacobians, no per-Gaussian gradients)
+    against finite differences and against the general path of the per-pixel implementation."""
+    scene, weights, loss, _ = problem
+    gmap = to_map(scene, device)
+    reference = Renderer(device, tiled=False)
+    reference.forward(gmap, CAM, T_WC, BACKGROUND)
+    expected = reference.backward(*_image_grads(weights, device))[1].numpy().copy()
+
+    renderer = Renderer(device)
+    renderer.forward(gmap, CAM, T_WC, BACKGROUND, pose_jacobians=jacobians_in_forward)
+    grads, pose_grad = renderer.backward(*_image_grads(weights, device), pose_only=True)
+    assert grads is None
+    assert not renderer._grad2d.numpy().any()  # no per-Gaussian gradient buffer touched
+    np.testing.assert_allclose(pose_grad.numpy(), expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
+    _assert_close(pose_grad.numpy(), _fd_pose(loss, scene))
+
+    # accumulate adds; a tracking loop's next forward stores the Jacobians without being asked
+    renderer.backward(*_image_grads(weights, device), pose_only=True, accumulate=True)
+    np.testing.assert_allclose(pose_grad.numpy(), 2 * expected, rtol=1e-4, atol=2e-4 * np.abs(expected).max())
+    renderer.forward(gmap, CAM, T_WC, BACKGROUND)
+    assert renderer._last[4]
+
+
 def test_tape_backward_through_warp_loss(device, problem):
     """Forward recorded on a wp.Tape, a loss written as a Warp kernel, tape.backward runs the chain."""
     scene, weights, _, _ = problem

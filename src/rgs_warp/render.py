@@ -7,14 +7,21 @@ tile ranges -> front-to-back compositing per 16x16 tile.  The backward runs the 
 compositing adjoint, then a per-Gaussian projection adjoint that also reduces the pose twist
 gradient block by block.
 
-The only host synchronisation is reading the number of tile intersections after the scan, to size
-the sort; intersection buffers are preallocated and grown when that count exceeds them.
+Intersection buffers have a capacity: the last known count times a margin.  The count of each render
+stays on the device (copied asynchronously to pinned host memory) and is read lazily, at the next
+forward, when the previous render has long finished; a render whose count exceeds the capacity drops
+the excess intersections, says so in ``RenderResult.overflowed`` and the next forward grows the
+buffers.  The forward reads the count synchronously only when it has none to go by: the first render,
+and whenever the number of Gaussians or the image size changed.  So in a tracking loop nothing waits
+for the GPU, and ``forward`` + ``backward`` can be captured in a CUDA graph (``wp.ScopedCapture``)
+once a render has sized the buffers; after replays, ``intersections_overflowed()`` tells whether the
+graph must be re-captured.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -27,16 +34,19 @@ from rgs_warp.kernels.projection import (
     CameraParams,
     emit_intersections,
     invert_rigid,
+    pad_intersection_keys,
     project_gaussians,
     project_gaussians_backward,
     tile_ranges_from_keys,
     vec10,
+    vec32,
 )
 from rgs_warp.kernels.rasterize import (
     rasterize_pixels,
     rasterize_pixels_backward,
     rasterize_tiles,
     rasterize_tiles_backward,
+    rasterize_tiles_pose_backward,
 )
 from rgs_warp.types import Camera, GaussianMap
 
@@ -53,7 +63,11 @@ class RenderResult:
     1 - T_final; n_contrib: (H, W) int32, entries of the pixel's tile list up to its last
     contributor; radii: (capacity,) vec2i pixel half-extents, (0, 0) for culled Gaussians;
     xy_opacity_depth: (capacity,) vec4 (u, v, opacity, z) of each projected Gaussian; tile_ranges:
-    (tiles, 2) int32 [start, end) into the depth-sorted ``sorted_ids``.
+    (tiles, 2) int32 [start, end) into the depth-sorted ``sorted_ids``; intersection_capacity: the
+    length of the intersection buffers this render used.
+
+    ``num_intersections`` and ``overflowed`` read the count from the device: they wait for the
+    render's projection stage, and like the images they describe the renderer's latest forward.
     """
 
     color: wp.array
@@ -65,7 +79,18 @@ class RenderResult:
     tile_ranges: wp.array
     sorted_ids: wp.array
     num_gaussians: int
-    num_intersections: int
+    intersection_capacity: int
+    _renderer: Renderer = field(repr=False)
+
+    @property
+    def num_intersections(self) -> int:
+        """Tile intersections the render needed (more than ``intersection_capacity`` if it overflowed)."""
+        return self._renderer._read_count()
+
+    @property
+    def overflowed(self) -> bool:
+        """True when intersections were dropped for lack of capacity (the next forward grows it)."""
+        return self.num_intersections > self.intersection_capacity
 
 
 @dataclass
@@ -100,19 +125,27 @@ class Renderer:
     ``tiled=True`` composites with one 256-thread block per 16x16 tile and shared-memory batches
     (the fast path); ``tiled=False`` uses one thread per pixel reading global memory (a simple
     second implementation).  ``near`` is the near-plane depth in metres below which Gaussians are
-    culled.
+    culled.  ``isect_margin``: intersection capacity as a multiple of the last known count (the sort
+    processes the whole capacity, so a large margin costs sort time; a small one risks overflow when
+    the view changes quickly between two renders).
     """
 
-    def __init__(self, device=None, tiled: bool = True, near: float = 0.01):
+    def __init__(self, device=None, tiled: bool = True, near: float = 0.01, isect_margin: float = 1.15):
         self.device = wp.get_device(device)
         self.tiled = tiled
         self.near = near
+        self.isect_margin = isect_margin
         self._gaussian_capacity = 0
+        self._isect_alloc = 0
         self._isect_capacity = 0
         self._image_shape = None
         self._view = wp.zeros(1, dtype=wp.mat44, device=self.device)
         self._view_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=self.device.is_cuda)
+        self._isect_count = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._count_host = wp.zeros(1, dtype=wp.int32, device="cpu", pinned=self.device.is_cuda)
+        self._count_event = None
+        self._count_key = None  # (number of Gaussians, camera) of the render whose count _count_host holds
+        self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._last = None
 
@@ -131,6 +164,7 @@ class Renderer:
         self._touched = wp.zeros(n, dtype=wp.int32, **kw)
         self._offsets = wp.zeros(n, dtype=wp.int32, **kw)
         self._grad2d = wp.zeros(n, dtype=vec10, **kw)
+        self._pose_jac = wp.zeros(1, dtype=vec32, **kw)  # grown by the first render that needs it
         self.grads = GaussianGrads(
             wp.zeros(n, dtype=wp.vec3, **kw),
             wp.zeros(n, dtype=wp.quat, **kw),
@@ -140,14 +174,37 @@ class Renderer:
         )
         self._gaussian_capacity = n
 
-    def _ensure_intersections(self, count: int) -> None:
-        if count <= self._isect_capacity:
-            return
-        n = _grow(max(self._isect_capacity, 1024), count)
-        # radix_sort_pairs uses the second half as scratch
-        self._keys = wp.zeros(2 * n, dtype=wp.int64, device=self.device)
-        self._ids = wp.zeros(2 * n, dtype=wp.int32, device=self.device)
-        self._isect_capacity = n
+    def reserve_intersections(self, count: int) -> None:
+        """Make room for ``count`` tile intersections (e.g. before capturing a graph that will render
+        more than the last render needed)."""
+        count = max(int(count), 1)
+        if count > self._isect_alloc:
+            n = _grow(max(self._isect_alloc, 1024), count)
+            # radix_sort_pairs uses the second half as scratch
+            self._keys = wp.zeros(2 * n, dtype=wp.int64, device=self.device)
+            self._ids = wp.zeros(2 * n, dtype=wp.int32, device=self.device)
+            self._isect_alloc = n
+        self._isect_capacity = max(self._isect_capacity, count)
+
+    def _size_intersections(self, needed: int) -> None:
+        """Capacity = needed x margin; shrunk (without reallocating) when far above, since the sort
+        works on the whole capacity."""
+        target = math.ceil(needed * self.isect_margin) + 1
+        if target > self._isect_capacity or target * self.isect_margin < self._isect_capacity:
+            self._isect_capacity = 0
+            self.reserve_intersections(target)
+
+    def _read_count(self) -> int:
+        """The intersection count of the latest forward (waits for its projection stage)."""
+        if self._count_event is not None:
+            wp.synchronize_event(self._count_event)
+        else:
+            wp.synchronize_device(self.device)
+        return int(self._count_host.numpy()[0])
+
+    def intersections_overflowed(self) -> bool:
+        """Whether the latest forward (eager or replayed from a graph) dropped intersections."""
+        return self._read_count() > self._isect_capacity
 
     def _ensure_image(self, camera: Camera) -> None:
         shape = (camera.height, camera.width)
@@ -190,6 +247,7 @@ class Renderer:
         T_WC,
         background=(0.0, 0.0, 0.0),
         tape: wp.Tape | None = None,
+        pose_jacobians: bool | None = None,
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -197,6 +255,10 @@ class Renderer:
         With ``tape``, the backward is registered on it: ``tape.backward()`` after losses that read
         the returned images then accumulates into ``gmap``'s ``.grad`` arrays (when the map was made
         with ``requires_grad=True``) and into ``self.pose_grad`` (the twist gradient, zeroed here).
+
+        ``pose_jacobians``: also store the per-Gaussian pose Jacobians that ``backward(pose_only=True)``
+        folds the screen-space gradients through (without them that backward first re-runs the
+        projection to get them); ``None``: if the previous backward was pose-only (a tracking loop).
         """
         dev = self.device
         n = len(gmap)
@@ -206,51 +268,74 @@ class Renderer:
         if isinstance(T_WC, wp.array):
             wp.launch(invert_rigid, dim=1, inputs=[T_WC], outputs=[self._view], device=dev, record_tape=False)
         else:
+            if self._count_event is not None:
+                # the previous render's upload from this pinned buffer must have happened
+                wp.synchronize_event(self._count_event)
             self._view_host.numpy()[0] = invert_pose(np.asarray(T_WC, dtype=np.float64))
             wp.copy(self._view, self._view_host)
 
-        num_isect = 0
+        capturing = dev.is_cuda and dev.is_capturing
+        if pose_jacobians is None:
+            pose_jacobians = self._last_pose_only
+        # Capacity from the previous render's count (finished long ago in a loop: no stall), unless
+        # there is none to go by; inside a graph capture the capacity is whatever was reserved.
+        exact = False
+        if not capturing:
+            if self._count_key == (n, camera):
+                self._size_intersections(self._read_count())
+            else:
+                exact = n > 0
         if n > 0:
-            wp.launch(
-                project_gaussians,
-                dim=n,
-                inputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh, gmap.num_sh]
-                + [self._view, cam],
-                outputs=[self._xyod, self._depth, self._conic, self._color, self._radii, self._touched],
-                device=dev,
-                record_tape=False,
-            )
+            self._project(gmap, n, cam, pose_jacobians)
             wp.utils.array_scan(self._touched[:n], self._offsets[:n], inclusive=True)
-            wp.copy(self._count_host, self._offsets, src_offset=n - 1, count=1)
-            wp.synchronize_device(dev)
-            num_isect = int(self._count_host.numpy()[0])
+            wp.copy(self._isect_count, self._offsets, src_offset=n - 1, count=1)
+        else:
+            self._isect_count.zero_()
+        wp.copy(self._count_host, self._isect_count)
+        if capturing:
+            self._count_event = None  # after a replay only a device synchronisation orders the copy
+        else:
+            self._count_event = wp.record_event() if dev.is_cuda else None
+            self._count_key = (n, camera)
+        if exact:
+            self._size_intersections(self._read_count())
+        self.reserve_intersections(1)
+        capacity = self._isect_capacity
+
         self._ranges.zero_()
-        if num_isect > 0:
-            self._ensure_intersections(num_isect)
+        if n > 0:
             wp.launch(
                 emit_intersections,
                 dim=n,
-                inputs=[self._xyod, self._depth_bits, self._radii, self._touched, self._offsets, cam],
+                inputs=[self._xyod, self._depth_bits, self._radii, self._touched, self._offsets, cam, capacity],
                 outputs=[self._keys, self._ids],
                 device=dev,
                 record_tape=False,
             )
-            tile_bits = max(1, math.ceil(math.log2(self._ranges.shape[0] + 1)))
-            wp.utils.radix_sort_pairs(self._keys, self._ids, num_isect, end_bit=32 + tile_bits)
+            num_tiles = self._ranges.shape[0]
+            wp.launch(
+                pad_intersection_keys,
+                dim=capacity,
+                inputs=[self._isect_count, num_tiles],
+                outputs=[self._keys],
+                device=dev,
+                record_tape=False,
+            )
+            # the padding's tile id, num_tiles, must fit in the sorted bits
+            tile_bits = max(1, math.ceil(math.log2(num_tiles + 1)))
+            wp.utils.radix_sort_pairs(self._keys, self._ids, capacity, end_bit=32 + tile_bits)
             wp.launch(
                 tile_ranges_from_keys,
-                dim=num_isect,
-                inputs=[self._keys, num_isect],
+                dim=capacity,
+                inputs=[self._keys, self._isect_count, capacity],
                 outputs=[self._ranges],
                 device=dev,
                 record_tape=False,
             )
-        else:
-            self._ensure_intersections(1)
 
         bg = wp.vec3(*[float(c) for c in background])
         self._launch_raster(cam, bg, backward=False)
-        self._last = (gmap, n, cam, bg, num_isect)
+        self._last = (gmap, n, cam, bg, bool(pose_jacobians))
         result = RenderResult(
             self._out_color,
             self._out_depth,
@@ -261,7 +346,8 @@ class Renderer:
             self._ranges,
             self._ids,
             n,
-            num_isect,
+            capacity,
+            self,
         )
         if tape is not None:
             for image in (self._out_color, self._out_depth, self._out_alpha):
@@ -273,12 +359,30 @@ class Renderer:
             tape.record_func(backward=self._tape_backward, arrays=arrays)
         return result
 
-    def _launch_raster(self, cam: CameraParams, bg, backward: bool, grads=None) -> None:
+    def _project(self, gmap: GaussianMap, n: int, cam: CameraParams, pose_jacobians: bool) -> None:
+        # 128 bytes per Gaussian, so only renderers that run the pose-only backward hold them
+        if pose_jacobians and self._pose_jac.shape[0] < self._gaussian_capacity:
+            self._pose_jac = wp.zeros(self._gaussian_capacity, dtype=vec32, device=self.device)
+        wp.launch(
+            project_gaussians,
+            dim=n,
+            inputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh, gmap.num_sh]
+            + [self._view, cam, int(pose_jacobians)],
+            outputs=[self._xyod, self._depth, self._conic, self._color, self._radii, self._touched, self._pose_jac],
+            device=self.device,
+            record_tape=False,
+        )
+
+    def _launch_raster(self, cam: CameraParams, bg, backward: bool, grads=None, pose_only: bool = False) -> None:
         common = [self._ranges, self._ids, self._xyod, self._conic, self._color, bg, cam.width, cam.height]
         common.append(cam.tiles_x)
         shape = self._image_shape
-        if backward:
-            kernel = rasterize_tiles_backward if self.tiled else rasterize_pixels_backward
+        if backward and self.tiled:
+            kernel = rasterize_tiles_pose_backward if pose_only else rasterize_tiles_backward
+            inputs = common + [self._final_t, self._n_contrib, *grads, self._pose_jac, cam.fx, cam.fy]
+            outputs = [self._grad2d, self.pose_grad]
+        elif backward:
+            kernel = rasterize_pixels_backward
             inputs = common + [self._final_t, self._n_contrib, *grads]
             outputs = [self._grad2d]
         else:
@@ -319,7 +423,8 @@ class Renderer:
         """
         if self._last is None:
             raise RuntimeError("backward() needs a forward() first")
-        gmap, n, cam, bg, num_isect = self._last
+        gmap, n, cam, bg, have_pose_jac = self._last
+        self._last_pose_only = pose_only
         if not accumulate:
             self.pose_grad.zero_()
         grads = None if pose_only else (grads_out or self.grads)
@@ -330,9 +435,14 @@ class Renderer:
             self._zero_depth if dL_ddepth is None else dL_ddepth,
             self._zero_alpha if dL_dalpha is None else dL_dalpha,
         ]
+        if pose_only and self.tiled:
+            if not have_pose_jac:
+                self._project(gmap, n, cam, pose_jacobians=True)
+                self._last = (gmap, n, cam, bg, True)
+            self._launch_raster(cam, bg, backward=True, grads=image_grads, pose_only=True)
+            return grads, self.pose_grad
         self._grad2d.zero_()
-        if num_isect > 0:
-            self._launch_raster(cam, bg, backward=True, grads=image_grads)
+        self._launch_raster(cam, bg, backward=True, grads=image_grads)
         g = grads or self.grads
         wp.launch_tiled(
             project_gaussians_backward,

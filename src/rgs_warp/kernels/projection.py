@@ -46,6 +46,13 @@ SH_C3_6 = -0.5900435899266435
 vec10 = wp.types.vector(length=10, dtype=wp.float32)
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
+# Per-Gaussian pose Jacobian for the pose-only backward, d(screen-space Gaussian)/d(twist):
+# [0:3] X (camera frame), [3] 1/z (mean2d and depth follow from these), [4:22] rows of d(conic a, b, c)/dxi,
+# [22:31] rows of d(colour r, g, b)/drho (the view direction depends on the camera centre only), [31] unused.
+vec32 = wp.types.vector(length=32, dtype=wp.float32)
+POSE_JAC_X = 0
+POSE_JAC_CONIC = 4
+POSE_JAC_COLOR = 22
 
 
 @wp.struct
@@ -189,6 +196,68 @@ def projection_jacobian(X: wp.vec3, cam: CameraParams):
     return mat23(cam.fx / z, 0.0, -cam.fx * u / z, 0.0, cam.fy / z, -cam.fy * v / z)
 
 
+@wp.func
+def conic_backward(cn: wp.vec3, g_con: wp.vec3, J: mat23, cov_c: wp.mat33):
+    """(dL/dSigma_c, dL/dJ) from the gradient g_con of the stored conic (a, b, c) = Sigma2d^-1 entries.
+
+    dL/dSigma2d = -Q G Q with G the symmetric gradient of the conic matrix (the stored off-diagonal b
+    enters the quadratic form twice, hence g_b / 2 per entry); Sigma2d = J Sigma_c J^T + 0.3 I.
+    """
+    Q = wp.mat22(cn[0], cn[1], cn[1], cn[2])
+    G = wp.mat22(g_con[0], 0.5 * g_con[1], 0.5 * g_con[1], g_con[2])
+    g_cov2d = -(Q @ G @ Q)
+    return wp.transpose(J) @ g_cov2d @ J, 2.0 * (g_cov2d @ J @ cov_c)
+
+
+@wp.func
+def jacobian_backward(g_J: mat23, X: wp.vec3, cam: CameraParams):
+    """dL/dX through J(X) (projection_jacobian, with its clamped tangents u = x/z, v = y/z)."""
+    z = X[2]
+    ux = X[0] / z
+    vy = X[1] / z
+    u = wp.clamp(ux, cam.tan_x_min, cam.tan_x_max)
+    v = wp.clamp(vy, cam.tan_y_min, cam.tan_y_max)
+    du_dx = wp.where(ux == u, 1.0 / z, 0.0)
+    dv_dy = wp.where(vy == v, 1.0 / z, 0.0)
+    du_dz = wp.where(ux == u, -ux / z, 0.0)
+    dv_dz = wp.where(vy == v, -vy / z, 0.0)
+    z2 = z * z
+    return wp.vec3(
+        g_J[0, 2] * (-cam.fx / z) * du_dx,
+        g_J[1, 2] * (-cam.fy / z) * dv_dy,
+        -g_J[0, 0] * cam.fx / z2
+        - g_J[1, 1] * cam.fy / z2
+        + g_J[0, 2] * cam.fx * (u / z2 - du_dz / z)
+        + g_J[1, 2] * cam.fy * (v / z2 - dv_dz / z),
+    )
+
+
+@wp.func
+def covariance_twist_grad(g_cov_c: wp.mat33, cov_c: wp.mat33):
+    """Rotation part of the twist gradient through Sigma_c = W Sigma W^T: dW = [phi]x W gives
+    dSigma_c = [phi]x Sigma_c - Sigma_c [phi]x."""
+    A = g_cov_c @ cov_c
+    return 2.0 * wp.vec3(A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1])
+
+
+@wp.func
+def direction_backward(g_d: wp.vec3, d: wp.vec3, dir_raw: wp.vec3):
+    """dL/d(dir_raw) from dL/dd with d = dir_raw / |dir_raw| (the radial part drops out)."""
+    return (g_d - d * wp.dot(d, g_d)) / wp.length(dir_raw)
+
+
+@wp.func
+def conic_twist_jacobian(cn: wp.vec3, J: mat23, cov_c: wp.mat33, X: wp.vec3, cam: CameraParams, e: wp.vec3):
+    """d<e, conic>/dxi = (rho, phi): the twist gradient of a unit gradient e on the stored conic.
+
+    Xi moves X by rho + phi x X (through J) and rotates Sigma_c (covariance_twist_grad).
+    """
+    g_cov_c, g_J = conic_backward(cn, e, J, cov_c)
+    g_X = jacobian_backward(g_J, X, cam)
+    g_phi = wp.cross(X, g_X) + covariance_twist_grad(g_cov_c, cov_c)
+    return vec6(g_X[0], g_X[1], g_X[2], g_phi[0], g_phi[1], g_phi[2])
+
+
 @wp.kernel
 def project_gaussians(
     # in: Gaussian map
@@ -201,6 +270,8 @@ def project_gaussians(
     # in: camera-from-world pose (1 element) and intrinsics
     view: wp.array(dtype=wp.mat44),
     cam: CameraParams,
+    # in: whether to write pose_jac_out (for the pose-only backward)
+    with_pose_jac: int,
     # out: screen-space Gaussians (xy_opacity_depth = u, v, opacity, z)
     xy_opacity_depth_out: wp.array(dtype=wp.vec4),
     depth_out: wp.array(dtype=float),
@@ -208,6 +279,7 @@ def project_gaussians(
     color_out: wp.array(dtype=wp.vec3),
     radii_out: wp.array(dtype=wp.vec2i),
     tiles_touched_out: wp.array(dtype=wp.int32),
+    pose_jac_out: wp.array(dtype=vec32),
 ):
     i = wp.tid()
     radii_out[i] = wp.vec2i(0, 0)
@@ -252,19 +324,51 @@ def project_gaussians(
         return
 
     d = wp.normalize(dir_raw)
-    color = wp.vec3(0.0)
+    raw = wp.vec3(0.0)
+    # gradients of the three raw colour channels in d, for the pose Jacobian
+    g_dr = wp.vec3(0.0)
+    g_dg = wp.vec3(0.0)
+    g_db = wp.vec3(0.0)
     for k in range(num_sh):
         y, dy = sh_basis(k, d)
-        color += y * sh[i, k]
+        coeff = sh[i, k]
+        raw += y * coeff
+        if with_pose_jac != 0:
+            g_dr += coeff[0] * dy
+            g_dg += coeff[1] * dy
+            g_db += coeff[2] * dy
     # 3DGS: the SH value is offset by 0.5 and clamped at 0 (no upper clamp).
-    color = wp.vec3(wp.max(color[0] + 0.5, 0.0), wp.max(color[1] + 0.5, 0.0), wp.max(color[2] + 0.5, 0.0))
+    color = wp.vec3(wp.max(raw[0] + 0.5, 0.0), wp.max(raw[1] + 0.5, 0.0), wp.max(raw[2] + 0.5, 0.0))
+    conic = wp.vec3(c / det, -b / det, a / det)
 
     xy_opacity_depth_out[i] = wp.vec4(mean2d[0], mean2d[1], opacity, z)
     depth_out[i] = z
-    conic_out[i] = wp.vec3(c / det, -b / det, a / det)
+    conic_out[i] = conic
     color_out[i] = color
     radii_out[i] = radii
     tiles_touched_out[i] = touched
+
+    if with_pose_jac != 0:
+        jac = vec32()
+        jac[POSE_JAC_X + 0] = X[0]
+        jac[POSE_JAC_X + 1] = X[1]
+        jac[POSE_JAC_X + 2] = X[2]
+        jac[POSE_JAC_X + 3] = 1.0 / z
+        for r in range(3):
+            e = wp.vec3(0.0)
+            e[r] = 1.0
+            row = conic_twist_jacobian(conic, J, cov_c, X, cam, e)
+            for j in range(6):
+                jac[POSE_JAC_CONIC + 6 * r + j] = row[j]
+        # colour moves with the camera centre C = -W^T t only: dC = -W^T rho, so d(dir_raw) = W^T rho
+        col_r = wp.where(raw[0] + 0.5 > 0.0, 1.0, 0.0) * (W @ direction_backward(g_dr, d, dir_raw))
+        col_g = wp.where(raw[1] + 0.5 > 0.0, 1.0, 0.0) * (W @ direction_backward(g_dg, d, dir_raw))
+        col_b = wp.where(raw[2] + 0.5 > 0.0, 1.0, 0.0) * (W @ direction_backward(g_db, d, dir_raw))
+        for j in range(3):
+            jac[POSE_JAC_COLOR + j] = col_r[j]
+            jac[POSE_JAC_COLOR + 3 + j] = col_g[j]
+            jac[POSE_JAC_COLOR + 6 + j] = col_b[j]
+        pose_jac_out[i] = jac
 
 
 @wp.kernel
@@ -276,7 +380,9 @@ def emit_intersections(
     tiles_touched: wp.array(dtype=wp.int32),
     offsets_inclusive: wp.array(dtype=wp.int32),
     cam: CameraParams,
-    # out: unsorted (tile << 32 | depth bits) keys and Gaussian ids
+    capacity: int,
+    # out: unsorted (tile << 32 | depth bits) keys and Gaussian ids; entries past capacity are dropped
+    # (the caller sees the overflow in the total count and grows the buffers)
     keys_out: wp.array(dtype=wp.int64),
     ids_out: wp.array(dtype=wp.int32),
 ):
@@ -284,27 +390,47 @@ def emit_intersections(
     n = tiles_touched[i]
     if n == 0:
         return
+    j = offsets_inclusive[i] - n
+    if j >= capacity:
+        return
     xyod = xy_opacity_depth[i]
     rect = tile_rect(wp.vec2(xyod[0], xyod[1]), radii[i], cam)
     # Positive IEEE floats order like their bit patterns, so the low word sorts by depth exactly.
     zbits = wp.int64(depth_bits[i])
-    j = offsets_inclusive[i] - n
     for ty in range(rect[2], rect[3]):
         for tx in range(rect[0], rect[1]):
-            keys_out[j] = (wp.int64(ty * cam.tiles_x + tx) << wp.int64(32)) | zbits
-            ids_out[j] = wp.int32(i)
+            if j < capacity:
+                keys_out[j] = (wp.int64(ty * cam.tiles_x + tx) << wp.int64(32)) | zbits
+                ids_out[j] = wp.int32(i)
             j += 1
 
 
 @wp.kernel
+def pad_intersection_keys(
+    # in: number of intersections (1 element) and the tile id past the last tile
+    total: wp.array(dtype=wp.int32),
+    end_tile: int,
+    # out: keys past the total, set to sort behind every real key
+    keys_out: wp.array(dtype=wp.int64),
+):
+    j = wp.tid()
+    if j >= total[0]:
+        keys_out[j] = wp.int64(end_tile) << wp.int64(32)
+
+
+@wp.kernel
 def tile_ranges_from_keys(
-    # in: sorted keys
+    # in: sorted keys, their number (1 element, may exceed the buffer's capacity) and that capacity
     keys: wp.array(dtype=wp.int64),
-    count: int,
+    total: wp.array(dtype=wp.int32),
+    capacity: int,
     # out: [start, end) of each tile's run in the sorted list (zeroed beforehand)
     ranges_out: wp.array2d(dtype=wp.int32),
 ):
     j = wp.tid()
+    count = wp.min(total[0], capacity)
+    if j >= count:
+        return
     tile = int(keys[j] >> wp.int64(32))
     if j == 0:
         ranges_out[tile, 0] = 0
@@ -363,13 +489,7 @@ def project_gaussians_backward(
         X = W @ mean + t
         z = X[2]
 
-        # conic = Sigma2d^-1: dL/dSigma2d = -Q G Q with G the symmetric gradient of the conic matrix
-        # (the stored off-diagonal b enters the quadratic form twice, hence g_b / 2 per entry).
         cn = conic[i]
-        Q = wp.mat22(cn[0], cn[1], cn[1], cn[2])
-        G = wp.mat22(g[2], 0.5 * g[3], 0.5 * g[3], g[4])
-        g_cov2d = -(Q @ G @ Q)
-
         q_raw = rotations[i]
         q = wp.normalize(q_raw)
         R = quat_to_rot(q)
@@ -378,27 +498,9 @@ def project_gaussians_backward(
         cov_w = M @ wp.transpose(M)
         cov_c = W @ cov_w @ wp.transpose(W)
         J = projection_jacobian(X, cam)
-        g_cov_c = wp.transpose(J) @ g_cov2d @ J
-        g_J = 2.0 * (g_cov2d @ J @ cov_c)
-
-        # J's dependence on X (through the clamped tangents u = x/z, v = y/z)
-        ux = X[0] / z
-        vy = X[1] / z
-        u = wp.clamp(ux, cam.tan_x_min, cam.tan_x_max)
-        v = wp.clamp(vy, cam.tan_y_min, cam.tan_y_max)
-        du_dx = wp.where(ux == u, 1.0 / z, 0.0)
-        dv_dy = wp.where(vy == v, 1.0 / z, 0.0)
-        du_dz = wp.where(ux == u, -ux / z, 0.0)
-        dv_dz = wp.where(vy == v, -vy / z, 0.0)
+        g_cov_c, g_J = conic_backward(cn, wp.vec3(g[2], g[3], g[4]), J, cov_c)
+        g_X = jacobian_backward(g_J, X, cam)
         z2 = z * z
-        g_X = wp.vec3(
-            g_J[0, 2] * (-cam.fx / z) * du_dx,
-            g_J[1, 2] * (-cam.fy / z) * dv_dy,
-            -g_J[0, 0] * cam.fx / z2
-            - g_J[1, 1] * cam.fy / z2
-            + g_J[0, 2] * cam.fx * (u / z2 - du_dz / z)
-            + g_J[1, 2] * cam.fy * (v / z2 - dv_dz / z),
-        )
         # mean2d = (fx x / z + cx, fy y / z + cy), depth = z
         g_X += wp.vec3(
             g[0] * cam.fx / z,
@@ -426,13 +528,12 @@ def project_gaussians_backward(
                 if accumulate != 0:
                     g_sh_k += grad_sh_out[i, k]
                 grad_sh_out[i, k] = g_sh_k
-        g_dir = (g_d - d * wp.dot(d, g_d)) / wp.length(dir_raw)
+        g_dir = direction_backward(g_d, d, dir_raw)
 
         # Twist xi = (rho, phi), T_CW <- Exp(xi) T_CW: dX = rho + phi x X, dW = [phi]x W, so
         # dSigma_c = [phi]x Sigma_c - Sigma_c [phi]x and the camera centre moves by -W^T rho
         # (the view direction by +W^T rho).
-        A = g_cov_c @ cov_c
-        g_phi = wp.cross(X, g_X) + 2.0 * wp.vec3(A[2, 1] - A[1, 2], A[0, 2] - A[2, 0], A[1, 0] - A[0, 1])
+        g_phi = wp.cross(X, g_X) + covariance_twist_grad(g_cov_c, cov_c)
         g_rho = g_X + W @ g_dir
         g_pose = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
 

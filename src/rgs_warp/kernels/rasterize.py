@@ -18,9 +18,21 @@ before one global atomic) for speed, and a plain per-pixel one used as a second 
 
 import warp as wp
 
-from rgs_warp.kernels.projection import ALPHA_MIN, TILE_SIZE, vec10
+from rgs_warp.kernels.projection import (
+    ALPHA_MIN,
+    POSE_JAC_COLOR,
+    POSE_JAC_CONIC,
+    POSE_JAC_X,
+    TILE_SIZE,
+    vec6,
+    vec10,
+    vec32,
+)
 
-wp.set_module_options({"enable_backward": False})
+# Fast math (approximate exp and division) as gsplat builds its kernels (-use_fast_math): measured on an
+# H100 it cuts the compositing backward by a third (experiments/results/raster.md); the projection and
+# its pose Jacobians, where precision matters more, stay in a module without it.
+wp.set_module_options({"enable_backward": False, "fast_math": True})
 
 BLOCK = TILE_SIZE * TILE_SIZE
 ALPHA_MAX = 0.99
@@ -197,85 +209,141 @@ def rasterize_tiles(
         n_contrib_out[py_i, px_i] = last
 
 
-@wp.kernel
-def rasterize_tiles_backward(
-    # in: per-tile [start, end) into the depth-sorted Gaussian ids
-    ranges: wp.array2d(dtype=wp.int32),
-    sorted_ids: wp.array(dtype=wp.int32),
-    # in: screen-space Gaussians
-    xy_opacity_depth: wp.array(dtype=wp.vec4),
-    conic: wp.array(dtype=wp.vec3),
-    color: wp.array(dtype=wp.vec3),
-    # in: image and forward per-pixel state
-    background: wp.vec3,
-    width: int,
-    height: int,
-    tiles_x: int,
-    final_t: wp.array2d(dtype=float),
-    n_contrib: wp.array2d(dtype=wp.int32),
-    # in: loss gradients w.r.t. the rendered images
-    grad_color: wp.array2d(dtype=wp.vec3),
-    grad_depth: wp.array2d(dtype=float),
-    grad_alpha: wp.array2d(dtype=float),
-    # out: screen-space gradients per Gaussian (zeroed beforehand)
-    grad2d_out: wp.array(dtype=vec10),
-):
-    tile, lane = wp.tid()
-    ty = tile // tiles_x
-    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
-    py_i = ty * TILE_SIZE + lane // TILE_SIZE
-    inside = px_i < width and py_i < height
-    px = float(px_i)
-    py = float(py_i)
-    start = ranges[tile, 0]
+@wp.func
+def fold_pose(jac: vec32, g: vec10, fx: float, fy: float):
+    """Twist gradient (rho, phi) of one splat-pixel screen-space gradient g through the splat's pose
+    Jacobian (projection.vec32 layout): mean2d = (fx x / z + cx, fy y / z + cy) and depth z move with
+    dX = rho + phi x X; the conic and colour rows are precomputed per Gaussian."""
+    iz = jac[POSE_JAC_X + 3]
+    X = wp.vec3(jac[POSE_JAC_X + 0], jac[POSE_JAC_X + 1], jac[POSE_JAC_X + 2])
+    gx = fx * iz * g[0]
+    gy = fy * iz * g[1]
+    g_X = wp.vec3(gx, gy, g[9] - iz * (X[0] * gx + X[1] * gy))
+    g_rho = g_X
+    for c in range(3):
+        o = POSE_JAC_COLOR + 3 * c
+        g_rho += g[6 + c] * wp.vec3(jac[o], jac[o + 1], jac[o + 2])
+    g_phi = wp.cross(X, g_X)
+    out = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
+    for r in range(3):
+        o = POSE_JAC_CONIC + 6 * r
+        out += g[2 + r] * vec6(jac[o], jac[o + 1], jac[o + 2], jac[o + 3], jac[o + 4], jac[o + 5])
+    return out
 
-    last = wp.int32(0)
-    T = wp.float32(1.0)
-    g_color = wp.vec3(0.0)
-    g_depth = wp.float32(0.0)
-    g_alpha = wp.float32(0.0)
-    if inside:
-        last = n_contrib[py_i, px_i]
-        T = final_t[py_i, px_i]
-        g_color = grad_color[py_i, px_i]
-        g_depth = grad_depth[py_i, px_i]
-        g_alpha = grad_alpha[py_i, px_i]
-    t_final = T
-    acc_color = T * background
-    acc_depth = wp.float32(0.0)
 
-    block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
-    n_batches = (block_last + BLOCK - 1) // BLOCK
-    for bb in range(n_batches):
-        b = n_batches - 1 - bb
-        batch_start = start + b * BLOCK
-        ids = wp.tile_load(sorted_ids, shape=BLOCK, offset=batch_start, storage="shared")
-        s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(BLOCK,), storage="shared")
-        s_conic = wp.tile_load_indexed(conic, ids, shape=(BLOCK,), storage="shared")
-        s_color = wp.tile_load_indexed(color, ids, shape=(BLOCK,), storage="shared")
-        count = wp.min(BLOCK, block_last - b * BLOCK)
-        for kk in range(count):
-            k = count - 1 - kk
-            g = vec10()
-            hit = wp.int32(0)
-            if b * BLOCK + k < last:
-                xyod = wp.tile_extract(s_xyod, k)
-                con = wp.tile_extract(s_conic, k)
-                alpha, dx, dy = splat_alpha(xyod, con, px, py)
-                if alpha >= ALPHA_MIN:
-                    T = T / (1.0 - alpha)
-                    col = wp.tile_extract(s_color, k)
-                    g = splat_grad(
-                        xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha
-                    )
-                    w = alpha * T
-                    acc_color += w * col
-                    acc_depth += w * xyod[3]
-                    hit = 1
-            if warp_any(hit) != 0:
-                total = warp_sum(g)
-                if warp_leader(lane) != 0:
-                    wp.atomic_add(grad2d_out, wp.tile_extract(ids, k), total)
+def _tiles_backward(pose_only: bool):
+    """The tiled compositing adjoint.  General variant: per-Gaussian screen-space gradients, summed per
+    warp with shuffles, one atomic per warp and splat.  Pose-only variant (the tracker's path): each
+    thread folds its splat gradients straight into a twist 6-vector through the per-Gaussian pose
+    Jacobians staged with the batch, the block sums once, one atomic per block and component: no
+    per-Gaussian atomics or buffers."""
+
+    def kernel(
+        # in: per-tile [start, end) into the depth-sorted Gaussian ids
+        ranges: wp.array2d(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        # in: screen-space Gaussians
+        xy_opacity_depth: wp.array(dtype=wp.vec4),
+        conic: wp.array(dtype=wp.vec3),
+        color: wp.array(dtype=wp.vec3),
+        # in: image and forward per-pixel state
+        background: wp.vec3,
+        width: int,
+        height: int,
+        tiles_x: int,
+        final_t: wp.array2d(dtype=float),
+        n_contrib: wp.array2d(dtype=wp.int32),
+        # in: loss gradients w.r.t. the rendered images
+        grad_color: wp.array2d(dtype=wp.vec3),
+        grad_depth: wp.array2d(dtype=float),
+        grad_alpha: wp.array2d(dtype=float),
+        # in (pose-only variant): per-Gaussian pose Jacobians, focal lengths
+        pose_jac: wp.array(dtype=vec32),
+        fx: float,
+        fy: float,
+        # out: screen-space gradients per Gaussian (general variant, zeroed beforehand) or the twist
+        # gradient (pose-only variant, added to)
+        grad2d_out: wp.array(dtype=vec10),
+        grad_pose_out: wp.array(dtype=float),
+    ):
+        tile, lane = wp.tid()
+        ty = tile // tiles_x
+        px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+        py_i = ty * TILE_SIZE + lane // TILE_SIZE
+        inside = px_i < width and py_i < height
+        px = float(px_i)
+        py = float(py_i)
+        start = ranges[tile, 0]
+
+        last = wp.int32(0)
+        T = wp.float32(1.0)
+        g_color = wp.vec3(0.0)
+        g_depth = wp.float32(0.0)
+        g_alpha = wp.float32(0.0)
+        if inside:
+            last = n_contrib[py_i, px_i]
+            T = final_t[py_i, px_i]
+            g_color = grad_color[py_i, px_i]
+            g_depth = grad_depth[py_i, px_i]
+            g_alpha = grad_alpha[py_i, px_i]
+        t_final = T
+        acc_color = T * background
+        acc_depth = wp.float32(0.0)
+        g_pose = vec6()
+
+        block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
+        n_batches = (block_last + BLOCK - 1) // BLOCK
+        for bb in range(n_batches):
+            b = n_batches - 1 - bb
+            batch_start = start + b * BLOCK
+            ids = wp.tile_load(sorted_ids, shape=BLOCK, offset=batch_start, storage="shared")
+            s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(BLOCK,), storage="shared")
+            s_conic = wp.tile_load_indexed(conic, ids, shape=(BLOCK,), storage="shared")
+            s_color = wp.tile_load_indexed(color, ids, shape=(BLOCK,), storage="shared")
+            if wp.static(pose_only):
+                s_jac = wp.tile_load_indexed(pose_jac, ids, shape=(BLOCK,), storage="shared")
+            count = wp.min(BLOCK, block_last - b * BLOCK)
+            for kk in range(count):
+                k = count - 1 - kk
+                g = vec10()
+                hit = wp.int32(0)
+                if b * BLOCK + k < last:
+                    xyod = wp.tile_extract(s_xyod, k)
+                    con = wp.tile_extract(s_conic, k)
+                    alpha, dx, dy = splat_alpha(xyod, con, px, py)
+                    if alpha >= ALPHA_MIN:
+                        T = T / (1.0 - alpha)
+                        col = wp.tile_extract(s_color, k)
+                        g = splat_grad(
+                            xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha
+                        )
+                        w = alpha * T
+                        acc_color += w * col
+                        acc_depth += w * xyod[3]
+                        hit = 1
+                        if wp.static(pose_only):
+                            g_pose += fold_pose(wp.tile_extract(s_jac, k), g, fx, fy)
+                if wp.static(not pose_only):
+                    if warp_any(hit) != 0:
+                        total = warp_sum(g)
+                        if warp_leader(lane) != 0:
+                            wp.atomic_add(grad2d_out, wp.tile_extract(ids, k), total)
+
+        if wp.static(pose_only):
+            pose_total = wp.tile_extract(wp.tile_sum(wp.tile(g_pose, preserve_type=True)), 0)
+            if lane == 0:
+                for c in range(6):
+                    wp.atomic_add(grad_pose_out, c, pose_total[c])
+
+    if pose_only:
+        # Capping registers (102 -> 80) so that 3 blocks fit per SM instead of 2: 15 % faster on an H100
+        # despite a few spills; the general variant got slower with the same cap.
+        return wp.Kernel(kernel, key="rasterize_tiles_pose_backward", options={"launch_bounds": (BLOCK, 3)})
+    return wp.Kernel(kernel, key="rasterize_tiles_backward")
+
+
+rasterize_tiles_backward = _tiles_backward(pose_only=False)
+rasterize_tiles_pose_backward = _tiles_backward(pose_only=True)
 
 
 @wp.kernel
