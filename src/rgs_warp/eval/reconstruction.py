@@ -5,14 +5,24 @@ ground-truth samples within a threshold of the reconstruction)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-import open3d.core as o3c
 from scipy.spatial import cKDTree
 
 from rgs_warp.geometry import invert_pose
 from rgs_warp.types import Camera
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+
+def _open3d():
+    """Open3D, imported when a mesh metric runs: it is heavy (and needs libusb), and nothing else in
+    the package uses it."""
+    import open3d
+
+    return open3d
 
 # Hash-map capacity to start with (blocks of 8^3 voxels); Open3D grows it when a scene needs more.
 _INITIAL_BLOCK_COUNT = 10_000
@@ -35,6 +45,8 @@ def tsdf_fuse(
     """
     if len(depths_m) != len(poses_c2w) or len(depths_m) == 0:
         raise ValueError(f"need as many depth maps as poses (non-empty), got {len(depths_m)}, {len(poses_c2w)}")
+    o3d = _open3d()
+    o3c = o3d.core
     # Open3D's integration reads the depth pixel floor(u), i.e. takes pixel u to span [u, u + 1)
     # with its centre at u + 0.5; ours is at u (types.py). Shifting the principal point by half a
     # pixel reconciles the two (measured on a slanted plane: 3.2 mm bias without, 0.3 mm with).
@@ -91,6 +103,7 @@ def sample_surface(mesh: o3d.geometry.TriangleMesh, n_samples: int, rng: np.rand
 
 def _distance_to_surface_m(mesh: o3d.geometry.TriangleMesh, points_m: np.ndarray) -> np.ndarray:
     """Unsigned distance (m) of each point to the closest point of any triangle (Open3D, float32)."""
+    o3d = _open3d()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     return scene.compute_distance(o3d.core.Tensor(points_m.astype(np.float32))).numpy().astype(np.float64)
