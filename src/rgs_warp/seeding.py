@@ -93,7 +93,8 @@ def poisson_disk_subsample(
         )
 
     counters[1:2].zero_()
-    wp.capture_while(counters, one_round)
+    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
+    wp.capture_while(counters[:1], one_round)
     return keep_out
 
 
@@ -137,7 +138,8 @@ def thin_blue_noise(
         )
 
     counters[1:2].zero_()
-    wp.capture_while(counters, one_round)
+    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
+    wp.capture_while(counters[:1], one_round)
     return keep_out
 
 
