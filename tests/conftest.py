@@ -19,7 +19,9 @@ wp.init()
 
 @pytest.fixture(scope="session")
 def device():
-    return "cpu"
+    # CI runs on the CPU; RGS_TEST_DEVICE=cuda:0 runs the same tests on a GPU (CUDA-only bugs such
+    # as a capture_while condition of the wrong size pass on the CPU).
+    return os.environ.get("RGS_TEST_DEVICE", "cpu")
 
 
 @pytest.fixture(scope="session")
