@@ -148,7 +148,7 @@ def test_dinov2_loads_official_layout_from_file(tmp_path, device, registers):
     assert (bb.stride, bb.dim) == (14, 384)
     loaded = bb.net.state_dict()
     for k in ("blocks.1.attn.qkv.weight", "pos_embed", "patch_embed.proj.weight"):
-        assert torch.equal(loaded[k], state[k])
+        assert torch.equal(loaded[k].cpu(), state[k])
     rgb = _texture(30, 45)  # 2 x 3 patches, the rest cropped
     d = bb.describe(rgb).numpy()
     assert d.shape == (2, 3, 384)

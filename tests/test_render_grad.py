@@ -183,7 +183,9 @@ def test_tape_backward_through_warp_loss(device, problem):
     grads, pose_grad = direct.backward(wc, wd, wa)
     expected = grads.to_numpy(len(gmap))
     for name in expected:
-        np.testing.assert_allclose(via_tape[name], expected[name], rtol=1e-4, atol=1e-6)
+        # GPU atomics sum in a different order each run: allow float noise relative to the field's scale
+        atol = 1e-5 * max(np.abs(expected[name]).max(), 1e-3)
+        np.testing.assert_allclose(via_tape[name], expected[name], rtol=1e-4, atol=atol)
     np.testing.assert_allclose(pose_via_tape, pose_grad.numpy(), rtol=1e-4, atol=1e-5)
     assert np.abs(via_tape["means"]).max() > 1e-3
     tape.zero()
@@ -193,18 +195,22 @@ def test_tape_backward_through_warp_loss(device, problem):
 def test_torch_wrapper(device, problem):
     scene, weights, _, _ = problem
     renderer = Renderer(device)
+    tdev = wp.device_to_torch(device)
     tensors = [
-        torch.tensor(scene[k], dtype=torch.float32, requires_grad=True)
+        torch.tensor(scene[k], dtype=torch.float32, device=tdev, requires_grad=True)
         for k in ("means", "quats", "log_scales", "opacity_logits", "sh")
     ]
-    xi = torch.zeros(6, requires_grad=True)
+    if tdev != "cpu":  # tensors elsewhere than the renderer are refused, not launched on
+        with pytest.raises(ValueError, match="is on cpu, the renderer on"):
+            rasterize(renderer, CAM, T_WC, *[t.detach().cpu() for t in tensors])
+    xi = torch.zeros(6, device=tdev, requires_grad=True)
     color, depth, alpha = rasterize(renderer, CAM, T_WC, *tensors, xi=xi, background=BACKGROUND)
     ref = render_reference(scene, CAM, T_WC, BACKGROUND)
-    assert np.abs(color.detach().numpy() - ref[0]).max() < 1e-4
+    assert np.abs(color.detach().cpu().numpy() - ref[0]).max() < 1e-4
     loss = (
-        (torch.tensor(weights[0], dtype=torch.float32) * color).sum()
-        + (torch.tensor(weights[1], dtype=torch.float32) * depth).sum()
-        + (torch.tensor(weights[2], dtype=torch.float32) * alpha).sum()
+        (torch.tensor(weights[0], dtype=torch.float32, device=tdev) * color).sum()
+        + (torch.tensor(weights[1], dtype=torch.float32, device=tdev) * depth).sum()
+        + (torch.tensor(weights[2], dtype=torch.float32, device=tdev) * alpha).sum()
     )
     loss.backward()
 
@@ -213,5 +219,6 @@ def test_torch_wrapper(device, problem):
     grads, pose_grad = direct.backward(*_image_grads(weights, device))
     expected = grads.to_numpy(len(scene["means"]))
     for tensor, name in zip(tensors, FIELDS.values(), strict=True):
-        np.testing.assert_allclose(tensor.grad.numpy(), expected[name], rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(xi.grad.numpy(), pose_grad.numpy(), rtol=1e-4, atol=1e-5)
+        atol = 1e-5 * max(np.abs(expected[name]).max(), 1e-3)
+        np.testing.assert_allclose(tensor.grad.cpu().numpy(), expected[name], rtol=1e-4, atol=atol)
+    np.testing.assert_allclose(xi.grad.cpu().numpy(), pose_grad.numpy(), rtol=1e-4, atol=1e-5)

@@ -76,8 +76,24 @@ def rasterize(
     """(color (H,W,3), depth (H,W), alpha (H,W)) of float32 tensors (N,3), (N,4), (N,3), (N,), (N,K,3)
     on the renderer's device; ``xi`` (6,) is a pose twist applied as T_CW <- Exp(xi) T_CW whose
     gradient is the analytic one."""
+    expected = torch.device(wp.device_to_torch(renderer.device))
+    named = {
+        "means": means,
+        "quats_xyzw": quats_xyzw,
+        "log_scales": log_scales,
+        "opacity_logits": opacity_logits,
+        "sh": sh,
+    }
+    if xi is not None:
+        named["xi"] = xi
+    for name, t in named.items():
+        if t.device != expected:
+            # Warp would launch on the renderer's device with the tensor's pointer: an illegal access.
+            raise ValueError(f"{name} is on {t.device}, the renderer on {expected}: move the tensors there")
+        if t.dtype != torch.float32:
+            raise ValueError(f"{name} must be float32, got {t.dtype}")
     if xi is None:
-        xi = torch.zeros(6, dtype=torch.float32, device=means.device)
+        xi = torch.zeros(6, dtype=torch.float32, device=expected)
     return RasterizeGaussians.apply(
         renderer, camera, T_WC, background, means, quats_xyzw, log_scales, opacity_logits, sh, xi
     )
