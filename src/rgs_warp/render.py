@@ -48,7 +48,7 @@ from rgs_warp.kernels.rasterize import (
     rasterize_tiles_backward,
     rasterize_tiles_pose_backward,
 )
-from rgs_warp.types import Camera, GaussianMap
+from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 __all__ = ["GaussianGrads", "RenderResult", "Renderer", "render"]
 
@@ -113,12 +113,6 @@ class GaussianGrads:
         return {name: getattr(self, name).numpy()[:count] for name in names}
 
 
-def _grow(capacity: int, needed: int) -> int:
-    while capacity < needed:
-        capacity *= 2
-    return capacity
-
-
 class Renderer:
     """Owns every buffer of the rasterizer; ``forward`` then ``backward`` per iteration.
 
@@ -179,7 +173,7 @@ class Renderer:
         more than the last render needed)."""
         count = max(int(count), 1)
         if count > self._isect_alloc:
-            n = _grow(max(self._isect_alloc, 1024), count)
+            n = grown_capacity(self._isect_alloc, count, minimum=1024)
             # radix_sort_pairs uses the second half as scratch
             self._keys = wp.zeros(2 * n, dtype=wp.int64, device=self.device)
             self._ids = wp.zeros(2 * n, dtype=wp.int32, device=self.device)

@@ -21,7 +21,7 @@ from rgs_warp.kernels.seeding import MAX_VIEWS, SeedParams, seed_footprint, seed
 from rgs_warp.kernels.thinning import thinning_accept, thinning_init, thinning_reject
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.triangulation import TriangulatedPoints
-from rgs_warp.types import Camera, GaussianMap
+from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 # Confidence levels of the dart priority: finer levels follow the confidence more closely but allow
 # longer chains of rounds (a chain climbs at most one level per round); 32 levels resolve Eq. 12's
@@ -225,9 +225,7 @@ class Seeder:
     def _ensure(self, n: int) -> None:
         if n <= self._capacity:
             return
-        cap = max(self._capacity, 1024)
-        while cap < n:
-            cap *= 2
+        cap = grown_capacity(self._capacity, n, minimum=1024)
         kw = {"device": self.device}
         self._points = wp.zeros(cap, dtype=wp.vec3, **kw)
         self._footprint = wp.zeros(cap, dtype=wp.float32, **kw)

@@ -15,6 +15,7 @@ import warp as wp
 from rgs_warp.config import TriangulationConfig
 from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels.dlt import baseline_angles, mat34d, triangulate_hypotheses, triangulate_points
+from rgs_warp.types import grown_capacity
 
 
 def projection_matrices(K: np.ndarray, T_WC: np.ndarray) -> np.ndarray:
@@ -115,9 +116,7 @@ class Triangulator:
     def _ensure(self, n: int) -> None:
         if n <= self._capacity:
             return
-        cap = max(self._capacity, 1024)
-        while cap < n:
-            cap *= 2
+        cap = grown_capacity(self._capacity, n, minimum=1024)
         kw = {"device": self.device}
         self._X = wp.zeros(cap, dtype=wp.vec3d, **kw)
         self._residual = wp.zeros(cap, dtype=wp.float64, **kw)

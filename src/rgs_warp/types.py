@@ -18,6 +18,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 
+def grown_capacity(current: int, needed: int, minimum: int = 1) -> int:
+    """Capacity after doubling ``current`` (at least ``minimum``) until ``needed`` rows fit: the
+    growth rule of every preallocated buffer, so appends cost amortised O(1) and rarely reallocate."""
+    capacity = max(current, minimum, 1)
+    while capacity < needed:
+        capacity *= 2
+    return capacity
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole intrinsics (OpenCV convention) and image size; ``distortion`` is OpenCV's
@@ -137,9 +146,7 @@ class GaussianMap:
 
         if capacity <= self.capacity:
             return
-        new_capacity = self.capacity
-        while new_capacity < capacity:
-            new_capacity *= 2
+        new_capacity = grown_capacity(self.capacity, capacity)
         old = {name: getattr(self, name) for name in _GAUSSIAN_FIELDS}
         self._allocate(new_capacity)
         if self.count:

@@ -24,6 +24,7 @@ def _open3d():
 
     return open3d
 
+
 # Hash-map capacity to start with (blocks of 8^3 voxels); Open3D grows it when a scene needs more.
 _INITIAL_BLOCK_COUNT = 10_000
 
