@@ -33,9 +33,7 @@ def lint(session):
 @nox.session
 def eval(session):
     """Evaluation tables (issue 7): not implemented yet."""
-    session.error(
-        "nox -s eval: not implemented yet (the SLAM pipeline and evaluation suite land with issue 7)"
-    )
+    session.error("nox -s eval: not implemented yet (the SLAM pipeline and evaluation suite land with issue 7)")
 
 
 @nox.session

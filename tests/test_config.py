@@ -56,9 +56,7 @@ def test_errors(args, message):
 
 
 def test_groups_and_help():
-    assert {"replica/office0", "tum/fr1_desk", "synthetic/room0", "7scenes/redkitchen"} <= set(
-        group_options("dataset")
-    )
+    assert {"replica/office0", "tum/fr1_desk", "synthetic/room0", "7scenes/redkitchen"} <= set(group_options("dataset"))
     text = help_text()
     assert "dataset: " in text and "tracking.iters = 30" in text and "mapping.lambda_dssim = 0.2" in text
 

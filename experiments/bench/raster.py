@@ -288,7 +288,6 @@ def main() -> None:
     parser.add_argument("--out", default=os.environ.get("OUT", "experiments/results"))
     parser.add_argument("--no-gsplat", action="store_true")
     args = parser.parse_args()
-    wp.config.enable_cpu_blocks = True  # only matters for a dry run on the CPU
     wp.init()
     device = wp.get_device("cuda:0" if wp.get_cuda_device_count() else "cpu")
     commit = os.environ.get("RGS_COMMIT")

@@ -1,0 +1,367 @@
+"""Kernels of the tracker (supplement §4.2): frame preparation, per-pixel weights (Eq. 6-8), the affine
+brightness normal equations (Eq. 3-4), the tracking loss (Eq. 5 + depth L1) with its image gradients
+for the renderer's backward, and Adam on the pose twist with the left-multiplicative SE(3) update.
+
+Per-iteration quantities go to one row of a float64 history array (columns ``H_*``) so that an
+iteration never reads anything back to the host: the tracker reads the whole history once per frame.
+Reductions sum 256 pixels in a block tile, then add one float64 atomic per block and column.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+REDUCE_BLOCK = 256
+
+# History columns (one row per iteration).
+H_S0 = 0  # Eq. 4 normal equations over pixels x channels, weighted by w_alpha: sum w
+H_SX = 1  # sum w * rendered
+H_SY = 2  # sum w * observed
+H_SXX = 3  # sum w * rendered^2
+H_SXY = 4  # sum w * rendered * observed
+H_VALID = 5  # pixels with accumulated opacity >= tau_alpha
+H_GAIN = 6  # g of Eq. 3 used in this iteration
+H_BIAS = 7  # b of Eq. 3
+H_LOSS = 8  # Eq. 5 + depth term, divided by the pixel count
+H_PHOTO = 9  # sum_x w(x) |I - g I_hat - b|_1
+H_WEIGHT = 10  # sum_x w(x)
+H_DEPTH = 11  # sum of the rendered depth sum_i w_i z_i (pivot of the twist, see adam_pose_step)
+H_ALPHA = 12  # sum of the accumulated opacity
+H_CONSISTENCY = 13  # mean over the 6 twist coordinates of Adam's |m_hat| / sqrt(v_hat), in [0, 1]
+H_COLUMNS = 14
+
+# Below this accumulated opacity the alpha-normalised depth D_hat / alpha is not formed (its weight
+# w_alpha = alpha / tau_alpha is negligible there anyway).
+ALPHA_DEPTH_MIN = 1.0e-3
+
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+
+@wp.kernel
+def downsample_rgbd(
+    # in: full-resolution frame (depth (1, 1) when the frame has none)
+    rgb: wp.array2d(dtype=wp.vec3),
+    depth: wp.array2d(dtype=wp.float32),
+    factor: int,
+    has_depth: int,
+    max_rel_spread: float,
+    # out: frame at 1 / factor resolution
+    rgb_out: wp.array2d(dtype=wp.vec3),
+    depth_out: wp.array2d(dtype=wp.float32),
+):
+    # Block means, as the datasets' downscale_rgb / downscale_depth (docs/decisions.md): the depth of
+    # a block straddling a depth edge (spread above max_rel_spread of its mean) becomes invalid.
+    y, x = wp.tid()
+    c = wp.vec3(0.0)
+    total = float(0.0)
+    count = int(0)
+    lo = float(1.0e30)
+    hi = float(-1.0e30)
+    for dy in range(factor):
+        for dx in range(factor):
+            c += rgb[y * factor + dy, x * factor + dx]
+            if has_depth != 0:
+                d = depth[y * factor + dy, x * factor + dx]
+                if d > 0.0:
+                    total += d
+                    count += 1
+                    lo = wp.min(lo, d)
+                    hi = wp.max(hi, d)
+    rgb_out[y, x] = c / float(factor * factor)
+    mean = float(0.0)
+    if count > 0:
+        mean = total / float(count)
+        if hi - lo > max_rel_spread * mean:
+            mean = 0.0
+    depth_out[y, x] = mean
+
+
+@wp.kernel
+def gradient_weight(
+    # in: observed image
+    rgb: wp.array2d(dtype=wp.vec3),
+    tau_grad: float,
+    # out: w_grad of Eq. 8
+    w_grad_out: wp.array2d(dtype=wp.float32),
+):
+    # |grad I| of the luminance (channel mean) by central differences, one-sided at the border.
+    # tau_grad <= 0 switches the weight off (w = 1), for ablations.
+    y, x = wp.tid()
+    h = rgb.shape[0]
+    w = rgb.shape[1]
+    x0 = wp.max(x - 1, 0)
+    x1 = wp.min(x + 1, w - 1)
+    y0 = wp.max(y - 1, 0)
+    y1 = wp.min(y + 1, h - 1)
+    one3 = wp.vec3(1.0 / 3.0)
+    gx = float(0.0)
+    gy = float(0.0)
+    if x1 > x0:
+        gx = wp.dot(rgb[y, x1] - rgb[y, x0], one3) / float(x1 - x0)
+    if y1 > y0:
+        gy = wp.dot(rgb[y1, x] - rgb[y0, x], one3) / float(y1 - y0)
+    weight = float(1.0)
+    if tau_grad > 0.0:
+        weight = wp.clamp(wp.sqrt(gx * gx + gy * gy) / tau_grad, 0.0, 1.0)
+    w_grad_out[y, x] = weight
+
+
+@wp.func
+def alpha_weight(alpha: float, tau_alpha: float):
+    """w_alpha of Eq. 7."""
+    return wp.clamp(alpha / tau_alpha, 0.0, 1.0)
+
+
+@wp.kernel
+def brightness_sums(
+    # in: observed and rendered images
+    observed: wp.array2d(dtype=wp.vec3),
+    rendered: wp.array2d(dtype=wp.vec3),
+    rendered_depth: wp.array2d(dtype=wp.float32),
+    alpha: wp.array2d(dtype=wp.float32),
+    tau_alpha: float,
+    row: int,
+    # out: columns H_S0..H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand)
+    history_out: wp.array2d(dtype=wp.float64),
+):
+    # Eq. 4 as weighted least squares over pixels and channels, weight w_alpha (Eq. 7): pixels the map
+    # does not cover say nothing about the exposure; w_grad is left out on purpose, flat areas
+    # constrain the gain and bias as well as edges do.
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    width = observed.shape[1]
+    s = vec8()
+    if i < observed.shape[0] * width:
+        y = i // width
+        x = i - y * width
+        a = alpha[y, x]
+        w = alpha_weight(a, tau_alpha)
+        xr = rendered[y, x]
+        yo = observed[y, x]
+        s = vec8(
+            3.0 * w,
+            w * (xr[0] + xr[1] + xr[2]),
+            w * (yo[0] + yo[1] + yo[2]),
+            w * wp.dot(xr, xr),
+            w * wp.dot(xr, yo),
+            wp.where(a >= tau_alpha, 1.0, 0.0),
+            rendered_depth[y, x],
+            a,
+        )
+    total = wp.tile_extract(wp.tile_sum(wp.tile(s, preserve_type=True)), 0)
+    if lane == 0:
+        for c in range(6):
+            wp.atomic_add(history_out, row, H_S0 + c, wp.float64(total[c]))
+        wp.atomic_add(history_out, row, H_DEPTH, wp.float64(total[6]))
+        wp.atomic_add(history_out, row, H_ALPHA, wp.float64(total[7]))
+
+
+@wp.kernel
+def solve_brightness(
+    # in:
+    enabled: int,
+    ridge: float,
+    row: int,
+    # out: columns H_GAIN, H_BIAS of history row `row`, from its H_S* sums
+    history_out: wp.array2d(dtype=wp.float64),
+):
+    # Closed form of Eq. 4: [[Sxx, Sx], [Sx, S0]] (g, b) = (Sxy, Sy), with a ridge ridge * S0 pulling
+    # (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~ 0) cannot produce a wild
+    # gain; it matters only when the rendered intensities vary by less than ~sqrt(ridge).
+    g = wp.float64(1.0)
+    b = wp.float64(0.0)
+    s0 = history_out[row, H_S0]
+    if enabled != 0 and s0 > wp.float64(0.0):
+        lam = wp.float64(ridge) * s0
+        a11 = history_out[row, H_SXX] + lam
+        a12 = history_out[row, H_SX]
+        a22 = s0 + lam
+        r1 = history_out[row, H_SXY] + lam
+        r2 = history_out[row, H_SY]
+        det = a11 * a22 - a12 * a12
+        if det > wp.float64(0.0):
+            g = (a22 * r1 - a12 * r2) / det
+            b = (a11 * r2 - a12 * r1) / det
+    history_out[row, H_GAIN] = g
+    history_out[row, H_BIAS] = b
+
+
+@wp.kernel
+def tracking_loss(
+    # in: observed frame (depth ignored unless use_depth), w_grad of Eq. 8
+    observed: wp.array2d(dtype=wp.vec3),
+    observed_depth: wp.array2d(dtype=wp.float32),
+    w_grad: wp.array2d(dtype=wp.float32),
+    # in: rendered images
+    rendered: wp.array2d(dtype=wp.vec3),
+    rendered_depth: wp.array2d(dtype=wp.float32),
+    alpha: wp.array2d(dtype=wp.float32),
+    # in: parameters; (g, b) read from history row `row`
+    tau_alpha: float,
+    use_depth: int,
+    depth_weight: float,
+    row: int,
+    # out: loss gradients w.r.t. the rendered images; H_LOSS, H_PHOTO, H_WEIGHT of row `row`
+    d_color_out: wp.array2d(dtype=wp.vec3),
+    d_depth_out: wp.array2d(dtype=wp.float32),
+    d_alpha_out: wp.array2d(dtype=wp.float32),
+    history_out: wp.array2d(dtype=wp.float64),
+):
+    # L = 1/N sum_x [ w(x) |I - g I_hat - b|_1 + lambda_d w_alpha(x) |D_hat / alpha - D| ] (Eq. 5-8; the
+    # depth term on pixels with observed depth).  The weights and (g, b) are held constant in the
+    # gradient: they are re-evaluated every iteration, and differentiating w_alpha would reward
+    # moving the map out of view.  The rendered depth is sum_i w_i z_i (not normalised), so it is
+    # divided by alpha here: otherwise partly covered pixels would pull towards the camera.
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    height = observed.shape[0]
+    width = observed.shape[1]
+    s = wp.vec3(0.0)
+    if i < height * width:
+        y = i // width
+        x = i - y * width
+        inv_n = 1.0 / float(height * width)
+        g = float(history_out[row, H_GAIN])
+        b = float(history_out[row, H_BIAS])
+        a = alpha[y, x]
+        w_a = alpha_weight(a, tau_alpha)
+        w = w_a * w_grad[y, x]
+        r = observed[y, x] - (g * rendered[y, x] + wp.vec3(b))
+        photo = w * (wp.abs(r[0]) + wp.abs(r[1]) + wp.abs(r[2]))
+        d_color_out[y, x] = (-inv_n * w * g) * wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2]))
+        loss = photo
+        d_depth = float(0.0)
+        d_alpha = float(0.0)
+        if use_depth != 0:
+            d_obs = observed_depth[y, x]
+            if d_obs > 0.0 and a > ALPHA_DEPTH_MIN:
+                d_hat = rendered_depth[y, x]
+                e = d_hat / a - d_obs
+                loss += depth_weight * w_a * wp.abs(e)
+                k = inv_n * depth_weight * w_a * wp.sign(e) / a
+                d_depth = k
+                d_alpha = -k * d_hat / a
+        d_depth_out[y, x] = d_depth
+        d_alpha_out[y, x] = d_alpha
+        s = wp.vec3(loss * inv_n, photo, w)
+    total = wp.tile_extract(wp.tile_sum(wp.tile(s, preserve_type=True)), 0)
+    if lane == 0:
+        wp.atomic_add(history_out, row, H_LOSS, wp.float64(total[0]))
+        wp.atomic_add(history_out, row, H_PHOTO, wp.float64(total[1]))
+        wp.atomic_add(history_out, row, H_WEIGHT, wp.float64(total[2]))
+
+
+@wp.func
+def skew_d(v: wp.vec3d):
+    z = wp.float64(0.0)
+    return wp.mat33d(z, -v[2], v[1], v[2], z, -v[0], -v[1], v[0], z)
+
+
+@wp.func
+def se3_exp(rho: wp.vec3d, phi: wp.vec3d):
+    """4x4 exponential of the twist (rho, phi), float64: R = I + A K + B K^2, t = (I + B K + C K^2) rho."""
+    theta = wp.length(phi)
+    K = skew_d(phi)
+    K2 = K @ K
+    t2 = theta * theta
+    A = wp.float64(1.0) - t2 / wp.float64(6.0)
+    B = wp.float64(0.5) - t2 / wp.float64(24.0)
+    C = wp.float64(1.0) / wp.float64(6.0) - t2 / wp.float64(120.0)
+    if theta > wp.float64(1.0e-3):  # below, the series' next terms are < 1e-16
+        A = wp.sin(theta) / theta
+        B = (wp.float64(1.0) - wp.cos(theta)) / t2
+        C = (theta - wp.sin(theta)) / (t2 * theta)
+    eye = wp.identity(n=3, dtype=wp.float64)
+    R = eye + A * K + B * K2
+    t = (eye + B * K + C * K2) @ rho
+    z = wp.float64(0.0)
+    o = wp.float64(1.0)
+    return wp.mat44d(
+        R[0, 0], R[0, 1], R[0, 2], t[0],
+        R[1, 0], R[1, 1], R[1, 2], t[1],
+        R[2, 0], R[2, 1], R[2, 2], t[2],
+        z, z, z, o,
+    )  # fmt: skip
+
+
+@wp.func
+def rigid_inverse_f32(T: wp.mat44d):
+    """Inverse of a rigid float64 transform, as the float32 matrix the renderer takes."""
+    R = wp.mat33d(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+    Rt = wp.transpose(R)
+    t = -(Rt @ wp.vec3d(T[0, 3], T[1, 3], T[2, 3]))
+    return wp.mat44(
+        float(Rt[0, 0]), float(Rt[0, 1]), float(Rt[0, 2]), float(t[0]),
+        float(Rt[1, 0]), float(Rt[1, 1]), float(Rt[1, 2]), float(t[1]),
+        float(Rt[2, 0]), float(Rt[2, 1]), float(Rt[2, 2]), float(t[2]),
+        0.0, 0.0, 0.0, 1.0,
+    )  # fmt: skip
+
+
+@wp.kernel
+def adam_pose_step(
+    # in: twist gradient of the loss (renderer's pose backward), schedule and Adam constants
+    grad: wp.array(dtype=wp.float32),
+    row: int,
+    iters: int,
+    lr: float,
+    lr_amplitude: float,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    # in/out: reads H_DEPTH, H_ALPHA, writes H_CONSISTENCY of history row `row`
+    history: wp.array2d(dtype=wp.float64),
+    # in/out: Adam moments (6 each) of the twist about the pivot, camera-from-world pose
+    m: wp.array(dtype=wp.float32),
+    v: wp.array(dtype=wp.float32),
+    T_CW: wp.array(dtype=wp.mat44d),
+    # out: the pose for the renderer (camera-to-world, float32); the updated T_CW at index `row`
+    T_WC_out: wp.array(dtype=wp.mat44),
+    pose_history_out: wp.array(dtype=wp.mat44d),
+):
+    # Cosine schedule centred on lr: lr_k = lr (1 + a cos(pi k / K)), from (1 + a) lr at k = 0 down to
+    # ~(1 - a) lr at k = K - 1; its mean over the K steps is lr.
+    lr_k = lr * (1.0 + lr_amplitude * wp.cos(wp.pi * float(row) / float(iters)))
+    n_steps = float(row + 1)
+    c1 = 1.0 - wp.pow(beta1, n_steps)
+    c2 = 1.0 - wp.pow(beta2, n_steps)
+    # The twist is taken about a pivot p on the optical axis at the mean rendered depth rather than
+    # about the camera centre: xi' = (rho', phi') with T_CW <- P^-1 Exp(xi') P T_CW, P: X -> X - p.
+    # Both describe the same left update (rho = rho' + p x phi' to first order), but about the camera
+    # centre a small rotation and a sideways translation shift the image almost alike, a long valley
+    # in which Adam's per-coordinate steps zig-zag; about the scene's centre they separate.
+    # Gradient: g_rho' = g_rho, g_phi' = g_phi + g_rho x p.
+    p = wp.vec3(0.0)
+    if history[row, H_ALPHA] > wp.float64(0.0):
+        p = wp.vec3(0.0, 0.0, float(history[row, H_DEPTH] / history[row, H_ALPHA]))
+    g_rho = wp.vec3(grad[0], grad[1], grad[2])
+    g_phi = wp.vec3(grad[3], grad[4], grad[5]) + wp.cross(g_rho, p)
+    g = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
+    step = vec6()
+    consistency = float(0.0)
+    for k in range(6):
+        gk = g[k]
+        mk = beta1 * m[k] + (1.0 - beta1) * gk
+        vk = beta2 * v[k] + (1.0 - beta2) * gk * gk
+        m[k] = mk
+        v[k] = vk
+        # ~1 while the gradient keeps its sign (still travelling), ~0 where it flips (at the minimum)
+        ratio = (mk / c1) / (wp.sqrt(vk / c2) + eps)
+        consistency += wp.abs(ratio) / 6.0
+        step[k] = -lr_k * ratio
+    history[row, H_CONSISTENCY] = wp.float64(consistency)
+    rho = wp.vec3d(wp.float64(step[0]), wp.float64(step[1]), wp.float64(step[2]))
+    phi = wp.vec3d(wp.float64(step[3]), wp.float64(step[4]), wp.float64(step[5]))
+    E = se3_exp(rho, phi)
+    # P^-1 E P: same rotation, translation t + p - R p
+    pd = wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+    R = wp.mat33d(E[0, 0], E[0, 1], E[0, 2], E[1, 0], E[1, 1], E[1, 2], E[2, 0], E[2, 1], E[2, 2])
+    t = wp.vec3d(E[0, 3], E[1, 3], E[2, 3]) + pd - R @ pd
+    E[0, 3] = t[0]
+    E[1, 3] = t[1]
+    E[2, 3] = t[2]
+    T = E @ T_CW[0]
+    T_CW[0] = T
+    T_WC_out[0] = rigid_inverse_f32(T)
+    pose_history_out[row] = T
