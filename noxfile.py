@@ -38,5 +38,13 @@ def eval(session):
 
 @nox.session
 def bench(session):
-    """GPU benchmarks under experiments/bench (issue 4 and later): not implemented yet."""
-    session.error("nox -s bench: not implemented yet (GPU benchmarks land with the rasterizer, issue 4)")
+    """GPU benchmarks (rasterizer vs gsplat, tracking iteration); results as JSON under
+    experiments/results/bench/. Needs a CUDA GPU (and gsplat for the comparison)."""
+    _install(session)
+    probe = session.run("python", "-c", "import warp as wp; wp.init(); print(wp.is_cuda_available())", silent=True)
+    if "True" not in (probe or ""):
+        session.error("nox -s bench needs a CUDA GPU that Warp can see (the benchmarks time GPU kernels)")
+    out = os.path.abspath("experiments/results/bench")
+    env = {"PYTHONPATH": os.path.abspath("src")}
+    session.run("python", "experiments/bench/raster.py", "--out", out, env=env)
+    session.run("python", "experiments/bench/tracking.py", "--out", out, env=env)
