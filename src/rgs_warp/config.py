@@ -148,22 +148,52 @@ class SeedingConfig:
     min_residual_px: float = 0.25
     axial_min_ratio: float = 0.1
     axial_max_ratio: float = 1.0
+    # where a keyframe gets seeds: pixels the map covers with less accumulated opacity than this, or
+    # whose map depth is off the seed's by more than covered_depth_tol (relative)
+    covered_alpha: float = 0.5
+    covered_depth_tol: float = 0.05
+    # RGB-D: also seed from the measured depth where the map still does not cover the keyframe after
+    # the triangulated seeds (plain walls have no matches); the first keyframe always is (mono: at
+    # matching.scene_depth_m)
+    depth_fill: bool = True
+    depth_stride: int = 4  # px between depth seeds
+    depth_max_rel_jump: float = 0.05  # skip depth seeds on discontinuities (second difference / depth)
 
 
 @dataclass
 class MappingConfig:
-    iters: int = 60
-    window: int = 5
-    init_iters: int = 1050
-    init_window: int = 5
-    lr_color: float = 2e-3
-    lr_opacity: float = 2e-3
-    lr_position: float = 1e-3
-    lr_rotation: float = 1e-3
-    lambda_dssim: float = 0.2
-    grad_clip: float = 1.0
-    opacity_cull: float = 0.05
+    iters: int = 60  # K_m, per keyframe (Table 1); one iteration renders one keyframe of the window
+    window: int = 5  # keyframes in the sliding window (Table 1)
+    init_iters: int = 1050  # initialization (Table 1)
+    init_window: int = 5  # frames of the initial window (Table 1)
+    lr_color: float = 2e-3  # Table 1
+    lr_opacity: float = 2e-3  # Table 1
+    lr_position: float = 1e-3  # Table 1 (metres)
+    lr_rotation: float = 1e-3  # Table 1
+    lr_scale: float = 1e-3  # not in Table 1: the position/rotation rate (log scale)
+    lr_final_factor: float = 0.01  # cosine decay to this fraction of the base rate within a window
+    adam_beta1: float = 0.9  # Table 1
+    adam_beta2: float = 0.999
+    lambda_dssim: float = 0.2  # Table 1: L1 + lambda_dssim (1 - SSIM)
+    grad_clip: float = 1.0  # Table 1: global gradient-norm clipping
+    depth_weight: float = 1.0  # RGB-D: depth L1 (per metre) against the colour L1 (per channel)
+    robust_scale: float = 0.25  # Cauchy scale of the per-pixel weights (mean |residual| per channel); <= 0: off
+    pose_only_every: int = 3  # every n-th iteration updates the keyframe's pose only (§4.5); 0: no pose updates
+    pose_lr: float = 1e-3  # Adam on the keyframe twist (rad, m)
+    # regularizer (§4.5, coefficients fixed for all sequences)
+    reg_elongation: float = 1e-2  # weight of relu(log(s_max / s_mid) - log(max_anisotropy))^2
+    max_anisotropy: float = 10.0
+    reg_opacity: float = 1e-3  # weight of relu(|opacity logit| - max_abs_opacity_logit)^2
+    max_abs_opacity_logit: float = 6.0
+    reg_anchor: float = 1.0  # weight of |mu - mu_EMA|^2 (m^2)
     ema_eta: float = 0.1  # Eq. 15
+    # maintenance after each keyframe (§4.5)
+    opacity_cull: float = 0.05  # Table 1
+    max_scale_m: float = 0.5  # prune: largest axis standard deviation above this
+    min_obs: int = 3  # prune hidden Gaussians only once seen in this many renders ...
+    min_visibility_ratio: float = 0.1  # ... of which fewer than this fraction contributed to a pixel
+    merge_footprint_px: float = 0.5  # merge: projected centres and radii closer than this
+    merge_color_diff: float = 0.05  # ... and colours closer than this (per channel)
 
 
 @dataclass
@@ -343,6 +373,13 @@ def load_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
             node = node.setdefault(p, {})
         node[parts[-1]] = value
         _set_tree(cfg, tree)
+    return cfg
+
+
+def config_from_dict(data: dict) -> Config:
+    """A Config from a nested dict (e.g. a saved ``config.yaml``), keys and types checked."""
+    cfg = Config()
+    _set_tree(cfg, data)
     return cfg
 
 

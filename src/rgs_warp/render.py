@@ -450,6 +450,23 @@ class Renderer:
         )
         return grads, self.pose_grad
 
+    # ---- read-only views of the latest render, for the stages that follow it --------------------
+    @property
+    def grad2d(self) -> wp.array:
+        """(capacity,) ``vec10`` screen-space gradients of the latest full (not pose-only) ``backward``,
+        layout of ``kernels.projection.vec10``: [0], [1] = dL/du, dL/dv of the projected mean in pixels."""
+        return self._grad2d
+
+    @property
+    def radii(self) -> wp.array:
+        """(capacity,) ``vec2i`` pixel half-extents of the latest forward, (0, 0) for culled Gaussians."""
+        return self._radii
+
+    @property
+    def image_shape(self) -> tuple[int, int] | None:
+        """(height, width) of the latest forward's images (None before the first)."""
+        return self._image_shape
+
     def _tape_backward(self) -> None:
         gmap = self._last[0]
         grads_out = GaussianGrads.of_map_grads(gmap) if gmap.requires_grad else None

@@ -1,8 +1,9 @@
-"""``python -m rgs_warp.slam [group=option ...] [key=value ...]``: run SLAM on a sequence.
+"""The SLAM system (supplement §4.6) and its command line, ``python -m rgs_warp.slam``.
 
-The pipeline stages land issue by issue; until the tracker and mapper exist this command loads
-and checks the whole sequence, writes the run folder (resolved config, dataset summary) and
-prints the stages it will run.
+``SLAM(cfg, camera)`` is also the library entry point: ``slam.track(rgb, depth)`` per frame returns
+the camera-to-world pose; every frame is tracked against the map, and when the co-visibility test
+accepts it as a keyframe, dense matching -> triangulation -> seeding -> windowed mapping -> merge /
+prune run before the next frame (same thread, deterministic).
 """
 
 from __future__ import annotations
@@ -10,14 +11,29 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 from tqdm import tqdm
 
+from rgs_warp import maintenance
 from rgs_warp.config import Config, ConfigError, help_text, load_config, save_config
 from rgs_warp.datasets import DatasetError, open_dataset
+from rgs_warp.geometry import invert_pose
+from rgs_warp.io.ply import load_ply, save_ply
+from rgs_warp.io.trajectory import read_tum_trajectory, write_tum_trajectory
+from rgs_warp.kernels import mapping as km
+from rgs_warp.keyframes import KeyframeBuffer, KeyframeSelector
+from rgs_warp.mapping import Mapper, MappingResult
+from rgs_warp.matching import DenseMatcher
+from rgs_warp.render import Renderer, RenderResult
+from rgs_warp.seeding import Seeder
+from rgs_warp.tracking import Tracker, TrackingResult
+from rgs_warp.triangulation import TriangulatedPoints, Triangulator
+from rgs_warp.types import Camera, Frame, GaussianMap
 
 USAGE = """usage: python -m rgs_warp.slam [group=option ...] [key=value ...]
 
@@ -26,6 +42,322 @@ examples:
   python -m rgs_warp.slam dataset=replica/office0 data_root=/data tracking.iters=40
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen
 """
+
+
+@dataclass
+class FrameResult:
+    """What ``SLAM.track`` did with one frame."""
+
+    index: int
+    T_WC: np.ndarray
+    tracking: TrackingResult | None  # None for the first frame (its pose is given)
+    keyframe: bool
+    keyframe_reason: str
+    seeded: int = 0  # Gaussians added at this keyframe
+    pruned: int = 0
+    merged: int = 0
+    mapping: MappingResult | None = None
+    seconds: float = 0.0
+    tracking_seconds: float = 0.0
+
+
+class SLAM:
+    """RGS-SLAM on one camera.  ``track`` frames in order; read ``map``, ``keyframes``,
+    ``trajectory()``; ``render(T_WC)``; ``save(dir)`` / ``SLAM.load(dir)``.
+
+    ``T_first_WC``: pose of the first frame (default identity: the trajectory is then relative to
+    it; pass the ground-truth first pose to compare maps in the ground truth's frame).
+    """
+
+    def __init__(self, cfg: Config, camera: Camera, device=None, T_first_WC: np.ndarray | None = None):
+        self.cfg = cfg
+        self.camera = camera
+        self.device = wp.get_device(resolve_device(cfg.device) if device is None else device)
+        self.mode = cfg.mode
+        if cfg.method != "rgs":
+            raise ValueError(f"method {cfg.method!r} is not implemented by SLAM (expected 'rgs')")
+        dev = self.device
+        self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
+        self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=Renderer(dev))
+        tc = self.tracker.track_camera
+        self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
+        self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
+        self.matcher = DenseMatcher(cfg.matching, camera, dev)
+        self.triangulator = Triangulator(cfg.triangulation, dev)
+        # Poisson radius and tangential scale in units of the sample spacing of each seed source
+        spacing = cfg.matching.thin_spacing * self.matcher.stride
+        self.seeder = Seeder(
+            replace(cfg.seeding, poisson_radius_px=cfg.seeding.poisson_radius_px * spacing), camera, dev
+        )
+        depth_spacing = cfg.seeding.depth_stride
+        self.depth_seeder = Seeder(
+            replace(cfg.seeding, poisson_radius_px=cfg.seeding.poisson_radius_px * depth_spacing), camera, dev
+        )
+        self.renderer = Renderer(dev)
+        self._merge_scratch = maintenance.MergeScratch(dev)
+        self.mapper = Mapper(cfg.mapping, camera, self.map, dev, mode=self.mode, renderer=self.renderer, seed=cfg.seed)
+        self.T_first = np.eye(4) if T_first_WC is None else np.asarray(T_first_WC, dtype=np.float64)
+        self.poses: list[np.ndarray] = []  # camera-to-world of every tracked frame
+        self.timestamps: list[float] = []
+        self.keyframe_indices: list[int] = []
+        self.first_slot: int | None = None
+        self._slot_of_frame: dict[int, int] = {}
+        hg, wg = camera.height // depth_spacing, camera.width // depth_spacing
+        n_depth = hg * wg
+        kw = {"device": dev}
+        self._depth_grid = (hg, wg)
+        self._depth_pts = TriangulatedPoints(
+            wp.zeros(n_depth, dtype=wp.vec3d, **kw),
+            wp.zeros(n_depth, dtype=wp.float64, **kw),
+            wp.zeros(n_depth, dtype=wp.float64, **kw),
+            wp.zeros(n_depth, dtype=wp.int32, **kw),
+            wp.zeros(n_depth, dtype=wp.int32, **kw),
+        )
+        self._depth_conf = wp.zeros(n_depth, dtype=wp.float32, **kw)
+        self._mono_depth = wp.full((camera.height, camera.width), cfg.matching.scene_depth_m, dtype=wp.float32, **kw)
+        self._zero_alpha = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
+        self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
+
+    # ---- per frame -----------------------------------------------------------------------------
+    def track(self, rgb, depth=None, timestamp: float | None = None) -> np.ndarray:
+        """Track one frame (``rgb`` HxWx3 float32 in [0, 1], ``depth`` HxW metres or None in mono
+        mode; NumPy arrays or ``wp.array``s on the SLAM's device) and return its camera-to-world pose."""
+        return self.process(rgb, depth, timestamp).T_WC
+
+    def process(self, rgb, depth=None, timestamp: float | None = None) -> FrameResult:
+        """``track`` with the diagnostics of what happened to the frame."""
+        if isinstance(rgb, Frame):
+            rgb, depth, timestamp = rgb.rgb, rgb.depth, rgb.timestamp
+        t0 = time.perf_counter()
+        i = len(self.poses)
+        use_depth = self.mode == "rgbd"
+        if use_depth and depth is None:
+            raise ValueError("mode 'rgbd' needs a depth image for every frame (or set mode=mono)")
+        if not use_depth:
+            depth = None
+        init_phase = i < self.cfg.mapping.init_window
+        tracking = None
+        if i == 0:
+            T = self.T_first.copy()
+            self.tracker.reset(T)
+            is_kf, reason = True, "first frame"
+            self.selector.should_add(self._alpha_at(T), T)
+        else:
+            tr0 = time.perf_counter()
+            tracking = self.tracker.track(rgb, depth, self.map)
+            self.stats["tracking_s"] += time.perf_counter() - tr0
+            T = tracking.T_WC
+            decision = self.selector.should_add(self.tracker.alpha, T)
+            is_kf, reason = decision.is_keyframe, decision.reason
+            if init_phase:
+                is_kf, reason = True, f"initial window ({i + 1}/{self.cfg.mapping.init_window})"
+        result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
+        if is_kf:
+            self.selector.accept(T)
+            exposure = (1.0, 0.0) if tracking is None else (tracking.gain, tracking.bias)
+            self._add_keyframe(i, T, rgb, depth, exposure, result)
+            T = self.keyframes.poses[self._slot_of_frame[i]].copy()
+            self.tracker.set_last_pose(T)
+            result.T_WC = T
+        self.poses.append(T)
+        self.timestamps.append(float(i) if timestamp is None else float(timestamp))
+        self.stats["frames"] += 1
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def _alpha_at(self, T_WC: np.ndarray) -> wp.array:
+        """The map's accumulated opacity seen from T_WC at the tracking resolution (zeros if empty)."""
+        tc = self.tracker.track_camera
+        if len(self.map) == 0:
+            return wp.zeros((tc.height, tc.width), dtype=wp.float32, device=self.device)
+        return self.renderer.forward(self.map, tc, T_WC).alpha
+
+    def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult) -> None:
+        cfg = self.cfg
+        kf = self.keyframes
+        evicted = kf.frame_ids[kf.slots()[0]] if len(kf) == kf.capacity else None
+        if evicted is not None:
+            self._slot_of_frame.pop(int(evicted), None)
+        slot = kf.add(i, T, rgb, depth, exposure)
+        self._slot_of_frame[i] = slot
+        if self.first_slot is None:
+            self.first_slot = slot
+        elif self.first_slot == slot:
+            self.first_slot = -1  # the first keyframe left the buffer: nothing is fixed any more
+        self.keyframe_indices.append(i)
+        t0 = time.perf_counter()
+        result.seeded = self._seed(slot)
+        self.stats["seeding_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        window = kf.slots()[-(cfg.mapping.init_window if i < cfg.mapping.init_window else cfg.mapping.window) :]
+        if i < cfg.mapping.init_window:
+            iters = cfg.mapping.init_iters // cfg.mapping.init_window
+        else:
+            iters = cfg.mapping.iters
+        fixed = [self.first_slot] if self.first_slot is not None and self.first_slot >= 0 else []
+        result.mapping = self.mapper.optimize(kf, window, iters, fixed=fixed)
+        self.stats["mapping_s"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        result.pruned, result.merged = self._maintain(slot)
+        self.stats["maintenance_s"] += time.perf_counter() - t0
+
+    # ---- seeding -------------------------------------------------------------------------------
+    def _seed(self, slot: int) -> int:
+        """Dense initialization at keyframe ``slot``: matches with its neighbours, triangulated,
+        seeded where the map does not explain the keyframe yet; then (RGB-D, ``seeding.depth_fill``,
+        or the very first keyframe) measured-depth seeds where the map still does not cover it."""
+        cfg, kf, dev = self.cfg, self.keyframes, self.device
+        added = 0
+        T = kf.poses[slot]
+        neighbours = self.matcher.select_neighbours(slot, kf) if len(kf) >= 2 else []
+        if neighbours:
+            m = self.matcher.match(slot, kf, neighbours, use_depth=self.mode == "rgbd")
+            pts = self.triangulator.triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
+            if len(self.map):
+                res = self.renderer.forward(self.map, self.camera, T)
+                wp.launch(
+                    km.mask_covered_points,
+                    dim=pts.X.shape[0],
+                    inputs=[m.ref_uv, res.alpha, res.depth, pts.X, wp.mat44d(invert_pose(T))]
+                    + [cfg.seeding.covered_alpha, cfg.seeding.covered_depth_tol],
+                    outputs=[pts.valid],
+                    device=dev,
+                )
+            added += self.seeder.seed(pts, m.aggregated, kf, [slot, *neighbours], self.map)
+        first = len(self.map) == 0
+        if first or (self.mode == "rgbd" and cfg.seeding.depth_fill):
+            alpha = self._zero_alpha if first else self.renderer.forward(self.map, self.camera, T).alpha
+            depth = kf.depth[slot] if self.mode == "rgbd" else self._mono_depth
+            stride = cfg.seeding.depth_stride
+            p = self._depth_pts
+            wp.launch(
+                km.depth_points,
+                dim=self._depth_grid,
+                inputs=[depth, self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy, wp.mat44d(T), stride]
+                + [cfg.seeding.depth_max_rel_jump, cfg.seeding.min_residual_px, 90.0, alpha, cfg.seeding.covered_alpha],
+                outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
+                device=dev,
+            )
+            self._depth_conf.fill_(1.0 if self.mode == "rgbd" else 0.0)
+            added += self.depth_seeder.seed(p, self._depth_conf, kf, [slot], self.map)
+        return added
+
+    # ---- maintenance ---------------------------------------------------------------------------
+    def _maintain(self, slot: int) -> tuple[int, int]:
+        """Merge near-duplicates seen from keyframe ``slot``, then prune (§4.5); returns (pruned,
+        merged).  One host read of the masks per keyframe."""
+        cfg = self.cfg.mapping
+        if len(self.map) == 0:
+            return 0, 0
+        self.mapper.sync()
+        merge_mask, _ = maintenance.merge_duplicates(
+            self.map,
+            self.camera,
+            self.keyframes.poses[slot],
+            max_footprint_px=cfg.merge_footprint_px,
+            max_color_diff=cfg.merge_color_diff,
+            scratch=self._merge_scratch,
+        )
+        prune, _ = maintenance.prune_mask(
+            self.map,
+            self.mapper.obs_count,
+            self.mapper.vis_count,
+            opacity_min=cfg.opacity_cull,
+            max_scale_m=cfg.max_scale_m,
+            min_obs=cfg.min_obs,
+            min_visibility_ratio=cfg.min_visibility_ratio,
+        )
+        merged_np = merge_mask.numpy() != 0
+        remove = merged_np | (prune.numpy() != 0)
+        if remove.any():
+            self.mapper.remove(wp.array(remove.astype(np.int32), dtype=wp.int32, device=self.device))
+        merged = int(merged_np.sum())
+        return int(remove.sum()) - merged, merged
+
+    # ---- outputs -------------------------------------------------------------------------------
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps (N,), camera-to-world poses (N, 4, 4)) of the tracked frames; keyframes carry
+        their mapping-refined poses."""
+        poses = np.array(self.poses) if self.poses else np.zeros((0, 4, 4))
+        kf = self.keyframes
+        for slot in kf.slots():
+            i = int(kf.frame_ids[slot])
+            if 0 <= i < len(poses):
+                poses[i] = kf.poses[slot]
+        return np.array(self.timestamps), poses
+
+    def render(self, T_WC: np.ndarray, camera: Camera | None = None) -> RenderResult:
+        """Render the map from a camera-to-world pose (default camera: the SLAM's); the result's
+        images are the renderer's buffers, valid until the next render."""
+        return self.renderer.forward(self.map, camera or self.camera, T_WC, self.cfg.render.background)
+
+    def save(self, directory: str | Path) -> Path:
+        """Write ``map.ply``, ``trajectory.txt`` (TUM), ``keyframes.npz`` and ``config.yaml``."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        save_ply(directory / "map.ply", self.map)
+        stamps, poses = self.trajectory()
+        write_tum_trajectory(directory / "trajectory.txt", stamps, poses)
+        kf = self.keyframes
+        slots = kf.slots()
+        np.savez_compressed(
+            directory / "keyframes.npz",
+            frame_ids=kf.frame_ids[slots],
+            poses=kf.poses[slots],
+            exposure=kf.exposure[slots],
+            rgb=np.stack([kf.rgb[s].numpy() for s in slots]) if slots else np.zeros((0,)),
+            depth=np.stack([kf.depth[s].numpy() for s in slots]) if slots else np.zeros((0,)),
+            keyframe_indices=np.array(self.keyframe_indices),
+            camera=np.array([self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy]),
+            size=np.array([self.camera.width, self.camera.height]),
+            first_pose=self.T_first,
+        )
+        save_config(self.cfg, directory / "config.yaml")
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path, device=None) -> SLAM:
+        """A SLAM restored from ``save``: map, trajectory and keyframe buffer; tracking continues
+        from the last pose (the optimiser state starts afresh)."""
+        directory = Path(directory)
+        for name in ("map.ply", "trajectory.txt", "keyframes.npz", "config.yaml"):
+            if not (directory / name).is_file():
+                raise FileNotFoundError(f"{directory / name}: missing (not a folder written by SLAM.save)")
+        cfg = _load_saved_config(directory)
+        data = np.load(directory / "keyframes.npz")
+        fx, fy, cx, cy = (float(v) for v in data["camera"])
+        w, h = (int(v) for v in data["size"])
+        slam = cls(cfg, Camera(fx, fy, cx, cy, w, h), device=device, T_first_WC=data["first_pose"])
+        loaded = load_ply(directory / "map.ply", device=slam.device)
+        n = len(loaded)
+        slam.map.append(
+            loaded.means[:n], loaded.rotations[:n], loaded.log_scales[:n], loaded.opacity_logits[:n], loaded.sh[:n]
+        )
+        stamps, poses = read_tum_trajectory(directory / "trajectory.txt")
+        slam.poses = [p for p in poses]
+        slam.timestamps = [float(t) for t in stamps]
+        slam.keyframe_indices = [int(v) for v in data["keyframe_indices"]]
+        for k, frame_id in enumerate(int(v) for v in data["frame_ids"]):
+            depth = data["depth"][k] if cfg.mode == "rgbd" else None
+            slot = slam.keyframes.add(frame_id, data["poses"][k], data["rgb"][k], depth, data["exposure"][k])
+            slam._slot_of_frame[frame_id] = slot
+        slam.first_slot = -1  # the gauge is the loaded map's
+        if slam.poses:
+            slam.tracker.reset(slam.poses[-1], slam.poses[-2] if len(slam.poses) > 1 else None)
+        if len(slam.keyframes):
+            T_kf = slam.keyframes.poses[slam.keyframes.slots()[-1]]
+            slam.selector.should_add(slam._alpha_at(T_kf), T_kf)
+            slam.selector.accept(T_kf)
+        slam.mapper.sync()
+        return slam
+
+
+def _load_saved_config(directory: Path) -> Config:
+    import yaml
+
+    from rgs_warp.config import config_from_dict
+
+    return config_from_dict(yaml.safe_load((directory / "config.yaml").read_text(encoding="utf-8")))
 
 
 def resolve_device(name: str) -> str:
@@ -43,43 +375,197 @@ def make_run_dir(cfg: Config) -> Path:
     return run_dir
 
 
-def summarize_sequence(ds) -> dict:
-    """Read every frame once (proving the sequence is complete and readable) and summarise it."""
-    n_valid, n_px, d_min, d_max = 0, 0, np.inf, 0.0
-    has_depth = has_gt = True
-    positions = []
-    for frame in tqdm(ds, total=len(ds), desc="checking frames", unit="frame", leave=False):
-        if frame.depth is None:
-            has_depth = False
-        else:
-            valid = frame.depth > 0
-            n_valid += int(valid.sum())
-            n_px += valid.size
-            if valid.any():
-                d_min, d_max = (
-                    min(d_min, float(frame.depth[valid].min())),
-                    max(d_max, float(frame.depth.max())),
-                )
-        if frame.pose_gt is None:
-            has_gt = False
-        else:
-            positions.append(frame.pose_gt[:3, 3])
+def dataset_summary(ds) -> dict:
     c = ds.camera
-    summary = {
+    return {
         "dataset": repr(ds),
         "frames": len(ds),
         "resolution": [c.width, c.height],
         "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy},
-        "depth": has_depth,
-        "ground_truth_poses": has_gt,
     }
-    if has_depth and n_px:
-        summary["depth_valid_pct"] = round(100.0 * n_valid / n_px, 2)
-        summary["depth_range_m"] = [round(d_min, 3), round(d_max, 3)]
-    if has_gt and len(positions) > 1:
-        steps = np.linalg.norm(np.diff(np.array(positions), axis=0), axis=1)
-        summary["trajectory_length_m"] = round(float(steps.sum()), 3)
-    return summary
+
+
+def ground_truth_mesh(cfg: Config, ds) -> Path | None:
+    """The sequence's ground-truth mesh when there is one: the synthetic scenes' ``mesh.ply``, or
+    Replica's ``<scene>_mesh.ply`` next to the scene folder (the NICE-SLAM layout)."""
+    path = getattr(ds, "mesh_path", None)
+    if path is not None and Path(path).is_file():
+        return Path(path)
+    if cfg.dataset.type == "replica":
+        folder = cfg.dataset_path()
+        candidate = folder.parent / f"{folder.name}_mesh.ply"
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def peak_memory_mib(device) -> float | None:
+    device = wp.get_device(device)
+    if not device.is_cuda or not wp.is_mempool_enabled(device):
+        return None
+    return wp.get_mempool_used_mem_high(device) / 2**20
+
+
+def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tuple[Path, dict]:
+    """Run SLAM on the configured sequence and evaluate it; returns (run folder, metrics).
+
+    The folder gets: ``config.yaml``, ``dataset.json``, ``trajectory.txt`` (TUM, readable by evo),
+    ``map.ply`` (3DGS layout), ``keyframes.npz``, ``metrics.json`` + ``metrics.md``,
+    ``trajectory_topview.png``, ``renders/*.png`` (render | ground truth side by side) and
+    ``log.jsonl`` (one line per frame).  If the run stops early (error, Ctrl-C), what was tracked so
+    far is still saved, and the error is re-raised.
+    """
+    device = resolve_device(cfg.device)
+    ds = open_dataset(cfg, device=device)
+    run_dir = run_dir or make_run_dir(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
+    (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(ds), indent=2))
+    first = ds[0]
+    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=first.pose_gt)
+    gt_poses, frame_losses = [], []
+    t_start = time.perf_counter()
+    bar = tqdm(total=len(ds), desc=f"{cfg.dataset.type}/{cfg.dataset.name}", unit="frame", disable=not progress)
+    log = (run_dir / "log.jsonl").open("w", encoding="utf-8")
+    try:
+        for frame in ds:
+            result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
+            gt_poses.append(frame.pose_gt)
+            entry = {
+                "frame": result.index,
+                "keyframe": result.keyframe,
+                "reason": result.keyframe_reason,
+                "seconds": round(result.seconds, 4),
+                "gaussians": len(slam.map),
+            }
+            if result.tracking is not None:
+                entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
+                frame_losses.append(result.tracking.loss)
+            if result.keyframe:
+                entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
+                if result.mapping is not None and result.mapping.iters:
+                    entry["mapping_l1"] = result.mapping.final_l1
+            log.write(json.dumps(entry) + "\n")
+            elapsed = time.perf_counter() - t_start
+            bar.set_postfix(
+                fps=f"{(result.index + 1) / elapsed:.2f}",
+                kf=len(slam.keyframe_indices),
+                gaussians=len(slam.map),
+                loss=f"{frame_losses[-1]:.4f}" if frame_losses else "-",
+            )
+            bar.update(1)
+    finally:
+        bar.close()
+        log.close()
+        slam.save(run_dir)
+    wall = time.perf_counter() - t_start
+    metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall)
+    return run_dir, metrics
+
+
+def evaluate_run(cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wall_s: float) -> dict:
+    """Metrics of a finished run (supplement §3) written with ``write_report``."""
+    from rgs_warp.eval import (
+        LPIPS,
+        ate_keyframes_and_all,
+        eval_frame_indices,
+        photometric_metrics,
+        plot_trajectory_topview,
+        write_report,
+    )
+
+    _, est = slam.trajectory()
+    n = len(est)
+    metrics: dict = {
+        "dataset": f"{cfg.dataset.type}/{cfg.dataset.name}",
+        "method": cfg.method,
+        "mode": cfg.mode,
+        "device": str(slam.device),
+        "frames": n,
+        "keyframes": len(slam.keyframe_indices),
+        "gaussians": len(slam.map),
+        "fps": n / wall_s if wall_s > 0 else None,
+        "tracking_fps": (n - 1) / slam.stats["tracking_s"] if slam.stats["tracking_s"] > 0 else None,
+        "wall_s": wall_s,
+    }
+    mem = peak_memory_mib(slam.device)
+    metrics["peak_memory_mib"] = mem
+    if mem is None:
+        metrics["peak_memory_mib_na_reason"] = "measured on CUDA devices only (Warp's memory pool)"
+    if metrics["tracking_fps"] is None:
+        metrics["tracking_fps_na_reason"] = "a single frame"
+    metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
+    has_gt = all(p is not None for p in gt_poses) and n >= 3
+    if has_gt:
+        gt = np.array(gt_poses)
+        align = "sim3" if cfg.mode == "mono" else "se3"
+        metrics["ate"] = ate_keyframes_and_all(est, gt, np.array(slam.keyframe_indices), align=align)
+        for section in metrics["ate"].values():
+            section.pop("align_T", None)
+        plot_trajectory_topview(est, gt, run_dir / "trajectory_topview.png", title=metrics["dataset"], align=align)
+    else:
+        metrics["ate"] = None
+        metrics["ate_na_reason"] = "no ground-truth poses" if n >= 3 else "fewer than 3 frames"
+    # photometric metrics: every eval.every-th frame, keyframes excluded (§3), rendered at the estimate
+    idx = eval_frame_indices(n, slam.keyframe_indices, cfg.eval.every)
+    renders, refs, depths, ref_depths = [], [], [], []
+    for i in idx:
+        frame = ds[int(i)]
+        res = slam.render(est[i])
+        renders.append(np.clip(res.color.numpy(), 0.0, 1.0))
+        refs.append(frame.rgb)
+        if frame.depth is not None:
+            alpha = res.alpha.numpy()
+            depths.append(np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0))
+            ref_depths.append(frame.depth)
+    if renders:
+        lpips = LPIPS(cfg.eval.lpips_alexnet_path or None, cfg.eval.lpips_linear_path or None)
+        metrics["photometric"] = photometric_metrics(
+            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None
+        )
+        save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs)
+    else:
+        metrics["photometric"] = None
+        metrics["photometric_na_reason"] = "no non-keyframe frame to score"
+    metrics.update(mesh_section(cfg, ds, slam, est))
+    write_report(run_dir, metrics, title=f"rgs_warp {metrics['dataset']} ({cfg.method}, {cfg.mode})")
+    return metrics
+
+
+def mesh_section(cfg: Config, ds, slam: SLAM, est: np.ndarray) -> dict:
+    """Acc / Comp / Comp.Ratio of the TSDF fusion of rendered depth along the keyframe trajectory."""
+    mesh_path = ground_truth_mesh(cfg, ds)
+    if mesh_path is None:
+        return {"mesh": None, "mesh_na_reason": "no ground-truth mesh for this sequence"}
+    if cfg.mode != "rgbd":
+        return {"mesh": None, "mesh_na_reason": "monocular run (scale-free map)"}
+    try:
+        import open3d as o3d
+
+        from rgs_warp.eval import mesh_metrics, tsdf_fuse
+    except ImportError as e:
+        return {"mesh": None, "mesh_na_reason": f"open3d not importable ({e})"}
+    depths, poses = [], []
+    for i in slam.keyframe_indices:
+        res = slam.render(est[i])
+        alpha = res.alpha.numpy()
+        depths.append(np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0).astype(np.float32))
+        poses.append(est[i])
+    rec = tsdf_fuse(depths, poses, slam.camera)
+    gt = o3d.io.read_triangle_mesh(str(mesh_path))
+    return {"mesh": mesh_metrics(rec, gt)}
+
+
+def save_side_by_side(folder: Path, indices: list[int], renders: list, refs: list, count: int = 4) -> None:
+    """A few render | ground-truth pairs as PNG (as the seed's Figure 1), evenly over the run."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    picks = np.unique(np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int))
+    for k in picks:
+        pair = np.concatenate([renders[k], refs[k]], axis=1)
+        image = (np.clip(pair, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(folder / f"frame{indices[k]:05d}_render_vs_gt.png"), image[..., ::-1])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,39 +579,26 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    device = resolve_device(cfg.device)
     try:
-        ds = open_dataset(cfg, device=device)
-    except (DatasetError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    run_dir = make_run_dir(cfg)
-    save_config(cfg, run_dir / "config.yaml")
-    t0 = time.perf_counter()
-    try:
-        summary = summarize_sequence(ds)
+        run_dir, metrics = run(cfg)
     except DatasetError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    summary["load_seconds"] = round(time.perf_counter() - t0, 2)
-    (run_dir / "dataset.json").write_text(json.dumps(summary, indent=2))
-    print(f"dataset   {summary['dataset']}")
-    print(
-        f"          depth: {summary['depth']}, ground truth: {summary['ground_truth_poses']}, "
-        f"loaded in {summary['load_seconds']} s"
-    )
-    for k in ("depth_valid_pct", "depth_range_m", "trajectory_length_m"):
-        if k in summary:
-            print(f"          {k}: {summary[k]}")
-    print(f"device    {device}")
-    print(f"mode      {cfg.mode}, method {cfg.method}")
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    ate = (metrics.get("ate") or {}).get("all_frames", {})
+    photo = metrics.get("photometric") or {}
     print(f"run dir   {run_dir}")
-    t, k, m, p = cfg.tracking, cfg.keyframes, cfg.matching, cfg.mapping
     print(
-        f"would run: Tracker (iters={t.iters}) -> KeyframeSelector (IoU < {k.iou_threshold}) -> "
-        f"DenseMatcher ({m.backbone}) -> Triangulator -> Seeder -> Mapper (iters={p.iters}, window={p.window})"
+        f"frames {metrics['frames']}, keyframes {metrics['keyframes']}, Gaussians {metrics['gaussians']}, "
+        f"{metrics['fps']:.2f} frames/s"
     )
-    print("note: the SLAM stages are not implemented yet; this run only loaded and checked the sequence.")
+    if ate:
+        print(f"ATE RMSE  {ate['rmse_cm']:.2f} cm (all frames)")
+    if photo:
+        print(f"PSNR      {photo['psnr_db']:.2f} dB, SSIM {photo['ssim']:.3f}")
+    print(f"report    {run_dir / 'metrics.md'}")
     return 0
 
 

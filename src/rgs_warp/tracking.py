@@ -113,11 +113,22 @@ class Tracker:
         self._T_CW_host = wp.zeros(1, dtype=wp.mat44d, device="cpu", pinned=pinned)
         self._T_WC_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=pinned)
         self._poses: list[np.ndarray] = []
+        self._last_render = None
 
     # ---- motion model ------------------------------------------------------------------------
-    def reset(self, T_WC: np.ndarray | None = None) -> None:
-        """Forget the tracked poses; with ``T_WC``, make it the latest (e.g. the first frame's pose)."""
-        self._poses = [] if T_WC is None else [np.array(T_WC, dtype=np.float64)]
+    def reset(self, T_WC: np.ndarray | None = None, T_prev_WC: np.ndarray | None = None) -> None:
+        """Forget the tracked poses; with ``T_WC``, make it the latest (e.g. the first frame's pose),
+        with ``T_prev_WC`` also the one before (the motion model resumes, e.g. after loading)."""
+        poses = [T_prev_WC, T_WC] if T_prev_WC is not None and T_WC is not None else [T_WC]
+        self._poses = [np.array(T, dtype=np.float64) for T in poses if T is not None]
+
+    @property
+    def alpha(self) -> wp.array:
+        """Accumulated opacity of the last render of the last ``track`` (tracking resolution), for
+        the keyframe selector; valid until the renderer renders again."""
+        if self._last_render is None:
+            raise RuntimeError("no frame tracked yet")
+        return self._last_render.alpha
 
     def set_last_pose(self, T_WC: np.ndarray) -> None:
         """Replace the latest pose (e.g. after mapping refined the keyframe's pose)."""
@@ -222,6 +233,7 @@ class Tracker:
         cfg = self.cfg
         dev = self.device
         res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
+        self._last_render = res
         n_pixels = self._rgb.shape[0] * self._rgb.shape[1]
         blocks = [(n_pixels + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK]
         wp.launch_tiled(

@@ -1,0 +1,260 @@
+"""Residual-driven densification of the dense initialization baseline (supplement Table 2, method
+``baseline``): the adaptive density control of 3DGS (Kerbl et al. 2023, §5.2).
+
+The baseline grows its map where the photometric residual pulls Gaussians around in the image: the
+norm of each Gaussian's screen-space mean gradient is averaged over the renders that saw it, and on
+schedule the Gaussians above a threshold are cloned (small ones, under-reconstruction) or split in
+two (large ones, over-reconstruction), transparent and oversized ones are pruned, and every few
+thousand iterations all opacities are lowered so that the optimisation can drop unneeded Gaussians.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from rgs_warp.kernels.densify import (
+    accumulate_grad_stats,
+    clamp_opacity_logits,
+    classify_densify,
+    flag_pruned,
+    write_densified,
+)
+from rgs_warp.kernels.map_ops import scatter_kept
+from rgs_warp.optim import MapAdam
+from rgs_warp.render import Renderer
+from rgs_warp.types import GaussianMap
+
+__all__ = ["Densifier"]
+
+
+def _logit(p: float) -> float:
+    if p <= 0.0:
+        return -math.inf
+    if p >= 1.0:
+        return math.inf
+    return math.log(p / (1.0 - p))
+
+
+def _logit_at_most(p: float) -> float:
+    """The largest float32 logit whose sigmoid does not exceed ``p`` (the rounding of logit(p) to
+    float32 may land above it)."""
+    x = np.float32(_logit(p))
+    while 1.0 / (1.0 + math.exp(-float(x))) > p:
+        x = np.nextafter(x, np.float32(-np.inf))
+    return float(x)
+
+
+class Densifier:
+    """3DGS adaptive density control over a GaussianMap and its MapAdam, on the device.
+
+    Parameters (defaults: 3DGS's 30k-iteration schedule, culling opacity of supplement Table 1):
+
+    * ``grad_threshold=2e-4``: densify Gaussians whose mean screen-space gradient norm (NDC units,
+      see ``accumulate``) over the renders where they were visible is at least this.
+    * ``interval=100``, ``start=500``, ``stop=15000``: densify and prune at iterations ``it`` with
+      ``start < it < stop`` and ``it % interval == 0`` (3DGS's test: 600, 700, ..., 14900).
+    * ``opacity_reset_interval=3000``: at ``it % opacity_reset_interval == 0`` (same window; 0 = never)
+      every opacity becomes ``min(opacity, opacity_reset_value)``, ``opacity_reset_value=0.01``.
+    * ``percent_dense=0.01``: Gaussians whose largest scale is at most ``percent_dense * scene_extent``
+      are cloned, larger ones split.
+    * ``split_factor=1.6``: the two children of a split have the parent's scales / ``split_factor``.
+    * ``cull_opacity=0.05``: prune Gaussians with opacity below this at every densification step
+      (3DGS: 0.005).  Note that a reset to 0.01 puts every Gaussian under a culling opacity of 0.05:
+      what has not climbed back above it by the next densification step is pruned.
+    * ``prune_scale_fraction=0.1``: after the first opacity reset, also prune Gaussians whose largest
+      scale exceeds this fraction of ``scene_extent`` (3DGS's world-space test; its screen-space test
+      never fires in the reference code, which resets the statistic it reads just before, so it is
+      left out here as in gsplat's default strategy).  0 disables it.
+    * ``seed=0``: seeds the split children's sampling (``wp.rand_init(seed', gaussian)``, with seed'
+      derived from ``seed`` and the iteration), so runs are deterministic.
+
+    Statistics are rows of ``grad_norm_sum`` (float32, running sum of gradient norms) and
+    ``visible_count`` (int32), the map's capacity long, rows at and beyond the map's count zero.
+    They follow the map's growth by themselves; a removal made outside ``step`` must be mirrored
+    with ``remove(mask)``, as for ``MapAdam``.
+    """
+
+    def __init__(
+        self,
+        *,
+        grad_threshold: float = 2e-4,
+        interval: int = 100,
+        start: int = 500,
+        stop: int = 15000,
+        opacity_reset_interval: int = 3000,
+        opacity_reset_value: float = 0.01,
+        percent_dense: float = 0.01,
+        split_factor: float = 1.6,
+        cull_opacity: float = 0.05,
+        prune_scale_fraction: float = 0.1,
+        seed: int = 0,
+    ):
+        if interval <= 0:
+            raise ValueError(f"interval must be positive, got {interval}")
+        if split_factor <= 0.0:
+            raise ValueError(f"split_factor must be positive, got {split_factor}")
+        self.grad_threshold = grad_threshold
+        self.interval, self.start, self.stop = interval, start, stop
+        self.opacity_reset_interval = opacity_reset_interval
+        self.opacity_reset_value = opacity_reset_value
+        self.percent_dense = percent_dense
+        self.split_factor = split_factor
+        self.cull_opacity = cull_opacity
+        self.prune_scale_fraction = prune_scale_fraction
+        self.seed = seed
+        self._capacity = 0
+        self._device = None
+
+    # ---- buffers -----------------------------------------------------------------------------
+    def _sync(self, gmap: GaussianMap) -> None:
+        """Statistics and scratch of the map's capacity, existing statistics kept."""
+        capacity = gmap.capacity
+        if capacity == self._capacity and gmap.device == self._device:
+            return
+        kw = {"device": gmap.device}
+        old = (self.grad_norm_sum, self.visible_count) if self._capacity and gmap.device == self._device else None
+        self.grad_norm_sum = wp.zeros(capacity, dtype=wp.float32, **kw)
+        self.visible_count = wp.zeros(capacity, dtype=wp.int32, **kw)
+        if old is not None:
+            keep = min(old[0].shape[0], capacity)
+            wp.copy(self.grad_norm_sum, old[0], count=keep)
+            wp.copy(self.visible_count, old[1], count=keep)
+        # compaction target (swapped with the statistics), per-row actions, offsets, removal flags
+        self._spare_sum = wp.zeros(capacity, dtype=wp.float32, **kw)
+        self._spare_count = wp.zeros(capacity, dtype=wp.int32, **kw)
+        self._new_rows = wp.zeros(capacity, dtype=wp.int32, **kw)
+        self._offsets = wp.zeros(capacity, dtype=wp.int32, **kw)
+        self._remove = wp.zeros(capacity, dtype=wp.int32, **kw)
+        self._counts = wp.zeros(2, dtype=wp.int32, **kw)
+        self._capacity, self._device = capacity, gmap.device
+
+    # ---- statistics --------------------------------------------------------------------------
+    def accumulate(self, renderer: Renderer, gmap: GaussianMap) -> None:
+        """Add the latest full ``renderer.backward`` of ``gmap`` to the statistics (launches only).
+
+        3DGS thresholds the gradient w.r.t. the projected mean in NDC, where u = ((ndc_x + 1) W - 1) / 2
+        (v alike with H), so dL/d ndc_x = dL/du * W / 2 and dL/d ndc_y = dL/dv * H / 2; the renderer's
+        ``grad2d`` holds dL/du, dL/dv in pixels, scaled here before taking the norm.  The threshold
+        also assumes 3DGS's loss scale: a mean over pixels (and channels), not a sum.
+        Gaussians count as seen where their radius is positive (3DGS's visibility filter).
+        """
+        n = len(gmap)
+        if n == 0:
+            return
+        if renderer.grad2d.shape[0] < n or renderer.image_shape is None:
+            raise ValueError("the renderer's latest backward is not of this map")
+        self._sync(gmap)
+        height, width = renderer.image_shape
+        wp.launch(
+            accumulate_grad_stats,
+            dim=n,
+            inputs=[renderer.grad2d, renderer.radii, wp.vec2(0.5 * width, 0.5 * height)],
+            outputs=[self.grad_norm_sum, self.visible_count],
+            device=gmap.device,
+        )
+
+    def remove(self, mask) -> None:
+        """Compact the statistics as ``GaussianMap.remove(mask)`` compacts the map (same mask: length
+        the map's count before removal, nonzero = remove)."""
+        if self._capacity == 0:
+            return
+        dev = self._device
+        if not isinstance(mask, wp.array):
+            mask = wp.array(np.asarray(mask).astype(np.int32), dtype=wp.int32, device=dev)
+        n = mask.shape[0]
+        if n == 0:
+            return
+        removed_before = self._offsets[:n]
+        wp.utils.array_scan(mask, removed_before, inclusive=False)
+        self._spare_sum.zero_()
+        self._spare_count.zero_()
+        for src, dst in ((self.grad_norm_sum, self._spare_sum), (self.visible_count, self._spare_count)):
+            wp.launch(scatter_kept, dim=n, inputs=[src, mask, removed_before, dst], device=dev)
+        self.grad_norm_sum, self._spare_sum = self._spare_sum, self.grad_norm_sum
+        self.visible_count, self._spare_count = self._spare_count, self.visible_count
+
+    def reset_stats(self) -> None:
+        """Restart the statistics of every Gaussian (done after each densification step)."""
+        if self._capacity:
+            self.grad_norm_sum.zero_()
+            self.visible_count.zero_()
+
+    # ---- schedule ----------------------------------------------------------------------------
+    def step(self, iteration: int, gmap: GaussianMap, adam: MapAdam, scene_extent: float) -> dict:
+        """Densify, prune and reset opacities when ``iteration`` calls for it (see the class).
+
+        ``scene_extent``: the scene's size in metres (3DGS: 1.1 x the largest camera distance from the
+        cameras' centroid), the unit of ``percent_dense`` and ``prune_scale_fraction``.  ``adam`` must
+        be the map's optimiser: appended rows get zero moments, survivors keep theirs in their new
+        rows.  Returns {"cloned": int, "split": int, "pruned": int (split parents not included),
+        "opacity_reset": bool}.  A densification step reads two counts back to the host (plus the one
+        of ``GaussianMap.remove``); other iterations cost nothing.
+        """
+        if adam.gmap is not gmap:
+            raise ValueError("adam does not optimise this map")
+        result = {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": False}
+        if not self.start < iteration < self.stop or len(gmap) == 0:
+            return result
+        self._sync(gmap)
+        if iteration % self.interval == 0:
+            result.update(self._densify_and_prune(iteration, gmap, adam, scene_extent))
+        if self.opacity_reset_interval > 0 and iteration % self.opacity_reset_interval == 0 and len(gmap):
+            wp.launch(
+                clamp_opacity_logits,
+                dim=len(gmap),
+                inputs=[_logit_at_most(self.opacity_reset_value)],
+                outputs=[gmap.opacity_logits],
+                device=gmap.device,
+            )
+            result["opacity_reset"] = True
+        return result
+
+    def _densify_and_prune(self, iteration: int, gmap: GaussianMap, adam: MapAdam, scene_extent: float) -> dict:
+        dev = gmap.device
+        n = len(gmap)
+        self._counts.zero_()
+        wp.launch(
+            classify_densify,
+            dim=n,
+            inputs=[self.grad_norm_sum, self.visible_count, gmap.log_scales]
+            + [float(self.grad_threshold), float(self.percent_dense * scene_extent)],
+            outputs=[self._new_rows, self._counts],
+            device=dev,
+        )
+        new_rows, offsets = self._new_rows, self._offsets
+        wp.utils.array_scan(new_rows[:n], offsets[:n], inclusive=False)
+        cloned, split = (int(c) for c in self._counts.numpy())
+        added = cloned + 2 * split
+        if added:
+            gmap.reserve(n + added)
+            seed = (self.seed * 1_000_003 + iteration) % (2**31)
+            wp.launch(
+                write_densified,
+                dim=n,
+                inputs=[new_rows, offsets, n, gmap.num_sh, math.log(self.split_factor), seed],
+                outputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh],
+                device=dev,
+            )
+            gmap.count = n + added  # the rows n .. n + added were just written on the device
+            adam.reset_rows(n, added)
+            self._sync(gmap)  # removal flags for the grown map; new_rows keeps the arrays of before
+        total = n + added
+        # 3DGS prunes oversized Gaussians only once the first opacity reset is behind.
+        prune_big = self.prune_scale_fraction > 0.0 and iteration > self.opacity_reset_interval > 0
+        wp.launch(
+            flag_pruned,
+            dim=total,
+            inputs=[new_rows, n, gmap.opacity_logits, gmap.log_scales, _logit(self.cull_opacity)]
+            + [float(self.prune_scale_fraction * scene_extent) if prune_big else 0.0],
+            outputs=[self._remove],
+            device=dev,
+        )
+        mask = self._remove[:total]
+        adam.remove(mask)
+        gmap.remove(mask)
+        # 3DGS restarts the statistics of every Gaussian after densifying.
+        self.reset_stats()
+        return {"cloned": cloned, "split": split, "pruned": total - split - len(gmap)}

@@ -1,0 +1,255 @@
+"""The mapper's maintenance pass (supplement §4.5): pruning and merging keep the map compact and
+free of the extremely large or transparent splats that destabilise optimisation.
+
+Both passes only compute removal masks (int32, 1 = remove, length ``len(gmap)``); the caller ORs
+them (``merge_duplicates(..., exclude=prune)`` does it in one go) and applies the result with
+``gmap.remove(mask)``, ``MapAdam.remove(mask)`` and ``compact_rows`` on its own per-Gaussian
+statistics.  Merging does rewrite the survivors' parameters in place.
+
+Host synchronisation: no read-back.  Counts come back as small device arrays (``PruneStats.read`` and
+``int(n_merged.numpy()[0])`` read them, one synchronisation each, when the caller logs); the caller
+syncs anyway when ``gmap.remove`` reads the number of removed rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from rgs_warp.geometry import invert_pose
+from rgs_warp.kernels.maintenance import (
+    PRUNE_STATS,
+    merge_best_partner,
+    merge_footprints,
+    merge_pairs,
+    prune_flags,
+)
+from rgs_warp.kernels.map_ops import scatter_kept, scatter_kept_rows
+from rgs_warp.kernels.projection import CameraParams
+from rgs_warp.types import Camera, GaussianMap, grown_capacity
+
+
+@dataclass(frozen=True)
+class PruneStats:
+    """How many Gaussians a ``prune_mask`` call flagged, each counted under the first reason that
+    applies, in this order: non-finite parameters, opacity, scale, hidden."""
+
+    total: int
+    invalid: int
+    opacity: int
+    scale: int
+    hidden: int
+
+    @classmethod
+    def read(cls, stats: wp.array) -> PruneStats:
+        """Read ``prune_mask``'s stats array back (one synchronisation)."""
+        return cls(*(int(x) for x in stats.numpy()[:PRUNE_STATS]))
+
+    def __str__(self) -> str:
+        return (
+            f"pruned {self.total} (opacity {self.opacity}, scale {self.scale}, hidden {self.hidden}, "
+            f"invalid {self.invalid})"
+        )
+
+
+def _map_fields(gmap: GaussianMap, n: int) -> list[wp.array]:
+    return [gmap.means[:n], gmap.rotations[:n], gmap.log_scales[:n], gmap.opacity_logits[:n], gmap.sh[:n]]
+
+
+def prune_mask(
+    gmap: GaussianMap,
+    obs_count: wp.array | None,
+    vis_count: wp.array | None,
+    *,
+    opacity_min: float = 0.05,
+    max_scale_m: float = 0.5,
+    max_scale_rel: float = 0.1,
+    scene_extent_m: float | None = None,
+    min_obs: int = 3,
+    min_visibility_ratio: float = 0.1,
+    out: wp.array | None = None,
+    stats_out: wp.array | None = None,
+) -> tuple[wp.array, wp.array]:
+    """Flag the Gaussians that violate the bounds of supplement §4.5.
+
+    A Gaussian is removed when any parameter is non-finite (or its quaternion is zero); when its
+    opacity sigmoid(logit) is below ``opacity_min`` (Table 1: 0.05); when its extent sqrt(tr Sigma)
+    = |exp(log_scales)| (metres; between the largest axis and sqrt(3) times it) exceeds
+    ``max_scale_m``, or ``max_scale_rel * scene_extent_m`` when a scene extent is given (3DGS prunes
+    splats above 0.1 of the scene's radius); or when it was inside ``obs_count[i] >= min_obs``
+    rendered views but contributed to pixels in fewer than ``min_visibility_ratio`` of them
+    (``vis_count[i] < ratio * obs_count[i]``: hidden behind surfaces).
+
+    obs_count: (>= N,) int32, views the Gaussian was inside; vis_count: (>= N,) float32, its
+    cumulative visibility score (views in which it contributed); both None skips the hidden test.
+    Returns ``(mask, stats)``: mask (N,) int32, 1 = remove (``out`` if given); stats (5,) int32 on
+    the device, [total, invalid, opacity, scale, hidden] (``stats_out`` if given; ``PruneStats.read``).
+    """
+    if (obs_count is None) != (vis_count is None):
+        raise ValueError("give both obs_count and vis_count, or neither")
+    n = len(gmap)
+    if obs_count is not None and min(obs_count.shape[0], vis_count.shape[0]) < n:
+        raise ValueError(f"obs_count / vis_count have {obs_count.shape[0]} / {vis_count.shape[0]} rows, map has {n}")
+    device = gmap.device
+    if out is None:
+        out = wp.empty(n, dtype=wp.int32, device=device)
+    if stats_out is None:
+        stats_out = wp.zeros(PRUNE_STATS, dtype=wp.int32, device=device)
+    stats_out.zero_()
+    if n == 0:
+        return out[:0], stats_out
+    max_extent = max_scale_m if scene_extent_m is None else min(max_scale_m, max_scale_rel * scene_extent_m)
+    has_visibility = obs_count is not None
+    wp.launch(
+        prune_flags,
+        dim=n,
+        inputs=_map_fields(gmap, n)
+        + [obs_count[:n] if has_visibility else None, vis_count[:n] if has_visibility else None, int(has_visibility)]
+        + [float(opacity_min), float(max_extent), int(min_obs), float(min_visibility_ratio)],
+        outputs=[out[:n], stats_out],
+        device=device,
+    )
+    return out[:n], stats_out
+
+
+class MergeScratch:
+    """Buffers of ``merge_duplicates`` (hash grid, footprints, partners, merge count), reusable across
+    calls so that a mapper allocates them once; they grow (doubling) with the map."""
+
+    def __init__(self, device=None, capacity: int = 1024):
+        self.device = wp.get_device(device)
+        self.grid = wp.HashGrid(128, 128, 128, device=self.device)
+        self.n_merged = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self._capacity = 0
+        self.ensure(capacity)
+
+    def ensure(self, n: int) -> None:
+        if n <= self._capacity:
+            return
+        cap = grown_capacity(self._capacity, n, minimum=1024)
+        kw = {"device": self.device}
+        self.points = wp.zeros(cap, dtype=wp.vec3, **kw)
+        self.cov2d = wp.zeros(cap, dtype=wp.vec3, **kw)
+        self.valid = wp.zeros(cap, dtype=wp.int32, **kw)
+        self.best = wp.zeros(cap, dtype=wp.int32, **kw)
+        self._capacity = cap
+
+
+def _camera_params(camera: Camera, near_m: float) -> CameraParams:
+    p = CameraParams()
+    p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
+    p.width, p.height = camera.width, camera.height
+    p.near = near_m
+    # only footprints centred inside the image are compared, so the Jacobian clamp is the image itself
+    p.tan_x_min = (-0.5 - camera.cx) / camera.fx
+    p.tan_x_max = (camera.width - 0.5 - camera.cx) / camera.fx
+    p.tan_y_min = (-0.5 - camera.cy) / camera.fy
+    p.tan_y_max = (camera.height - 0.5 - camera.cy) / camera.fy
+    return p
+
+
+def merge_duplicates(
+    gmap: GaussianMap,
+    camera: Camera,
+    T_WC: np.ndarray,
+    *,
+    max_footprint_px: float = 0.5,
+    max_depth_rel: float = 0.01,
+    max_size_rel: float = 0.2,
+    max_color_diff: float = 0.05,
+    max_merged_opacity: float = 0.99,
+    near_m: float = 0.01,
+    exclude: wp.array | None = None,
+    out: wp.array | None = None,
+    scratch: MergeScratch | None = None,
+) -> tuple[wp.array, wp.array]:
+    """Merge pairs of Gaussians with almost identical footprints and colours in the view ``T_WC``.
+
+    Two Gaussians are duplicates when both project with centres inside the image (``camera``,
+    ``T_WC`` 4x4 camera-to-world), in front of ``near_m``, and
+      * their projected centres lie within ``max_footprint_px`` pixels,
+      * their depths differ by a ratio below exp(``max_depth_rel``) (|ln z_i - ln z_j| <= it),
+      * their rendered 2D covariances (EWA, with the renderer's 0.3 px^2 dilation) differ by at most
+        ``max_size_rel`` of their mean (Frobenius norm): same size, shape and orientation,
+      * their SH DC colours (SH_C0 * dc) differ by at most ``max_color_diff`` in every channel.
+    Each Gaussian picks its best duplicate (lowest normalised sum of the four differences, ties by
+    index) and only mutual picks merge, so no Gaussian merges twice per call (a cluster of three
+    merges one pair; call again to merge further).  The lower index survives with the averages of
+    the two means, SH coefficients (all bands) and covariances (Sigma = R S^2 R^T, averaged and
+    eigen-decomposed back into rotation and log-scales); its opacity becomes the two splats'
+    composited coverage 1 - (1 - a)(1 - b), capped at ``max_merged_opacity`` yet never below
+    max(a, b).  The survivor keeps its optimiser moments and statistics rows.
+
+    exclude: optional (N,) int32 mask (e.g. ``prune_mask``'s), nonzero rows take no part and stay
+    flagged.  Returns ``(mask, n_merged)``: mask (N,) int32 = exclude OR merged-away rows, 1 = remove
+    (``out`` if given); n_merged (1,) int32 on the device, the number of pairs merged.
+    """
+    n = len(gmap)
+    device = gmap.device
+    scratch = scratch or MergeScratch(device, max(n, 1))
+    if out is None:
+        out = wp.empty(n, dtype=wp.int32, device=device)
+    out = out[:n]
+    scratch.n_merged.zero_()
+    if n == 0:
+        return out, scratch.n_merged
+    if exclude is None:
+        out.zero_()
+    else:
+        wp.copy(out, exclude, count=n)
+    scratch.ensure(n)
+    points, cov2d, valid, best = scratch.points[:n], scratch.cov2d[:n], scratch.valid[:n], scratch.best[:n]
+    T_CW = invert_pose(np.asarray(T_WC, dtype=np.float64))
+    W = wp.mat33(*T_CW[:3, :3].astype(np.float32).ravel())
+    t = wp.vec3(*T_CW[:3, 3].astype(np.float32))
+    fields = _map_fields(gmap, n)
+    wp.launch(
+        merge_footprints,
+        dim=n,
+        inputs=fields + [out, W, t, _camera_params(camera, near_m), float(max_footprint_px / max_depth_rel)],
+        outputs=[points, cov2d, valid],
+        device=device,
+    )
+    radius = float(max_footprint_px) * 1.4142136
+    scratch.grid.build(points, radius)
+    wp.launch(
+        merge_best_partner,
+        dim=n,
+        inputs=[scratch.grid.id, points, cov2d, valid, gmap.sh[:n]]
+        + [float(max_footprint_px), float(max_size_rel), float(max_color_diff)],
+        outputs=[best],
+        device=device,
+    )
+    wp.launch(
+        merge_pairs,
+        dim=n,
+        inputs=[best, float(max_merged_opacity)],
+        outputs=fields + [out, scratch.n_merged],
+        device=device,
+    )
+    return out, scratch.n_merged
+
+
+def compact_rows(array: wp.array, mask) -> None:
+    """Compact the first ``len(mask)`` rows of a per-Gaussian array in place, as ``GaussianMap.remove``
+    compacts the map: rows whose mask entry (bool NumPy or int32 ``wp.array``, nonzero = remove) is
+    set are dropped, the survivors keep their order, and the freed rows up to ``len(mask)`` are zeroed
+    (so statistics of Gaussians appended later start at 0).  1D arrays of any dtype, or 2D arrays
+    (rows of the first axis).  No host read-back."""
+    device = array.device
+    if not isinstance(mask, wp.array):
+        mask = wp.array(np.asarray(mask).astype(np.int32), dtype=wp.int32, device=device)
+    n = mask.shape[0]
+    if n == 0:
+        return
+    removed_before = wp.empty(n, dtype=wp.int32, device=device)
+    wp.utils.array_scan(mask, removed_before, inclusive=False)
+    rows = array[:n]
+    tmp = wp.zeros_like(rows)
+    if array.ndim == 2:
+        wp.launch(scatter_kept_rows, dim=rows.shape, inputs=[rows, mask, removed_before, tmp], device=device)
+    else:
+        wp.launch(scatter_kept, dim=n, inputs=[rows, mask, removed_before, tmp], device=device)
+    wp.copy(rows, tmp)
