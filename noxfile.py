@@ -32,8 +32,12 @@ def lint(session):
 
 @nox.session
 def eval(session):
-    """Evaluation tables (issue 7): not implemented yet."""
-    session.error("nox -s eval: not implemented yet (the SLAM pipeline and evaluation suite land with issue 7)")
+    """Evaluation tables (supplement §3): every scene x method x repeat, results in
+    experiments/results/eval.md and eval.json. Arguments go to the suite, e.g.
+    `nox -s eval -- --quick` or `nox -s eval -- --device cuda:0 data_root=/data`."""
+    _install(session)
+    env = {"WARP_CACHE_PATH": os.path.abspath(".cache/warp"), "RGS_CACHE": os.path.abspath(".cache/rgs_warp")}
+    session.run("python", "-m", "rgs_warp.eval.suite", *session.posargs, env=env)
 
 
 @nox.session

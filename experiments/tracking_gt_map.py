@@ -77,7 +77,7 @@ def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device):
     from rgs_warp.tracking import Tracker, pose_error
 
     renderer = Renderer(device)
-    tracker = Tracker(TrackingConfig(brightness=brightness), camera, device, mode="rgbd")
+    tracker = Tracker(TrackingConfig(brightness="gain" if brightness else "off"), camera, device, mode="rgbd")
     tracker.reset(seq.poses[0])
     estimates = [seq.poses[0]]
     rows = []

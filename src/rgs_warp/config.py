@@ -72,7 +72,9 @@ class TrackingConfig:
     tau_alpha: float = 0.5  # Eq. 7 opacity threshold
     tau_grad: float = 0.05  # Eq. 8 luminance-gradient threshold (intensity units per pixel); <= 0: off
     depth_weight: float = 1.0  # RGB-D depth L1 term (per metre) against the colour L1 (per channel)
-    brightness: bool = True  # Eq. 3-4 affine (g, b); false: g = 1, b = 0 (ablation)
+    # Eq. 3 brightness model: gain (g = ratio of weighted means, b = 0; default, see kernels/tracking.py
+    # solve_brightness for why), affine (Eq. 4 least squares), off (g = 1, b = 0; ablation)
+    brightness: str = "gain"
     brightness_ridge: float = 1e-3  # pull of (g, b) towards (1, 0), relative to the Eq. 4 weight sum
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
@@ -162,7 +164,8 @@ class SeedingConfig:
 
 @dataclass
 class MappingConfig:
-    iters: int = 60  # K_m, per keyframe (Table 1); one iteration renders one keyframe of the window
+    iters: int = 60  # K_m, per keyframe (Table 1)
+    views_per_iter: int = 0  # keyframes rendered per iteration (gradients averaged): 0 = the whole window
     window: int = 5  # keyframes in the sliding window (Table 1)
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
@@ -236,7 +239,11 @@ class Config:
         return dataclasses.asdict(self)
 
 
-CHOICES = {"mode": ("rgbd", "mono"), "dataset.type": ("replica", "tum", "7scenes", "synthetic")}
+CHOICES = {
+    "mode": ("rgbd", "mono"),
+    "tracking.brightness": ("gain", "affine", "off"),
+    "dataset.type": ("replica", "tum", "7scenes", "synthetic"),
+}
 
 
 def group_options(group: str) -> list[str]:

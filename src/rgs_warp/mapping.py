@@ -2,15 +2,15 @@
 window of keyframes, with the per-Gaussian statistics (m_i, v_i, EMA position of Eq. 15) that the
 regularizer and the maintenance pass read.
 
-One mapping iteration renders one keyframe of the window (the keyframes are visited in a shuffled
-round robin, so K_m = 60 iterations over 5 keyframes give each 12 steps) and takes one Adam step:
+One mapping iteration renders the keyframes of the window (``views_per_iter`` of them, default all,
+the gradients averaged over the views) and takes one Adam step:
 - on the map ("full" iterations): L1 with robust per-pixel weights + lambda_dssim (1 - SSIM) on the
   exposure-corrected render x = g I_hat + b (g, b: the keyframe's exposure from tracking), + the
   depth L1 for RGB-D, + the regularizer; Table 1 learning rates with cosine decay, clipped to a
   global gradient norm of 1.0;
-- on that keyframe's pose ("pose-only" iterations, every ``pose_only_every``-th): the same loss's
-  twist gradient, Adam on the twist.  The oldest keyframe of the window keeps its pose when it is
-  the first keyframe of the run (it fixes the gauge).
+- on the poses of those keyframes ("pose-only" iterations, every ``pose_only_every``-th): the same
+  loss's twist gradient, Adam on each twist.  Keyframes in ``fixed`` (the first keyframe of the run,
+  which fixes the gauge) keep their pose.
 Nothing is read back to the host inside the loop; the poses and the loss history come back once
 per call.
 """
@@ -32,7 +32,7 @@ from rgs_warp.kernels.tracking import REDUCE_BLOCK
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.losses import DSSIMLoss
 from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
-from rgs_warp.render import GaussianGrads, Renderer
+from rgs_warp.render import GaussianGrads, Renderer, RenderResult
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 
@@ -119,6 +119,7 @@ class Mapper:
                     wp.copy(dst, src, count=kept)
             self._stats_capacity = gmap.capacity
         if self.grads is None or self.grads.means.shape[0] != gmap.capacity:
+            self._opacity_grad_before = wp.zeros(gmap.capacity, dtype=wp.float32, device=dev)
             self.grads = GaussianGrads(
                 wp.zeros(gmap.capacity, dtype=wp.vec3, device=dev),
                 wp.zeros(gmap.capacity, dtype=wp.quat, device=dev),
@@ -158,6 +159,25 @@ class Mapper:
         self._stats_rows = len(self.gmap)
 
     # ---- poses ---------------------------------------------------------------------------------
+    def _view_loss(self, keyframes, slot, j, it, weight, use_depth, blocks, pose_jacobians) -> RenderResult:
+        """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
+        loss in ``_d_color``, ``_d_depth``; its loss sums go to row ``it``."""
+        cfg, dev = self.cfg, self.device
+        g, b = (float(v) for v in keyframes.exposure[slot])
+        res = self.renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1], pose_jacobians=pose_jacobians)
+        wp.launch_tiled(
+            km.mapping_loss,
+            dim=blocks,
+            inputs=[keyframes.rgb[slot], keyframes.depth[slot], res.color, res.depth, g, b, cfg.robust_scale]
+            + [use_depth, weight * cfg.depth_weight, weight, it],
+            outputs=[self._x, self._grad_x, self._d_depth, self._loss],
+            block_dim=REDUCE_BLOCK,
+            device=dev,
+        )
+        self.dssim.accumulate_grad(self._x, keyframes.rgb[slot], weight * cfg.lambda_dssim, self._grad_x)
+        wp.launch(km.scale_image_grad, dim=self._x.shape, inputs=[self._grad_x, g], outputs=[self._d_color], device=dev)
+        return res
+
     def _ensure_poses(self, k: int) -> None:
         if k <= self._pose_capacity:
             return
@@ -206,52 +226,55 @@ class Mapper:
         use_depth = int(self.mode == "rgbd")
         n_pixels = self.camera.width * self.camera.height
         blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
-        order: list[int] = []
         pose_updates = map_updates = 0
         fixed_set = set(fixed)
         every = cfg.pose_only_every if optimize_poses else 0
+        per_iter = k_win if cfg.views_per_iter <= 0 else min(cfg.views_per_iter, k_win)
+        order: list[int] = []
         for it in range(iters):
-            if not order:
-                order = list(self.rng.permutation(k_win))
-            j = order.pop()
-            slot = window[j]
-            g, b = (float(v) for v in keyframes.exposure[slot])
-            pose_iter = every > 0 and (it % every == every - 1) and slot not in fixed_set
+            views = []
+            for _ in range(per_iter):
+                if not order:
+                    order = list(self.rng.permutation(k_win))
+                views.append(order.pop())
             lr_factor = cosine_factor(it, iters, cfg.lr_final_factor)
-            res = self.renderer.forward(gmap, self.camera, self._T_WC[j : j + 1], pose_jacobians=pose_iter)
-            wp.launch_tiled(
-                km.mapping_loss,
-                dim=blocks,
-                inputs=[keyframes.rgb[slot], keyframes.depth[slot], res.color, res.depth, g, b, cfg.robust_scale]
-                + [use_depth, cfg.depth_weight, 1.0, it],
-                outputs=[self._x, self._grad_x, self._d_depth, self._loss],
-                block_dim=REDUCE_BLOCK,
-                device=dev,
-            )
-            self.dssim.accumulate_grad(self._x, keyframes.rgb[slot], cfg.lambda_dssim, self._grad_x)
-            wp.launch(
-                km.scale_image_grad, dim=self._x.shape, inputs=[self._grad_x, g], outputs=[self._d_color], device=dev
-            )
+            pose_iter = every > 0 and it % every == every - 1
             if pose_iter:
-                _, pose_grad = self.renderer.backward(self._d_color, self._d_depth, None, pose_only=True)
+                views = [j for j in views if window[j] not in fixed_set]
+                if not views:
+                    continue
+            n = len(gmap)
+            for v, j in enumerate(views):
+                slot = window[j]
+                res = self._view_loss(keyframes, slot, j, it, 1.0 / len(views), use_depth, blocks, pose_iter)
+                if pose_iter:
+                    _, pose_grad = self.renderer.backward(self._d_color, self._d_depth, None, pose_only=True)
+                    wp.launch(
+                        km.adam_keyframe_pose_step,
+                        dim=1,
+                        inputs=[pose_grad, j, cfg.pose_lr * lr_factor, cfg.adam_beta1, cfg.adam_beta2, 1e-8],
+                        outputs=[self._pose_m, self._pose_v, self._pose_steps, self._T_CW, self._T_WC],
+                        device=dev,
+                    )
+                    pose_updates += 1
+                    continue
+                if v == 0:
+                    self._opacity_grad_before[:n].zero_()
+                else:
+                    wp.copy(self._opacity_grad_before, self.grads.opacity_logits, count=n)
+                grads, _ = self.renderer.backward(
+                    self._d_color, self._d_depth, None, grads_out=self.grads, accumulate=v > 0
+                )
                 wp.launch(
-                    km.adam_keyframe_pose_step,
-                    dim=1,
-                    inputs=[pose_grad, j, cfg.pose_lr * lr_factor, cfg.adam_beta1, cfg.adam_beta2, 1e-8],
-                    outputs=[self._pose_m, self._pose_v, self._pose_steps, self._T_CW, self._T_WC],
+                    km.update_statistics,
+                    dim=n,
+                    inputs=[res.radii, grads.opacity_logits, self._opacity_grad_before],
+                    outputs=[self.obs_count, self.vis_count],
                     device=dev,
                 )
-                pose_updates += 1
+            if pose_iter:
                 continue
-            grads, _ = self.renderer.backward(self._d_color, self._d_depth, None, grads_out=self.grads)
-            n = len(gmap)
-            wp.launch(
-                km.update_statistics,
-                dim=n,
-                inputs=[res.radii, grads.opacity_logits],
-                outputs=[self.obs_count, self.vis_count],
-                device=dev,
-            )
+            grads = self.grads
             wp.launch(
                 km.regularize,
                 dim=n,

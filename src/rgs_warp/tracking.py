@@ -56,6 +56,9 @@ class TrackingResult:
     loss_history: np.ndarray
 
 
+BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
+
+
 class Tracker:
     """Frame-to-map pose tracker; build once, call ``track`` frame by frame.
 
@@ -78,6 +81,10 @@ class Tracker:
     ):
         if mode not in ("rgbd", "mono"):
             raise ValueError(f"mode must be 'rgbd' or 'mono', got {mode!r}")
+        if cfg.brightness not in BRIGHTNESS_MODELS:
+            raise ValueError(
+                f"tracking.brightness must be one of {', '.join(BRIGHTNESS_MODELS)}, got {cfg.brightness!r}"
+            )
         if cfg.iters < 1 or cfg.downscale < 1:
             raise ValueError(f"need tracking.iters >= 1 and tracking.downscale >= 1, got {cfg.iters}, {cfg.downscale}")
         self.cfg = cfg
@@ -247,7 +254,7 @@ class Tracker:
         wp.launch(
             tk.solve_brightness,
             dim=1,
-            inputs=[int(cfg.brightness), cfg.brightness_ridge, k],
+            inputs=[BRIGHTNESS_MODELS[cfg.brightness], cfg.brightness_ridge, k],
             outputs=[self._history],
             device=dev,
         )

@@ -156,9 +156,11 @@ def regularize(
 
 @wp.kernel
 def update_statistics(
-    # in: the render's radii (> 0: inside the view) and the opacity gradient (!= 0: contributed)
+    # in: the render's radii (> 0: inside the view), the opacity gradient accumulated up to and before
+    # this view's backward (a change: the Gaussian contributed to a pixel of this view)
     radii: wp.array(dtype=wp.vec2i),
     grad_opacity: wp.array(dtype=wp.float32),
+    grad_opacity_before: wp.array(dtype=wp.float32),
     # in/out: m_i (observation count), v_i (cumulative visibility)
     obs_count: wp.array(dtype=wp.int32),
     vis_count: wp.array(dtype=wp.float32),
@@ -166,7 +168,7 @@ def update_statistics(
     i = wp.tid()
     if radii[i][0] > 0:
         obs_count[i] = obs_count[i] + 1
-        if grad_opacity[i] != 0.0:
+        if grad_opacity[i] != grad_opacity_before[i]:
             vis_count[i] = vis_count[i] + 1.0
 
 

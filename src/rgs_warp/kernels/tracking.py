@@ -157,22 +157,34 @@ def brightness_sums(
         wp.atomic_add(history_out, row, H_ALPHA, wp.float64(total[7]))
 
 
+# Brightness models of solve_brightness
+BRIGHTNESS_OFF = 0
+BRIGHTNESS_AFFINE = 1
+BRIGHTNESS_GAIN = 2
+
+
 @wp.kernel
 def solve_brightness(
-    # in:
-    enabled: int,
+    # in: model (BRIGHTNESS_*), ridge of the affine solve, history row
+    model: int,
     ridge: float,
     row: int,
     # out: columns H_GAIN, H_BIAS of history row `row`, from its H_S* sums
     history_out: wp.array2d(dtype=wp.float64),
 ):
-    # Closed form of Eq. 4: [[Sxx, Sx], [Sx, S0]] (g, b) = (Sxy, Sy), with a ridge ridge * S0 pulling
-    # (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~ 0) cannot produce a wild
-    # gain; it matters only when the rendered intensities vary by less than ~sqrt(ridge).
+    # BRIGHTNESS_AFFINE, the closed form of Eq. 4: [[Sxx, Sx], [Sx, S0]] (g, b) = (Sxy, Sy), with a
+    # ridge ridge * S0 pulling (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~
+    # 0) cannot produce a wild gain.  Least squares of y on x is biased towards g < 1 when the render
+    # x has errors of its own (regression dilution: misalignment, unfitted detail), and a
+    # mapper that paints the map with the keyframes' exposure-corrected colours feeds that bias
+    # back (measured: g 1 -> 0.83 over 150 frames of a scene without exposure change).
+    # BRIGHTNESS_GAIN: g = Sy / Sx, b = 0, the ratio of the weighted means, which blur and small
+    # misalignments leave (nearly) unbiased; auto-exposure is a gain in linear light and, through the sRGB
+    # power law, nearly a gain on the stored values too.
     g = wp.float64(1.0)
     b = wp.float64(0.0)
     s0 = history_out[row, H_S0]
-    if enabled != 0 and s0 > wp.float64(0.0):
+    if model == BRIGHTNESS_AFFINE and s0 > wp.float64(0.0):
         lam = wp.float64(ridge) * s0
         a11 = history_out[row, H_SXX] + lam
         a12 = history_out[row, H_SX]
@@ -183,6 +195,8 @@ def solve_brightness(
         if det > wp.float64(0.0):
             g = (a22 * r1 - a12 * r2) / det
             b = (a11 * r2 - a12 * r1) / det
+    elif model == BRIGHTNESS_GAIN and history_out[row, H_SX] > wp.float64(0.0):
+        g = history_out[row, H_SY] / history_out[row, H_SX]
     history_out[row, H_GAIN] = g
     history_out[row, H_BIAS] = b
 

@@ -1,0 +1,603 @@
+"""Evaluation suite: every (scene, method, repeat) through the SLAM, then the supplement's tables.
+
+``python -m rgs_warp.eval.suite [--device cpu|cuda:0|auto] [--repeats 3] [--methods rgs,baseline]
+[--out experiments/results] [--quick] [key=value ...]`` writes ``<out>/eval.json`` (every run and
+aggregate), ``<out>/eval.md`` (one table per metric group: rows = metric x method, columns = the
+scenes of a benchmark + "Avg.", mean ± std over the repeats, best in bold, second best underlined as
+in the supplement §3) and ``<out>/eval_*.png``; the run folders go to ``<out>/eval_runs/``.
+
+A run that raises (an absent dataset, a method not implemented yet) is recorded with its error and
+the suite goes on; a metric a run could not compute (None with ``<name>_na_reason``, see
+``eval.report``) shows as "n/a" with the reason as a footnote.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import shutil
+import subprocess
+import sys
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from rgs_warp.config import ConfigError, group_options, load_config  # noqa: E402
+from rgs_warp.eval.report import NA_SUFFIX, _to_json  # noqa: E402
+
+# runner(cfg, run_dir=..., progress=...) -> (run folder, metrics): the signature of rgs_warp.slam.run
+Runner = Callable[..., tuple[Path, dict]]
+
+# The shared real-data folder next to the checkout (tests/conftest.py uses the same place).
+SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+SEVENSCENES_SAMPLE = "7scenes-redkitchen"
+
+# CPU runs are cut to this many frames so that one finishes in minutes; --quick cuts GPU runs too.
+CPU_MAX_FRAMES = 40
+QUICK_MAX_FRAMES = 15
+# 7-Scenes on the CPU: every 5th frame (6 Hz, still trackable) at 320x240.
+CPU_SEVENSCENES = ("dataset.stride=5", "dataset.downscale=2")
+# Replica (1200x680) and TUM (640x480) on the CPU: about the synthetic scenes' 240x136 / 320x240.
+CPU_DOWNSCALE = {"replica": 5, "tum": 2}
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One number of the tables: where it sits in ``metrics.json`` and which way is better."""
+
+    id: str
+    path: tuple[str, ...]
+    label: str
+    group: str
+    lower_is_better: bool | None  # None: no direction (a count), never bold
+    digits: int
+
+
+METRICS = (
+    # the supplement's ATE is on keyframes (§3); all frames is what a user of the trajectory sees
+    Metric("ate_keyframes_rmse_cm", ("ate", "keyframes", "rmse_cm"), "ATE RMSE keyframes (cm)", "Tracking", True, 2),
+    Metric("ate_all_rmse_cm", ("ate", "all_frames", "rmse_cm"), "ATE RMSE all frames (cm)", "Tracking", True, 2),
+    Metric("psnr_db", ("photometric", "psnr_db"), "PSNR (dB)", "Rendering", False, 2),
+    Metric("ssim", ("photometric", "ssim"), "SSIM", "Rendering", False, 3),
+    Metric("lpips", ("photometric", "lpips"), "LPIPS", "Rendering", True, 3),
+    Metric("depth_l1_cm", ("photometric", "depth_l1_cm"), "Depth L1 (cm)", "Rendering", True, 2),
+    Metric("acc_cm", ("mesh", "acc_cm"), "Acc. (cm)", "Reconstruction", True, 2),
+    Metric("comp_cm", ("mesh", "comp_cm"), "Comp. (cm)", "Reconstruction", True, 2),
+    Metric("comp_ratio_pct", ("mesh", "comp_ratio_pct"), "Comp. Ratio (%)", "Reconstruction", False, 2),
+    Metric("fps", ("fps",), "FPS", "Speed and memory", False, 2),
+    Metric("tracking_fps", ("tracking_fps",), "Tracking FPS", "Speed and memory", False, 2),
+    Metric("peak_memory_mib", ("peak_memory_mib",), "Peak memory (MiB)", "Speed and memory", True, 0),
+    Metric("gaussians", ("gaussians",), "Gaussians", "Speed and memory", None, 0),
+)
+METRIC_BY_ID = {m.id: m for m in METRICS}
+PLOTS = (("ate_keyframes_rmse_cm", "eval_ate.png"), ("psnr_db", "eval_psnr.png"))
+
+
+# ---------------------------------------------------------------------------------------------------
+# plan
+
+
+def _entry(scene: str, overrides: list[str], absent: str | None = None) -> dict:
+    return {"scene": scene, "overrides": [f"dataset={scene}", *overrides], "absent": absent}
+
+
+def default_plan(device: str, data_root: Path | None = None, quick: bool = False) -> list[dict]:
+    """The scenes of the suite, each ``{"scene": "replica/office0", "overrides": [...], "absent":
+    None or why it is skipped}``: the two synthetic scenes (Replica size on a GPU, CPU size and
+    ``CPU_MAX_FRAMES`` frames on the CPU), the 7-Scenes sequence (the full ``seq-01`` under the data
+    root, else the shared 500-frame sample; every 5th frame at half size on the CPU) and every Replica
+    and TUM sequence of the config groups, present or not (absent ones are listed in the report).
+    ``quick``: ``QUICK_MAX_FRAMES`` frames everywhere."""
+    cpu = not device.startswith("cuda")
+    root = [f"data_root={Path(data_root).resolve()}"] if data_root is not None else []
+    limit = [f"dataset.max_frames={QUICK_MAX_FRAMES if quick else CPU_MAX_FRAMES}"] if cpu or quick else []
+    suffix = "" if cpu else "_replica_size"
+    plan = [_entry(f"synthetic/{name}{suffix}", limit) for name in ("room0", "office0")]
+
+    sevenscenes = "7scenes/redkitchen"
+    seven_limit = [*CPU_SEVENSCENES, *limit] if cpu else limit
+    own = load_config([f"dataset={sevenscenes}", *root]).dataset_path()
+    sample = SHARED_DATA / SEVENSCENES_SAMPLE
+    if own.is_dir():
+        plan.append(_entry(sevenscenes, [*root, *seven_limit]))
+    elif sample.is_dir():
+        plan.append(_entry(sevenscenes, [f"dataset.path={sample}", *seven_limit]))
+    else:
+        plan.append(_entry(sevenscenes, root, f"neither {own.resolve()} nor the shared sample {sample} exists"))
+
+    for option in group_options("dataset"):
+        kind = option.split("/")[0]
+        if kind not in CPU_DOWNSCALE:
+            continue
+        path = load_config([f"dataset={option}", *root]).dataset_path()
+        shrink = [f"dataset.downscale={CPU_DOWNSCALE[kind]}"] if cpu else []
+        plan.append(_entry(option, [*root, *shrink, *limit], None if path.is_dir() else f"{path.resolve()} not found"))
+    return plan
+
+
+# ---------------------------------------------------------------------------------------------------
+# running
+
+
+def _run_name(scene: str, method: str, repeat: int) -> str:
+    return f"{scene.replace('/', '-')}-{method}-{repeat}"
+
+
+def _error_text(e: BaseException) -> str:
+    return f"{type(e).__name__}: {e}".strip()
+
+
+def _one_run(entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runner, extra: Sequence[str]) -> dict:
+    name = _run_name(entry["scene"], method, repeat)
+    run_dir = runs_dir / name
+    record = {"scene": entry["scene"], "method": method, "repeat": repeat, "seed": repeat, "run_dir": str(run_dir)}
+    if run_dir.exists():  # a folder of an earlier suite: its files (convergence.json) must not mix in
+        shutil.rmtree(run_dir)
+    overrides = [*entry["overrides"], f"method={method}", f"seed={repeat}", *extra]
+    overrides += [f"output_dir={runs_dir}", f"run_name={name}"]
+    t0 = time.perf_counter()
+    try:
+        cfg = load_config(overrides)
+        _, metrics = runner(cfg, run_dir=run_dir, progress=False)
+    except Exception as e:  # recorded and reported; the other runs go on
+        record.update(status="error", error=_error_text(e), traceback=traceback.format_exc(), metrics=None)
+    else:
+        record.update(status="ok", error=None, metrics=metrics)
+    record["seconds"] = time.perf_counter() - t0
+    record["convergence"] = _read_convergence(run_dir) if record["status"] == "ok" else None
+    return record
+
+
+def _read_convergence(run_dir: Path) -> list[dict] | None:
+    """``convergence.json`` of a run: a list of ``{"iteration": int, "psnr_db": float}``."""
+    path = run_dir / "convergence.json"
+    if not path.is_file():
+        return None
+    try:
+        points = json.loads(path.read_text())
+        return [{"iteration": int(p["iteration"]), "psnr_db": float(p["psnr_db"])} for p in points]
+    except (ValueError, TypeError, KeyError):
+        return None
+
+
+def _progress_line(record: dict) -> str:
+    head = f"{record['scene']} {record['method']} seed={record['seed']}: "
+    if record["status"] != "ok":
+        return head + f"error ({record['error'].splitlines()[0][:120]}) [{record['seconds']:.0f} s]"
+    parts = []
+    for metric_id in ("ate_keyframes_rmse_cm", "psnr_db", "fps"):
+        value, _ = metric_value(record["metrics"], METRIC_BY_ID[metric_id].path)
+        if value is not None:
+            parts.append(f"{METRIC_BY_ID[metric_id].label} {value:.{METRIC_BY_ID[metric_id].digits}f}")
+    return head + "ok " + ", ".join(parts) + f" [{record['seconds']:.0f} s]"
+
+
+def run_suite(
+    plan: list[dict],
+    methods: Sequence[str] = ("rgs", "baseline"),
+    repeats: int = 3,
+    out_dir: Path = Path("experiments/results"),
+    runner: Runner | None = None,
+    extra_overrides: Sequence[str] = (),
+    progress: bool = True,
+) -> dict:
+    """Run every present scene of ``plan`` with every method, ``repeats`` times (``seed=0..repeats-1``),
+    aggregate and write ``out_dir/eval.json``, ``out_dir/eval.md`` and the plots; returns what
+    ``eval.json`` holds. ``runner`` defaults to ``rgs_warp.slam.run``; ``extra_overrides`` go to every
+    run after the plan's own (``device=cuda:0``, ``tracking.iters=40``)."""
+    if runner is None:
+        from rgs_warp.slam import run as runner
+    out_dir = Path(out_dir)
+    runs_dir = out_dir / "eval_runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    present = [e for e in plan if not e.get("absent")]
+    jobs = [(e, m, r) for e in present for m in methods for r in range(repeats)]
+    runs = []
+    bar = tqdm(total=len(jobs), desc="eval", unit="run", disable=not progress)
+    for entry, method, repeat in jobs:
+        bar.set_postfix_str(_run_name(entry["scene"], method, repeat))
+        runs.append(_one_run(entry, method, repeat, runs_dir, runner, extra_overrides))
+        if progress:
+            bar.write(_progress_line(runs[-1]))
+        bar.update(1)
+    bar.close()
+
+    scenes = [e["scene"] for e in present]
+    aggregate = aggregate_runs(runs, scenes, methods)
+    result = {
+        "header": _header(methods, repeats, extra_overrides),
+        "plan": plan,
+        "not_present": [{"scene": e["scene"], "reason": e["absent"]} for e in plan if e.get("absent")],
+        "metrics": [
+            {"id": m.id, "label": m.label, "group": m.group, "lower_is_better": m.lower_is_better} for m in METRICS
+        ],
+        "aggregate": aggregate,
+        "averages": benchmark_averages(aggregate, scenes, methods),
+        "runs": runs,
+    }
+    result["plots"] = write_plots(result, out_dir)
+    result = _to_json(result)
+    (out_dir / "eval.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    (out_dir / "eval.md").write_text(render_markdown(result), encoding="utf-8")
+    return result
+
+
+# ---------------------------------------------------------------------------------------------------
+# aggregation
+
+
+def metric_value(metrics: dict, path: tuple[str, ...]) -> tuple[float | None, str | None]:
+    """(value, None) or (None, the reason it is n/a) of a metric at ``path`` in a run's metrics."""
+    node = metrics
+    for key in path:
+        value = node.get(key) if isinstance(node, dict) else None
+        if value is None:
+            reason = node.get(key + NA_SUFFIX) if isinstance(node, dict) else None
+            return None, reason or f"{'.'.join(path)} not in metrics.json"
+        node = value
+    return float(node), None
+
+
+def _aggregate_cell(records: list[dict], path: tuple[str, ...]) -> dict:
+    values, na, errors = [], [], []
+    for r in records:
+        if r["status"] != "ok":
+            errors.append(r["error"])
+            continue
+        value, reason = metric_value(r["metrics"], path)
+        if value is None:
+            na.append(reason)
+        else:
+            values.append(value)
+    n = len(values)
+    return {
+        "mean": float(np.mean(values)) if n else None,
+        # sample standard deviation over the repeats; undefined for a single value
+        "std": float(np.std(values, ddof=1)) if n >= 2 else None,
+        "n": n,
+        "runs": len(records),
+        "values": values,
+        "na_reasons": sorted(set(na)),
+        "n_na": len(na),
+        "errors": sorted(set(errors)),
+        "n_failed": len(errors),
+    }
+
+
+def aggregate_runs(runs: list[dict], scenes: Sequence[str], methods: Sequence[str]) -> dict:
+    """``{scene: {method: {metric id: {mean, std, n, runs, values, na_reasons, n_na, errors,
+    n_failed}}}}`` over the repeats of each (scene, method)."""
+    out: dict = {}
+    for scene in scenes:
+        out[scene] = {}
+        for method in methods:
+            records = [r for r in runs if r["scene"] == scene and r["method"] == method]
+            out[scene][method] = {m.id: _aggregate_cell(records, m.path) for m in METRICS}
+    return out
+
+
+def benchmark_of(scene: str) -> str:
+    return scene.split("/")[0]
+
+
+def benchmark_averages(aggregate: dict, scenes: Sequence[str], methods: Sequence[str]) -> dict:
+    """``{benchmark: {method: {metric id: {mean, na_reason}}}}``: the mean over the benchmark's
+    scenes of the per-scene means (as the supplement's "Avg."), n/a unless every scene has one."""
+    out: dict = {}
+    for bench in dict.fromkeys(benchmark_of(s) for s in scenes):
+        members = [s for s in scenes if benchmark_of(s) == bench]
+        out[bench] = {}
+        for method in methods:
+            out[bench][method] = {}
+            for m in METRICS:
+                means = [aggregate[s][method][m.id]["mean"] for s in members]
+                missing = [s.split("/", 1)[1] for s, v in zip(members, means, strict=True) if v is None]
+                if not missing:
+                    out[bench][method][m.id] = {"mean": float(np.mean(means)), "na_reason": None}
+                else:
+                    reason = "no value on " + ("any scene" if len(missing) == len(members) else ", ".join(missing))
+                    out[bench][method][m.id] = {"mean": None, "na_reason": reason}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# report
+
+
+def _git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+
+
+def _device_of(extra_overrides: Sequence[str]) -> str:
+    try:
+        device = load_config(list(extra_overrides)).device
+    except ConfigError:
+        device = "auto"
+    if device != "auto":
+        return device
+    import warp as wp
+
+    return "cuda:0" if wp.is_cuda_available() else "cpu"
+
+
+def _device_name(device: str) -> str:
+    if device.startswith("cuda"):
+        try:
+            import warp as wp
+
+            return wp.get_device(device).name
+        except Exception as e:  # the header says why instead of failing the suite after the runs
+            return f"unknown ({_error_text(e)})"
+    return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def _header(methods: Sequence[str], repeats: int, extra_overrides: Sequence[str]) -> dict:
+    device = _device_of(extra_overrides)
+    return {
+        "date": datetime.now().isoformat(timespec="seconds"),
+        "commit": _git_commit(),
+        "device": device,
+        "device_name": _device_name(device),
+        "repeats": repeats,
+        "methods": list(methods),
+        "extra_overrides": list(extra_overrides),
+    }
+
+
+class _Footnotes:
+    """Markdown footnotes ``[^k]``, one per distinct text."""
+
+    def __init__(self):
+        self.texts: dict[str, int] = {}
+
+    def ref(self, text: str) -> str:
+        text = " ".join(text.split())
+        text = text if len(text) <= 300 else text[:297] + "..."
+        return f"[^{self.texts.setdefault(text, len(self.texts) + 1)}]"
+
+    def lines(self) -> list[str]:
+        return [f"[^{k}]: {text}" for text, k in self.texts.items()]
+
+
+def _number(value: float, digits: int) -> str:
+    return f"{value:.{digits}f}" if math.isfinite(value) else str(value)
+
+
+def _rank_marks(means: dict[str, float | None], metric: Metric) -> dict[str, str]:
+    """``{method: "best" | "second"}`` by the values as printed (ties share the mark)."""
+    if metric.lower_is_better is None:
+        return {}
+    shown = {k: float(f"{v:.{metric.digits}f}") for k, v in means.items() if v is not None and not math.isnan(v)}
+    if len(shown) < 2:  # a single number is not a comparison
+        return {}
+    order = sorted(set(shown.values()), reverse=not metric.lower_is_better)
+    marks = {k: "best" for k, v in shown.items() if v == order[0]}
+    if len(shown) >= 3 and len(marks) == 1:  # competition ranking: a tie for the best leaves no second
+        marks.update({k: "second" for k, v in shown.items() if v == order[1]})
+    return marks
+
+
+def _mark(text: str, mark: str | None) -> str:
+    return {"best": f"**{text}**", "second": f"<u>{text}</u>"}.get(mark, text)
+
+
+def _scene_cell(cell: dict, metric: Metric, mark: str | None, notes: _Footnotes) -> str:
+    if cell["n"]:
+        text = _number(cell["mean"], metric.digits)
+        if cell["std"] is not None:
+            text += f" ± {_number(cell['std'], metric.digits)}"
+        text = _mark(text, mark)
+    elif cell["n_failed"] == cell["runs"]:
+        return "error " + notes.ref("run failed: " + "; ".join(cell["errors"]))
+    else:
+        text = "n/a"
+    refs = []
+    if cell["n_failed"] and cell["n_failed"] < cell["runs"]:
+        refs.append(notes.ref(f"failed in {cell['n_failed']} of {cell['runs']} runs: " + "; ".join(cell["errors"])))
+    if cell["n_na"]:
+        prefix = "" if not cell["n"] else f"n/a in {cell['n_na']} of {cell['runs']} runs: "
+        refs.append(notes.ref(prefix + "; ".join(cell["na_reasons"])))
+    return " ".join([text, *refs])
+
+
+def _table(result: dict, group: str, bench: str, notes: _Footnotes) -> list[str]:
+    methods = result["header"]["methods"]
+    scenes = [s for s in result["aggregate"] if benchmark_of(s) == bench]
+    columns = [s.split("/", 1)[1] for s in scenes] + ["Avg."]
+    lines = ["| Metric | Method | " + " | ".join(columns) + " |", "|---|---|" + "---:|" * len(columns)]
+    for metric in (m for m in METRICS if m.group == group):
+        arrow = {True: " ↓", False: " ↑", None: ""}[metric.lower_is_better]
+        scene_marks = {
+            s: _rank_marks({k: result["aggregate"][s][k][metric.id]["mean"] for k in methods}, metric) for s in scenes
+        }
+        averages = {k: result["averages"][bench][k][metric.id] for k in methods}
+        avg_marks = _rank_marks({k: a["mean"] for k, a in averages.items()}, metric)
+        for i, method in enumerate(methods):
+            cells = [
+                _scene_cell(result["aggregate"][s][method][metric.id], metric, scene_marks[s].get(method), notes)
+                for s in scenes
+            ]
+            avg = averages[method]
+            if avg["mean"] is None and not any(result["aggregate"][s][method][metric.id]["n"] for s in scenes):
+                cells.append("n/a")  # the scene cells say why
+            elif avg["mean"] is None:
+                cells.append("n/a " + notes.ref(avg["na_reason"]))
+            else:
+                cells.append(_mark(_number(avg["mean"], metric.digits), avg_marks.get(method)))
+            label = metric.label + arrow if i == 0 else ""
+            lines.append(f"| {label} | {method} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def render_markdown(result: dict) -> str:
+    """``eval.md`` from what ``eval.json`` holds."""
+    h = result["header"]
+    notes = _Footnotes()
+    n = h["repeats"]
+    seeds = "seed 0" if n == 1 else f"seeds 0-{n - 1}"
+    lines = [
+        "# rgs_warp evaluation",
+        "",
+        f"- date: {h['date']}",
+        f"- commit: {h['commit']}",
+        f"- device: {h['device']} ({h['device_name']})",
+        f"- repeats: {n} ({seeds}); cells: mean ± sample standard deviation over the repeats that "
+        "produced the number; Avg.: mean of the scene means",
+        "- best per column in **bold**, second best <u>underlined</u> (among 3 or more methods); "
+        "↓ lower is better, ↑ higher is better",
+        f"- methods: {', '.join(h['methods'])}",
+        f"- overrides for every run: {' '.join(h['extra_overrides']) or '(none)'}",
+        "",
+    ]
+    benches = list(dict.fromkeys(benchmark_of(s) for s in result["aggregate"]))
+    for group in dict.fromkeys(m.group for m in METRICS):
+        lines += [f"## {group}", ""]
+        for bench in benches:
+            lines += [f"### {bench}", "", *_table(result, group, bench, notes), ""]
+    for name in result["plots"]:
+        lines += [f"![{name}]({name})", ""]
+    lines += ["## Scenes", ""]
+    for e in result["plan"]:
+        what = f"not present ({e['absent']})" if e.get("absent") else "`" + " ".join(e["overrides"]) + "`"
+        lines.append(f"- {e['scene']}: {what}")
+    lines.append("")
+    lines += ["## Runs", "", "| Scene | Method | Seed | Status | Time (s) | Folder |", "|---|---|---:|---|---:|---|"]
+    for r in result["runs"]:
+        status = "ok" if r["status"] == "ok" else "error " + notes.ref("run failed: " + r["error"])
+        folder = Path(r["run_dir"]).name
+        lines.append(f"| {r['scene']} | {r['method']} | {r['seed']} | {status} | {r['seconds']:.1f} | {folder} |")
+    lines.append("")
+    if notes.texts:
+        lines += ["## Notes", "", *notes.lines(), ""]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------------
+# plots
+
+
+def _bar_plot(result: dict, metric: Metric, path: Path) -> bool:
+    """Grouped bars (scene x method) of a metric's means with std error bars; False if no numbers."""
+    scenes, methods = list(result["aggregate"]), result["header"]["methods"]
+    cells = {(s, k): result["aggregate"][s][k][metric.id] for s in scenes for k in methods}
+    if not any(c["n"] for c in cells.values()):
+        return False
+    width = 0.8 / len(methods)
+    x = np.arange(len(scenes))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(scenes) + 2.0), 4.5), dpi=150)
+    for i, method in enumerate(methods):
+        means = [cells[s, method]["mean"] if cells[s, method]["n"] else np.nan for s in scenes]
+        stds = [cells[s, method]["std"] or 0.0 for s in scenes]
+        ax.bar(x + (i - (len(methods) - 1) / 2) * width, means, width, yerr=stds, capsize=3, label=method)
+    ax.set_xticks(x, scenes, rotation=30, ha="right")
+    better = {True: ", lower is better", False: ", higher is better", None: ""}[metric.lower_is_better]
+    ax.set_ylabel(f"mean ± std over {result['header']['repeats']} repeats")
+    ax.set_title(metric.label + better)
+    ax.grid(True, axis="y", linewidth=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
+def _convergence_plot(result: dict, path: Path) -> bool:
+    """PSNR against mapping iterations, one panel per scene, one colour per method, a line per repeat."""
+    curves = [r for r in result["runs"] if r.get("convergence")]
+    if not curves:
+        return False
+    scenes = list(dict.fromkeys(r["scene"] for r in curves))
+    colours = {k: f"C{i}" for i, k in enumerate(result["header"]["methods"])}
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 4.0), dpi=150, squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        labelled = set()
+        for r in (r for r in curves if r["scene"] == scene):
+            it = [p["iteration"] for p in r["convergence"]]
+            psnr = [p["psnr_db"] for p in r["convergence"]]
+            label = None if r["method"] in labelled else r["method"]
+            labelled.add(r["method"])
+            ax.plot(it, psnr, color=colours.get(r["method"], "gray"), linewidth=1.0, alpha=0.8, label=label)
+        ax.set_title(scene)
+        ax.set_xlabel("mapping iterations")
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(True, linewidth=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
+def write_plots(result: dict, out_dir: Path) -> list[str]:
+    """The PNGs next to ``eval.md``; returns their file names."""
+    written = [name for metric_id, name in PLOTS if _bar_plot(result, METRIC_BY_ID[metric_id], out_dir / name)]
+    if _convergence_plot(result, out_dir / "eval_convergence.png"):
+        written.append("eval_convergence.png")
+    return written
+
+
+# ---------------------------------------------------------------------------------------------------
+# command line
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m rgs_warp.eval.suite",
+        description="Run the evaluation suite (every scene x method x repeat) and write eval.md / eval.json.",
+        epilog="Trailing key=value overrides go to every run (e.g. data_root=/data tracking.iters=40).",
+    )
+    p.add_argument("--device", default="auto", help="cpu, cuda:0 or auto (a GPU when Warp sees one); default auto")
+    p.add_argument("--repeats", type=int, default=None, help="runs per scene and method, seeds 0.. (default 3)")
+    p.add_argument("--methods", default="rgs,baseline", help="comma-separated methods (default rgs,baseline)")
+    p.add_argument("--out", type=Path, default=Path("experiments/results"), help="output folder")
+    p.add_argument("--quick", action="store_true", help=f"smoke run: 1 repeat, {QUICK_MAX_FRAMES} frames a sequence")
+    p.add_argument("overrides", nargs="*", metavar="key=value")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if repeats < 1 or not methods:
+        print("error: need --repeats >= 1 and at least one method", file=sys.stderr)
+        return 2
+    device = _device_of([f"device={args.device}"])
+    extra = [f"device={device}", *args.overrides]
+    try:
+        cfg = load_config(extra)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    data_root = Path(cfg.data_root) if cfg.data_root else None
+    plan = default_plan(device, data_root, quick=args.quick)
+    result = run_suite(plan, methods, repeats, args.out, extra_overrides=extra)
+    ok = sum(r["status"] == "ok" for r in result["runs"])
+    print(f"{ok} of {len(result['runs'])} runs ok; report {args.out / 'eval.md'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,215 @@
+"""Evaluation suite with a fake SLAM runner: aggregation against NumPy, bold for the best per column,
+errors and n/a reasons in eval.md, plots, eval.json, and the default plan's scene selection."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rgs_warp import config
+from rgs_warp.eval import suite
+
+SCENES = ("synthetic/room0", "synthetic/office0", "7scenes/redkitchen")
+METHODS = ("rgs", "baseline")
+REPEATS = 3
+
+
+def _numbers(scene: str, method: str, seed: int) -> dict:
+    """rgs: lower ATE, higher PSNR on every scene; baseline: higher FPS; seeds spread the numbers."""
+    k = SCENES.index(scene)
+    rgs = method == "rgs"
+    return {
+        "ate": (1.0 if rgs else 2.0) + 0.5 * k + (0.1 if rgs else 0.3) * seed**2,
+        "psnr": (30.0 if rgs else 27.0) - k + 0.25 * seed,
+        "fps": (2.0 if rgs else 3.0) + 0.1 * seed,
+    }
+
+
+def fake_runner(cfg, run_dir: Path, progress: bool = True):
+    scene = f"{cfg.dataset.type}/{cfg.dataset.name}"
+    if cfg.method == "baseline" and scene == "7scenes/redkitchen":
+        raise ValueError("baseline: dense init not implemented | yet")
+    x = _numbers(scene, cfg.method, cfg.seed)
+    metrics = {
+        "dataset": scene,
+        "method": cfg.method,
+        "fps": x["fps"],
+        "tracking_fps": 2 * x["fps"],
+        "peak_memory_mib": None,
+        "peak_memory_mib_na_reason": "measured on CUDA devices only",
+        "gaussians": 1000 + cfg.seed,
+        "ate": {
+            "keyframes": {"rmse_cm": x["ate"]},
+            "all_frames": {"rmse_cm": x["ate"] + 0.2},
+        },
+        "photometric": {
+            "psnr_db": x["psnr"],
+            "ssim": 0.9,
+            "lpips": None,
+            "lpips_na_reason": "no LPIPS weights given",
+            "depth_l1_cm": 1.5,
+        },
+    }
+    if scene.startswith("synthetic"):
+        metrics["mesh"] = {"acc_cm": 1.0 + cfg.seed, "comp_cm": 2.0, "comp_ratio_pct": 90.0}
+        iters = np.arange(0, 100, 10)
+        curve = [{"iteration": int(i), "psnr_db": x["psnr"] * (1 - np.exp(-i / 30))} for i in iters]
+        (run_dir / "convergence.json").parent.mkdir(parents=True, exist_ok=True)
+        (run_dir / "convergence.json").write_text(json.dumps(curve))
+    else:
+        metrics["mesh"] = None
+        metrics["mesh_na_reason"] = "no ground-truth mesh for this sequence"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "metrics.json").write_text(json.dumps(metrics))
+    return run_dir, metrics
+
+
+PLAN = [{"scene": s, "overrides": [f"dataset={s}"], "absent": None} for s in SCENES] + [
+    {"scene": "replica/room1", "overrides": ["dataset=replica/room1"], "absent": "/nowhere/Replica/room1 not found"}
+]
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    # a `method=baseline` config for the fake runner to see (the package may not ship one yet)
+    configs = tmp_path_factory.mktemp("configs") / "configs"
+    shutil.copytree(config.CONFIG_DIR, configs)
+    (configs / "method" / "baseline.yaml").write_text("method: baseline\n")
+    out = tmp_path_factory.mktemp("eval")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(config, "CONFIG_DIR", configs)
+        res = suite.run_suite(PLAN, METHODS, REPEATS, out, runner=fake_runner, extra_overrides=["device=cpu"])
+    return out, res
+
+
+def _tables(md: str) -> dict:
+    """{(group, benchmark, metric label, method): [cells]} from eval.md's tables."""
+    cells, group, bench, label = {}, None, None, None
+    for line in md.splitlines():
+        if line.startswith("## "):
+            group = line[3:]
+        elif line.startswith("### "):
+            bench = line[4:]
+        elif line.startswith("| ") and bench and not line.startswith("| Metric"):
+            parts = [p.strip() for p in line.strip("|").split(" | ")]
+            label = parts[0] or label
+            cells[group, bench, label, parts[1]] = parts[2:]
+    return cells
+
+
+def test_aggregate_matches_numpy(result):
+    _, res = result
+    for scene in SCENES[:2]:
+        for method in METHODS:
+            values = [_numbers(scene, method, s)["ate"] for s in range(REPEATS)]
+            cell = res["aggregate"][scene][method]["ate_keyframes_rmse_cm"]
+            assert cell["n"] == REPEATS
+            assert cell["mean"] == pytest.approx(np.mean(values), rel=1e-12)
+            assert cell["std"] == pytest.approx(np.std(values, ddof=1), rel=1e-12)
+    avg = res["averages"]["synthetic"]["rgs"]["psnr_db"]["mean"]
+    scene_means = [np.mean([_numbers(s, "rgs", k)["psnr"] for k in range(REPEATS)]) for s in SCENES[:2]]
+    assert avg == pytest.approx(np.mean(scene_means))
+    failed = res["aggregate"]["7scenes/redkitchen"]["baseline"]["ate_keyframes_rmse_cm"]
+    assert failed["n"] == 0 and failed["n_failed"] == REPEATS and failed["mean"] is None
+
+
+def test_bold_goes_to_best_per_column(result):
+    out, _ = result
+    t = _tables((out / "eval.md").read_text())
+    ate = "ATE RMSE keyframes (cm) ↓"
+    rgs, base = t["Tracking", "synthetic", ate, "rgs"], t["Tracking", "synthetic", ate, "baseline"]
+    assert len(rgs) == 3  # room0, office0, Avg.
+    assert all(c.startswith("**") for c in rgs) and not any("**" in c for c in base)
+    fps = "FPS ↑"  # higher is better: the baseline wins
+    rgs, base = t["Speed and memory", "synthetic", fps, "rgs"], t["Speed and memory", "synthetic", fps, "baseline"]
+    assert all(c.startswith("**") for c in base) and not any("**" in c for c in rgs)
+    # no competitor on 7-Scenes (the baseline failed): nothing is bold
+    assert "**" not in t["Tracking", "7scenes", ate, "rgs"][0]
+    # equal numbers (SSIM 0.9 for both): both bold
+    ssim = t["Rendering", "synthetic", "SSIM ↑", "rgs"] + t["Rendering", "synthetic", "SSIM ↑", "baseline"]
+    assert all(c.startswith("**0.900") for c in ssim)
+    # the Gaussian count has no better direction
+    assert not any("**" in c for c in t["Speed and memory", "synthetic", "Gaussians", "rgs"])
+
+
+def test_errors_and_na_reasons_in_markdown(result):
+    out, _ = result
+    md = (out / "eval.md").read_text()
+    t = _tables(md)
+    cell = t["Tracking", "7scenes", "ATE RMSE keyframes (cm) ↓", "baseline"][0]
+    assert cell.startswith("error [^")
+    note = cell.split()[-1]
+    assert f"{note}: run failed: ValueError: baseline: dense init not implemented | yet" in md
+    lpips = t["Rendering", "synthetic", "LPIPS ↓", "rgs"][0]
+    assert lpips.startswith("n/a [^") and f"{lpips.split()[-1]}: no LPIPS weights given" in md
+    assert "no ground-truth mesh for this sequence" in md
+    assert "measured on CUDA devices only" in md
+    assert "- replica/room1: not present (/nowhere/Replica/room1 not found)" in md
+    assert "- synthetic/room0: `dataset=synthetic/room0`" in md
+    # an average over scenes of which one has no number says which
+    assert t["Tracking", "7scenes", "ATE RMSE keyframes (cm) ↓", "baseline"][1] == "n/a"
+    assert "| 7scenes/redkitchen | baseline | 2 | error [^" in md
+    mean, std = np.mean([1.0, 1.1, 1.4]), np.std([1.0, 1.1, 1.4], ddof=1)
+    assert f"**{mean:.2f} ± {std:.2f}**" in t["Tracking", "synthetic", "ATE RMSE keyframes (cm) ↓", "rgs"][0]
+
+
+def test_plots_and_json(result):
+    out, res = result
+    assert res["plots"] == ["eval_ate.png", "eval_psnr.png", "eval_convergence.png"]
+    for name in res["plots"]:
+        assert (out / name).stat().st_size > 1000
+        assert f"![{name}]({name})" in (out / "eval.md").read_text()
+    assert json.loads((out / "eval.json").read_text()) == res
+    assert len(res["runs"]) == len(SCENES) * len(METHODS) * REPEATS
+    run = next(r for r in res["runs"] if r["scene"] == "synthetic/room0" and r["method"] == "rgs" and r["seed"] == 2)
+    assert Path(run["run_dir"]) == out / "eval_runs" / "synthetic-room0-rgs-2"
+    assert (Path(run["run_dir"]) / "metrics.json").is_file()
+    assert res["header"]["repeats"] == REPEATS and res["header"]["device"] == "cpu"
+
+
+def test_unknown_method_is_a_failed_row(tmp_path):
+    res = suite.run_suite(PLAN[:1], ("rgs", "nosuch"), 1, tmp_path, runner=fake_runner, progress=False)
+    bad = next(r for r in res["runs"] if r["method"] == "nosuch")
+    assert bad["status"] == "error" and "ConfigError" in bad["error"]
+    assert "run failed: ConfigError" in (tmp_path / "eval.md").read_text()
+
+
+def test_default_plan_scene_selection(tmp_path, monkeypatch):
+    shared = tmp_path / "shared"
+    (shared / suite.SEVENSCENES_SAMPLE).mkdir(parents=True)
+    monkeypatch.setattr(suite, "SHARED_DATA", shared)
+    root = tmp_path / "data"
+    (root / "Replica" / "office0").mkdir(parents=True)
+    (root / "TUM" / "rgbd_dataset_freiburg1_desk").mkdir(parents=True)
+
+    plan = {e["scene"]: e for e in suite.default_plan("cpu", root)}
+    present = [s for s, e in plan.items() if not e["absent"]]
+    assert present == ["synthetic/room0", "synthetic/office0", "7scenes/redkitchen", "replica/office0", "tum/fr1_desk"]
+    assert f"dataset.path={shared / suite.SEVENSCENES_SAMPLE}" in plan["7scenes/redkitchen"]["overrides"]
+    assert "dataset.stride=5" in plan["7scenes/redkitchen"]["overrides"]
+    assert f"dataset.max_frames={suite.CPU_MAX_FRAMES}" in plan["synthetic/room0"]["overrides"]
+    assert "Replica/room1" in plan["replica/room1"]["absent"]
+    # the plan's overrides are valid and point where the presence check looked
+    cfg = suite.load_config(plan["replica/office0"]["overrides"])
+    assert cfg.dataset_path() == (root / "Replica" / "office0").resolve() and cfg.dataset.downscale == 5
+
+    gpu = suite.default_plan("cuda:0", root)
+    assert [e["scene"] for e in gpu[:2]] == ["synthetic/room0_replica_size", "synthetic/office0_replica_size"]
+    assert not any(o.startswith("dataset.max_frames") for e in gpu for o in e["overrides"])
+
+    # the full sequence under the data root wins over the shared sample; neither: listed as absent
+    (root / "7scenes" / "redkitchen" / "seq-01").mkdir(parents=True)
+    assert not any(o.startswith("dataset.path") for o in suite.default_plan("cpu", root)[2]["overrides"])
+    monkeypatch.setattr(suite, "SHARED_DATA", tmp_path / "none")
+    assert suite.default_plan("cpu", tmp_path / "empty")[2]["absent"]
+
+
+def test_second_best_underlined_among_three():
+    lower = suite.METRIC_BY_ID["ate_keyframes_rmse_cm"]
+    marks = suite._rank_marks({"a": 2.0, "b": 1.0, "c": 3.0, "d": None}, lower)
+    assert marks == {"b": "best", "a": "second"}
+    higher = suite.METRIC_BY_ID["psnr_db"]
+    assert suite._rank_marks({"a": 30.001, "b": 30.004, "c": 20.0}, higher) == {"a": "best", "b": "best"}
+    assert suite._rank_marks({"a": 2.0, "b": 1.0}, lower) == {"b": "best"}  # two methods: no underline
