@@ -1,4 +1,4 @@
-"""Sessions: tests (the CI suite, Warp on CPU), lint (ruff), eval and bench (land with their issues)."""
+"""Sessions: tests (the CI suite, Warp on CPU), lint (ruff), eval (the evaluation suite), bench (GPU)."""
 
 import os
 

@@ -83,22 +83,7 @@ def test_saved_config_round_trips(tmp_path):
     assert load_config(args + ["dataset.path=TUM/rgbd_dataset_freiburg1_desk"]).tracking.iters == 45
 
 
-def test_cli(tmp_path, shared_data, capsys):
-    rc = main(
-        [
-            "dataset=7scenes/redkitchen",
-            f"dataset.path={shared_data / '7scenes-redkitchen'}",
-            "dataset.stride=50",
-            f"output_dir={tmp_path}",
-            "run_name=r",
-            "device=cpu",
-        ]
-    )
-    assert rc == 0
-    assert yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())["dataset"]["stride"] == 50
-    assert "10 frames, 640x480" in capsys.readouterr().out
-    rc = main(["dataset=replica/office0", f"data_root={tmp_path}", f"output_dir={tmp_path}"])
-    err = capsys.readouterr().err
-    assert rc != 0 and "Replica/office0 does not exist" in err and "obtain it from" in err
+def test_cli(tmp_path, capsys):
+    # a full run is tests/test_slam.py; here: configuration errors and help
     assert main(["tracking.iter=3"]) == 2
     assert main(["--help"]) == 0 and "Configuration groups" in capsys.readouterr().out

@@ -472,7 +472,8 @@ def test_mapping_reduces_a_keyframe_pose_error(device, room):
     points = gmap.means.numpy()[: len(gmap)].astype(np.float64)
     dt0, dr0 = pose_error(kf.poses[slots[1]], T_true)
     px0 = _reprojection_px(points, cam, kf.poses[slots[1]], T_true)
-    mapper = Mapper(MappingConfig(), cam, gmap, device, renderer=renderer)
+    # pose-only steps are off by default (docs/decisions.md); every 3rd iteration here
+    mapper = Mapper(MappingConfig(pose_only_every=3), cam, gmap, device, renderer=renderer)
     result = mapper.optimize(kf, slots, 60, fixed=[slots[0]])
     dt, dr = pose_error(kf.poses[slots[1]], T_true)
     px = _reprojection_px(points, cam, kf.poses[slots[1]], T_true)

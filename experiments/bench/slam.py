@@ -4,7 +4,7 @@
 
 Default cases: the synthetic office at Replica size, RGB-D and monocular.  Every case writes its
 run folder under DIR/runs; DIR/slam.json holds all metrics and DIR/runs.tar.gz the small files of
-each run (metrics, plots, renders; not the map or keyframes).
+each run (metrics, log, top-view plot; not the map, renders or keyframes).
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
         )
     with tarfile.open(out / "runs.tar.gz", "w:gz") as tar:
         for p in sorted((out / "runs").rglob("*")):
-            if p.is_file() and p.suffix in (".md", ".json", ".png", ".txt", ".jsonl", ".yaml"):
+            if p.is_file() and (p.suffix in (".md", ".json", ".jsonl") or p.name == "trajectory_topview.png"):
                 tar.add(p, arcname=str(p.relative_to(out)))
     return 0
 

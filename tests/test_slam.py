@@ -1,0 +1,102 @@
+"""The whole system end to end on a small generated scene (CPU): run folder, metrics that a broken
+pipeline cannot reach, save / load, and the library entry point with device arrays."""
+
+import json
+
+import numpy as np
+import pytest
+import warp as wp
+
+from rgs_warp.config import load_config
+from rgs_warp.io.ply import load_ply
+from rgs_warp.io.trajectory import read_tum_trajectory
+from rgs_warp.slam import SLAM, main, run
+
+# CPU-sized: 160x90, 20 frames, short initialization and mapping (the GPU numbers use the defaults)
+OVERRIDES = [
+    "dataset=synthetic/office0",
+    "dataset.width=160",
+    "dataset.height=90",
+    "dataset.max_frames=20",
+    "mapping.init_iters=60",
+    "mapping.iters=15",
+    "mapping.window=3",
+]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory, device):
+    out = tmp_path_factory.mktemp("runs")
+    cfg = load_config([*OVERRIDES, f"device={device}", f"output_dir={out}", "run_name=small"])
+    run_dir, metrics = run(cfg, progress=False)
+    return cfg, run_dir, metrics
+
+
+@pytest.mark.slow
+def test_small_run_end_to_end(finished_run):
+    cfg, run_dir, metrics = finished_run
+    for name in ("config.yaml", "dataset.json", "trajectory.txt", "map.ply", "keyframes.npz", "metrics.json"):
+        assert (run_dir / name).is_file(), name
+    assert (run_dir / "metrics.md").read_text().startswith("# rgs_warp")
+    assert (run_dir / "trajectory_topview.png").stat().st_size > 1000
+    assert list((run_dir / "renders").glob("*_render_vs_gt.png"))
+    stamps, poses = read_tum_trajectory(run_dir / "trajectory.txt")
+    assert len(poses) == metrics["frames"] == 20
+    assert len(load_ply(run_dir / "map.ply")) == metrics["gaussians"] > 1000
+    assert json.loads((run_dir / "metrics.json").read_text())["frames"] == 20
+    assert len((run_dir / "log.jsonl").read_text().splitlines()) == 20
+    # Thresholds a broken pipeline cannot meet: the camera travels 0.47 m and turns, and an estimate
+    # standing still at the first pose scores 16.2 cm (SE(3)-aligned RMSE).  Measured on CPU at this
+    # size (commit of this test): 4.4 cm (2.0 cm on keyframes), PSNR 16.8 dB on frames 5 and 15; the
+    # GPU runs at Replica size are in experiments/results/slam.md.
+    rmse = metrics["ate"]["all_frames"]["rmse_cm"]
+    psnr = metrics["photometric"]["psnr_db"]
+    assert rmse < 8.0, metrics["ate"]
+    assert metrics["ate"]["keyframes"]["rmse_cm"] < 4.0, metrics["ate"]
+    assert psnr > 15.0, metrics["photometric"]
+    assert 3 <= metrics["keyframes"] < 20
+
+
+@pytest.mark.slow
+def test_save_load_round_trip_and_resume(finished_run, device):
+    cfg, run_dir, metrics = finished_run
+    slam = SLAM.load(run_dir, device=device)
+    stamps, poses = slam.trajectory()
+    ref_stamps, ref_poses = read_tum_trajectory(run_dir / "trajectory.txt")
+    np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
+    assert len(slam.map) == metrics["gaussians"] and len(slam.keyframes) > 0
+    # the restored map renders the last keyframe as the saved map did
+    saved = load_ply(run_dir / "map.ply", device=device)
+    T = slam.keyframes.poses[slam.keyframes.slots()[-1]]
+    a = slam.render(T).color.numpy().copy()
+    from rgs_warp.render import render
+
+    b = render(saved, slam.camera, T).color.numpy()
+    np.testing.assert_allclose(a, b, atol=1e-5)
+    # tracking resumes from the motion model: the next frame, given as device arrays
+    from rgs_warp.datasets import open_dataset
+
+    full = load_config([*OVERRIDES[:-4], "dataset.max_frames=21", f"device={device}"])
+    frame = open_dataset(full, device)[20]
+    T_new = slam.track(wp.array(frame.rgb, dtype=wp.vec3, device=device), wp.array(frame.depth, device=device))
+    # it continues from the saved last pose (at this CPU size the run has drifted ~0.3 m unaligned by
+    # frame 19, so the accuracy of one more step says little; the GPU runs measure accuracy)
+    assert np.all(np.isfinite(T_new)) and np.linalg.norm(T_new[:3, 3] - poses[-1][:3, 3]) < 0.1
+    assert len(slam.trajectory()[1]) == len(poses) + 1
+
+
+def test_cli_reports_bad_input(tmp_path, capsys):
+    assert main(["dataset=replica/office0", f"data_root={tmp_path}", f"output_dir={tmp_path}"]) == 1
+    err = capsys.readouterr().err
+    assert "Replica/office0 does not exist" in err and "obtain it from" in err
+    assert main(["mode=mono", "tracking.brightness=linear"]) == 2
+    assert "tracking.brightness" in capsys.readouterr().err
+
+
+def test_slam_rejects_missing_depth_in_rgbd_mode(device):
+    cfg = load_config([*OVERRIDES, f"device={device}"])
+    from rgs_warp.types import Camera
+
+    slam = SLAM(cfg, Camera(80.0, 80.0, 79.5, 44.5, 160, 90), device=device)
+    with pytest.raises(ValueError, match="depth"):
+        slam.track(np.zeros((90, 160, 3), np.float32), None)
