@@ -244,21 +244,13 @@ class SLAM:
 
     # ---- maintenance ---------------------------------------------------------------------------
     def _maintain(self, slot: int) -> tuple[int, int]:
-        """Merge near-duplicates seen from keyframe ``slot``, then prune (§4.5); returns (pruned,
-        merged).  One host read of the masks per keyframe."""
+        """Prune, then merge near-duplicates seen from keyframe ``slot`` among the survivors (§4.5);
+        returns (pruned, merged).  The masks combine on the device; one read of the two counts."""
         cfg = self.cfg.mapping
         if len(self.map) == 0:
             return 0, 0
         self.mapper.sync()
-        merge_mask, _ = maintenance.merge_duplicates(
-            self.map,
-            self.camera,
-            self.keyframes.poses[slot],
-            max_footprint_px=cfg.merge_footprint_px,
-            max_color_diff=cfg.merge_color_diff,
-            scratch=self._merge_scratch,
-        )
-        prune, _ = maintenance.prune_mask(
+        prune, prune_stats = maintenance.prune_mask(
             self.map,
             self.mapper.obs_count,
             self.mapper.vis_count,
@@ -267,12 +259,20 @@ class SLAM:
             min_obs=cfg.min_obs,
             min_visibility_ratio=cfg.min_visibility_ratio,
         )
-        merged_np = merge_mask.numpy() != 0
-        remove = merged_np | (prune.numpy() != 0)
-        if remove.any():
-            self.mapper.remove(wp.array(remove.astype(np.int32), dtype=wp.int32, device=self.device))
-        merged = int(merged_np.sum())
-        return int(remove.sum()) - merged, merged
+        remove, n_merged = maintenance.merge_duplicates(
+            self.map,
+            self.camera,
+            self.keyframes.poses[slot],
+            max_footprint_px=cfg.merge_footprint_px,
+            max_color_diff=cfg.merge_color_diff,
+            exclude=prune,
+            scratch=self._merge_scratch,
+        )
+        pruned = maintenance.PruneStats.read(prune_stats).total
+        merged = int(n_merged.numpy()[0])
+        if pruned + merged:
+            self.mapper.remove(remove)
+        return pruned, merged
 
     # ---- outputs -------------------------------------------------------------------------------
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
