@@ -38,7 +38,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # helpers_maps: the map-from-ground-truth builder
 
 
-def machine() -> str:
+def machine(device: str = "cpu") -> str:
+    if device.startswith("cuda"):
+        return f"{wp.get_device(device).name} (Warp {device})"
     try:
         model = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if "model name" in line)
     except (OSError, StopIteration):
@@ -53,7 +55,7 @@ def commit() -> str:
         return "unknown"
 
 
-def build_map(seq, camera, frame_ids, stride: int, refine_iters: int, device):
+def build_map(seq, camera, frame_ids, stride: int, refine_iters: int, device, refit: str = "colours"):
     from helpers_maps import map_from_rgbd, refine_colours
     from rgs_warp.datasets.synthetic.textures import linear_to_srgb
     from rgs_warp.types import Camera
@@ -65,19 +67,37 @@ def build_map(seq, camera, frame_ids, stride: int, refine_iters: int, device):
         rgb, depth = seq.renderer.render(wide, seq.poses[i : i + 1], seq.poses[i], n_ss=2, seed=i)
         frames.append((np.clip(linear_to_srgb(rgb), 0, 1).astype(np.float32), depth, seq.poses[i]))
     gmap = map_from_rgbd(frames, wide, stride=stride, sigma_per_spacing=0.4 if stride == 1 else 0.5, device=device)
-    if refine_iters:
+    if refine_iters and refit == "colours":
         refine_colours(gmap, [(f[0], f[2]) for f in frames], wide, iters=refine_iters)
+    elif refine_iters:
+        refit_with_mapper(gmap, wide, frames, refine_iters, device)
     return gmap
 
 
-def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device):
+def refit_with_mapper(gmap, camera, frames, iters: int, device) -> None:
+    """Fit the whole map (all Gaussian parameters, poses fixed at the truth) to its ground-truth
+    frames with the Mapper's loss, on the device: what mapping would do with perfect poses."""
+    from rgs_warp.config import MappingConfig
+    from rgs_warp.keyframes import KeyframeBuffer
+    from rgs_warp.mapping import Mapper
+
+    buf = KeyframeBuffer(max(len(frames), 2), camera.width, camera.height, device)
+    slots = [buf.add(k, T, rgb, depth) for k, (rgb, depth, T) in enumerate(frames)]
+    mapper = Mapper(MappingConfig(), camera, gmap, device, mode="rgbd")
+    mapper.sync()
+    result = mapper.optimize(buf, slots, iters, fixed=slots, optimize_poses=False)
+    print(f"map refit: {iters} iterations, L1 {result.l1_history[0]:.4f} -> {result.final_l1:.4f}", flush=True)
+
+
+def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device, overrides=None):
     from rgs_warp.config import TrackingConfig
     from rgs_warp.eval import ate
     from rgs_warp.render import Renderer
     from rgs_warp.tracking import Tracker, pose_error
 
     renderer = Renderer(device)
-    tracker = Tracker(TrackingConfig(brightness="gain" if brightness else "off"), camera, device, mode="rgbd")
+    tcfg = TrackingConfig(brightness="gain" if brightness else "off", **(overrides or {}))
+    tracker = Tracker(tcfg, camera, device, mode="rgbd")
     tracker.reset(seq.poses[0])
     estimates = [seq.poses[0]]
     rows = []
@@ -103,6 +123,7 @@ def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device):
     est, gt = np.array(estimates), seq.poses[:n]
     return {
         "observations": kind,
+        "tracking": overrides or {},
         "exposure_drift": drift,
         "brightness": brightness,
         "ate_rmse_cm": ate(est, gt, align="none")["rmse_cm"],
@@ -114,6 +135,21 @@ def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device):
         "seconds_per_frame": seconds,
         "frames": rows,
     }
+
+
+def parse_overrides(text: str) -> dict:
+    """'depth_weight=0.3,iters=60' -> {'depth_weight': 0.3, 'iters': 60} (numbers parsed, else str)."""
+    out = {}
+    for item in filter(None, text.split(",")):
+        key, value = item.split("=", 1)
+        try:
+            out[key] = int(value)
+        except ValueError:
+            try:
+                out[key] = float(value)
+            except ValueError:
+                out[key] = value
+    return out
 
 
 def keyframe_statistics(seq, camera, device) -> dict:
@@ -174,6 +210,18 @@ def main() -> None:
     parser.add_argument("--map-stride", type=int, default=1, help="one disc every stride pixels")
     parser.add_argument("--map-every", type=int, default=10, help="map frames: every n-th frame of the segment")
     parser.add_argument("--refine-iters", type=int, default=15, help="colour refit of the map (0: off)")
+    parser.add_argument(
+        "--refit", default="colours", choices=["colours", "mapper"], help="colour-only Adam (host) or the Mapper (device)"
+    )
+    parser.add_argument("--scene", default="room0")
+    parser.add_argument(
+        "--tracking",
+        nargs="*",
+        default=[""],
+        help="TrackingConfig variants, each 'key=value,key=value' ('' = defaults); every variant is run",
+    )
+    parser.add_argument("--tag", default="", help="suffix of the result file name (e.g. gpu)")
+    parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", default=str(ROOT / "experiments" / "results"))
     args = parser.parse_args()
     os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".cache" / "warp"))
@@ -181,22 +229,26 @@ def main() -> None:
     wp.init()
     from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 
-    device = "cpu"
+    device = args.device
     t_start = time.perf_counter()
-    cfg = SyntheticConfig(scene="room0", width=args.width, height=args.height, n_frames=200, exposure_drift=True)
+    cfg = SyntheticConfig(scene=args.scene, width=args.width, height=args.height, n_frames=200, exposure_drift=True)
     seqs = {True: SequenceRenderer(cfg, device=device)}  # same path, with and without the exposure walk
     seqs[False] = SequenceRenderer(replace(cfg, exposure_drift=0.0), device=device)
     camera = cfg.camera
     map_ids = [] if args.keyframes else list(range(0, args.frames, args.map_every))
-    gmap = build_map(seqs[False], camera, map_ids, args.map_stride, args.refine_iters, device) if map_ids else None
+    gmap = (
+        build_map(seqs[False], camera, map_ids, args.map_stride, args.refine_iters, device, args.refit)
+        if map_ids
+        else None
+    )
     print(f"map: {len(gmap or [])} Gaussians from frames {map_ids} ({time.perf_counter() - t_start:.0f} s)", flush=True)
     report = {
-        "machine": machine(),
+        "machine": machine(device),
         "commit": commit(),
         "warp": wp.config.version,
         "scene": asdict(cfg) | {"camera": asdict(camera)},
         "map": {"gaussians": len(gmap or []), "frames": map_ids, "stride": args.map_stride}
-        | {"colour_refit_iters": args.refine_iters},
+        | {"refit": args.refit, "refit_iters": args.refine_iters},
         "runs": [],
     }
     if args.keyframes:
@@ -205,11 +257,12 @@ def main() -> None:
     else:
         for kind in args.observations:
             configs = ((False, True),) if args.no_ablation else ((False, True), (True, True), (True, False))
-            for drift, brightness in configs:
-                run = run_sequence(seqs[drift], camera, gmap, args.frames, kind, drift, brightness, device)
+            variants = [parse_overrides(v) for v in args.tracking]
+            for (drift, brightness), overrides in [(c, v) for v in variants for c in configs]:
+                run = run_sequence(seqs[drift], camera, gmap, args.frames, kind, drift, brightness, device, overrides)
                 report["runs"].append(run)
                 print(
-                    f"{kind:8s} drift={drift!s:5s} brightness={brightness!s:5s} ATE {run['ate_rmse_cm']:.3f} cm "
+                    f"{kind:8s} {overrides} drift={drift!s:5s} brightness={brightness!s:5s} ATE {run['ate_rmse_cm']:.3f} cm "
                     f"(se3 {run['ate_rmse_cm_se3']:.3f}), max {run['max_err_mm']:.2f} mm / "
                     f"{run['max_err_deg']:.3f} deg, converged {run['converged']}, lost {run['lost']}, "
                     f"{run['seconds_per_frame']:.1f} s/frame",
@@ -218,7 +271,7 @@ def main() -> None:
     report["total_seconds"] = time.perf_counter() - t_start
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    name = "tracking_" + "_".join(args.observations) + ".json"
+    name = "tracking_" + "_".join(args.observations) + (f"_{args.tag}" if args.tag else "") + ".json"
     (out / name).write_text(json.dumps(report, indent=1, default=float))
     reports = [json.loads(p.read_text()) for p in sorted(out.glob("tracking_*.json"))]
     (out / "tracking.md").write_text("# Tracker (issue 5)\n\n" + "\n".join(markdown(r) for r in reports))
@@ -229,7 +282,8 @@ def markdown(report: dict) -> str:
     cam = report["scene"]["camera"]
     head = (
         f"Machine: {report['machine']}; commit {report['commit']}; warp-lang {report['warp']}; "
-        f"total {report['total_seconds'] / 60:.1f} min. Scene room0, {cam['width']}x{cam['height']} "
+        f"total {report['total_seconds'] / 60:.1f} min. Scene {report['scene']['scene']}, "
+        f"{cam['width']}x{cam['height']} "
         f"(fx {cam['fx']:g}), {report['scene']['n_frames']}-frame path."
     )
     if "keyframes" in report:
@@ -253,26 +307,36 @@ def markdown(report: dict) -> str:
             ]
         )
     kinds = ", ".join(sorted({r["observations"] for r in report["runs"]}))
+    m = report["map"]
+    iters = m.get("refit_iters", m.get("colour_refit_iters", 0))
+    refit = (
+        f"all parameters refitted by the Mapper to those frames at their true poses, {iters} iterations"
+        if m.get("refit") == "mapper"
+        else f"colours refitted {iters} iterations"
+    )
     lines = [
         f"## Tracking against a map built from ground truth ({kinds} observations)",
         "",
         head,
         f"Map: {report['map']['gaussians']:,} Gaussians on the GT depth of frames {report['map']['frames']} "
-        f"(1.5x wider view, one disc every {report['map']['stride']} pixels, colours refitted "
-        f"{report['map']['colour_refit_iters']} iterations). Tracker defaults (RGB-D, 30 iterations), start from the "
+        f"(1.5x wider view, one disc every {report['map']['stride']} pixels, {refit}). Tracker defaults (RGB-D, 30 iterations), start from the "
         "true first pose, then the constant-velocity prediction.",
         "",
-        "| observations | exposure drift | brightness (Eq. 3-4) | ATE RMSE (cm, no alignment) | ATE RMSE (cm, SE(3)) "
-        "| max error (mm / deg) | converged | lost | s / frame |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| observations | tracking overrides | exposure drift | brightness (Eq. 3-4) | ATE RMSE (cm, no alignment) "
+        "| ATE RMSE (cm, SE(3)) | max error (mm / deg) | converged | lost | s / frame |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["runs"]:
         lines.append(
-            f"| {r['observations']} | {'on' if r['exposure_drift'] else 'off'} | {'on' if r['brightness'] else 'off'} "
+            f"| {r['observations']} | {overrides_text(r.get('tracking'))} | {'on' if r['exposure_drift'] else 'off'} | {'on' if r['brightness'] else 'off'} "
             f"| {r['ate_rmse_cm']:.3f} | {r['ate_rmse_cm_se3']:.3f} | {r['max_err_mm']:.2f} / {r['max_err_deg']:.3f} "
             f"| {r['converged']}/{len(r['frames'])} | {r['lost']} | {r['seconds_per_frame']:.1f} |"
         )
-    by = {(r["observations"], r["exposure_drift"], r["brightness"]): r["ate_rmse_cm"] for r in report["runs"]}
+    by = {
+        (r["observations"], r["exposure_drift"], r["brightness"]): r["ate_rmse_cm"]
+        for r in report["runs"]
+        if not r.get("tracking")
+    }
     lines.append("")
     for kind in ("rendered", "raw"):
         if (kind, False, True) in by and (kind, True, False) in by:
@@ -282,6 +346,10 @@ def markdown(report: dict) -> str:
                 f"without it {by[(kind, True, False)] / base:.2f}x."
             )
     return "\n".join(lines) + "\n"
+
+
+def overrides_text(overrides) -> str:
+    return ", ".join(f"{k}={v}" for k, v in (overrides or {}).items()) or "defaults"
 
 
 if __name__ == "__main__":

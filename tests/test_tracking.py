@@ -148,7 +148,26 @@ def test_gain_model_is_unbiased_under_misalignment_where_least_squares_is_not(de
     assert abs(gains[tk.BRIGHTNESS_GAIN] - 1.0) < 0.01
 
 
-def _loss_reference(obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, tau_alpha, use_depth, lam):
+def _slope_weight_reference(obs_depth, tau):
+    """1 / (1 + |grad D| / (tau D)) with central differences over valid (> 0) neighbours, written
+    with explicit loops (independent of the kernel's indexing)."""
+    h, w = obs_depth.shape
+    out = np.ones((h, w))
+    if tau <= 0:
+        return out
+    for y in range(h):
+        for x in range(w):
+            gx = gy = 0.0
+            if 0 < x < w - 1 and obs_depth[y, x - 1] > 0 and obs_depth[y, x + 1] > 0:
+                gx = 0.5 * (obs_depth[y, x + 1] - obs_depth[y, x - 1])
+            if 0 < y < h - 1 and obs_depth[y - 1, x] > 0 and obs_depth[y + 1, x] > 0:
+                gy = 0.5 * (obs_depth[y + 1, x] - obs_depth[y - 1, x])
+            if obs_depth[y, x] > 0:
+                out[y, x] = 1.0 / (1.0 + np.hypot(gx, gy) / (tau * obs_depth[y, x]))
+    return out
+
+
+def _loss_reference(obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, tau_alpha, use_depth, lam, tau_s=0.0):
     """Eq. 5-8 + depth L1 in float64; w_alpha is passed in so finite differences hold it fixed, as the
     kernel's gradient does (documented stop-gradient)."""
     n = alpha.size
@@ -159,12 +178,12 @@ def _loss_reference(obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, 
     if use_depth:
         ok = (obs_depth > 0) & (alpha > tk.ALPHA_DEPTH_MIN)
         e = np.where(ok, depth / np.where(ok, alpha, 1.0) - obs_depth, 0.0)
-        loss += lam * w_alpha * np.abs(e) * ok
+        loss += lam * w_alpha * _slope_weight_reference(obs_depth, tau_s) * np.abs(e) * ok
     return loss.sum() / n, photo.sum(), w.sum()
 
 
-@pytest.mark.parametrize("use_depth", [1, 0])
-def test_loss_value_and_image_gradient(device, use_depth):
+@pytest.mark.parametrize("use_depth,tau_s", [(1, 0.0), (1, 0.05), (0, 0.05)])
+def test_loss_value_and_image_gradient(device, use_depth, tau_s):
     rng = np.random.default_rng(2)
     shape = (11, 13)
     color = rng.uniform(0.1, 0.9, shape + (3,))
@@ -192,13 +211,15 @@ def test_loss_value_and_image_gradient(device, use_depth):
         tk.tracking_loss,
         dim=_blocks(shape),
         inputs=[f32(obs, wp.vec3), f32(obs_depth), f32(w_grad), f32(color, wp.vec3), f32(depth), f32(alpha)]
-        + [tau_alpha, use_depth, lam, 1],
+        + [tau_alpha, use_depth, lam, tau_s, 1],
         outputs=[d_color, d_depth, d_alpha, hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
     )
     args = (obs, obs_depth, w_grad)
-    rest = (g, b, tau_alpha, use_depth, lam)
+    rest = (g, b, tau_alpha, use_depth, lam, tau_s)
+    if use_depth and tau_s > 0:  # the weight matters: it is far from 1 on these random depths
+        assert np.median(_slope_weight_reference(obs_depth, tau_s)) < 0.5
     loss, photo, weight = _loss_reference(*args, color, depth, alpha, w_alpha, *rest)
     h = hist.numpy()[1]
     np.testing.assert_allclose([h[tk.H_LOSS], h[tk.H_PHOTO], h[tk.H_WEIGHT]], [loss, photo, weight], rtol=1e-5)

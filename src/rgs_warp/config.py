@@ -72,6 +72,9 @@ class TrackingConfig:
     tau_alpha: float = 0.5  # Eq. 7 opacity threshold
     tau_grad: float = 0.05  # Eq. 8 luminance-gradient threshold (intensity units per pixel); <= 0: off
     depth_weight: float = 1.0  # RGB-D depth L1 term (per metre) against the colour L1 (per channel)
+    # depth term per pixel x 1 / (1 + |grad D| / (tau D)) (|grad D| metres per pixel of the observed
+    # depth): splat depth is biased towards the camera on slanted surfaces; 0 = off
+    depth_slope_tau: float = 0.0
     # Eq. 3 brightness model: gain (g = ratio of weighted means, b = 0; default, see kernels/tracking.py
     # solve_brightness for why), affine (Eq. 4 least squares), off (g = 1, b = 0; ablation)
     brightness: str = "gain"

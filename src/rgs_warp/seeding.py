@@ -3,9 +3,9 @@ subsampling of triangulated seeds in world space, and the ``Seeder`` stage that 
 Triangulator's points into Gaussians (Eq. 13-14).
 
 Thinning and Poisson-disk subsampling are rounds of prioritised dart throwing
-(``kernels/poisson.py`` explains the scheme and its guarantees) driven by ``wp.capture_while`` on a
-device counter of undecided points: inside a CUDA graph capture the loop is a conditional node, with
-no host round trip; outside one, Warp reads the counter after every round.
+(``kernels/poisson.py`` explains the scheme and its guarantees) looping on a device counter of
+undecided points: on CUDA the loop is a CUDA graph conditional while-node (``loop_until_zero``), so
+the rounds run without a host round trip.
 """
 
 from __future__ import annotations
@@ -27,6 +27,22 @@ from rgs_warp.types import Camera, GaussianMap, grown_capacity
 # longer chains of rounds (a chain climbs at most one level per round); 32 levels resolve Eq. 12's
 # confidence to 0.03, below the spread of its inputs.
 CONFIDENCE_LEVELS = 32
+
+
+def loop_until_zero(condition: wp.array, body) -> None:
+    """Run ``body()`` while ``condition[0] != 0`` (the body updates it) without a host round trip
+    on CUDA: the loop is captured as a CUDA graph with a conditional while-node and launched once.
+    ``wp.capture_while`` alone reads the condition back to the host before every round when no
+    capture is active.  Inside an enclosing capture, or where the driver lacks conditional nodes
+    (CUDA < 12.4), the loop is recorded / run as ``wp.capture_while`` does; on the CPU the condition
+    is read from host memory at no cost."""
+    device = condition.device
+    if device.is_cuda and not device.is_capturing and wp.is_conditional_graph_supported():
+        with wp.ScopedCapture(device=device) as capture:
+            wp.capture_while(condition, body)
+        wp.capture_launch(capture.graph)
+    else:
+        wp.capture_while(condition, body)
 
 
 def poisson_disk_subsample(
@@ -94,7 +110,7 @@ def poisson_disk_subsample(
 
     counters[1:2].zero_()
     # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    wp.capture_while(counters[:1], one_round)
+    loop_until_zero(counters[:1], one_round)
     return keep_out
 
 
@@ -139,7 +155,7 @@ def thin_blue_noise(
 
     counters[1:2].zero_()
     # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    wp.capture_while(counters[:1], one_round)
+    loop_until_zero(counters[:1], one_round)
     return keep_out
 
 
@@ -182,7 +198,7 @@ class Seeder:
     device without a read-back: the map is reserved for the worst case (every point kept) and the
     initialisation kernel reads the kept count from the device.  The hash grid's cell size (a
     performance parameter only) is the mean plane-fit radius of the previous call, read with the
-    count; the first call reads it before building the grid.
+    count; the first call uses the radius at a nominal depth of 2 m.
     """
 
     def __init__(self, cfg: SeedingConfig, camera: Camera, device=None):
@@ -259,7 +275,21 @@ class Seeder:
         view_slots: Sequence[int],
         gmap: GaussianMap,
     ) -> int:
-        """Append Gaussians seeded from the Triangulator's N points to ``gmap``; returns how many.
+        """Append Gaussians seeded from the Triangulator's N points to ``gmap``; returns how many:
+        ``enqueue`` then ``collect`` (arguments as ``enqueue``)."""
+        return self.collect(gmap, self.enqueue(points, confidence, keyframes, view_slots, gmap))
+
+    def enqueue(
+        self,
+        points: TriangulatedPoints,
+        confidence: wp.array,
+        keyframes: KeyframeBuffer,
+        view_slots: Sequence[int],
+        gmap: GaussianMap,
+    ) -> int:
+        """Launch the seeding of the Triangulator's N points into ``gmap`` rows ``len(gmap)..``
+        without any host synchronisation (it can be captured in a CUDA graph once the map has
+        capacity); returns that first row.  ``collect(gmap, row)`` then reads how many were added.
 
         points: the Triangulator's output for a reference keyframe; confidence: (N,) float32
         aggregated confidence (Eq. 12, the matcher's per-pixel aggregate); view_slots: the keyframe
@@ -275,7 +305,7 @@ class Seeder:
         if confidence.shape[0] != n:
             raise ValueError(f"confidence has {confidence.shape[0]} entries for {n} points")
         if n == 0:
-            return 0
+            return -1
         dev = self.device
         views = self._upload_views(keyframes, view_slots)
         view_T_CW = self._view_T_CW[:views]
@@ -290,8 +320,9 @@ class Seeder:
             device=dev,
         )
         if self._cell_size is None:
-            # any positive size will do when no point is valid: nothing is queried
-            self._cell_size = self._read_cell_size() or 1.0
+            # first call: the plane-fit radius at a nominal 2 m (performance only; later calls use
+            # the mean radius measured by the previous one, read with its count)
+            self._cell_size = self.cfg.plane_radius_px * 2.0 / (0.5 * (self.camera.fx + self.camera.fy))
         poisson_disk_subsample(
             pts,
             radius,
@@ -315,6 +346,13 @@ class Seeder:
             outputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh, self.seed_index],
             device=dev,
         )
+        return row0
+
+    def collect(self, gmap: GaussianMap, row0: int) -> int:
+        """The one host synchronisation of a seeding: reads the number of Gaussians the last
+        ``enqueue`` added at ``row0`` (-1: it had no points), sets ``gmap.count`` and returns it."""
+        if row0 < 0:
+            return 0
         wp.copy(self._count_host, self._count)
         self._cell_size = self._read_cell_size() or self._cell_size
         added = int(self._count_host.numpy()[0])

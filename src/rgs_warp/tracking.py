@@ -262,7 +262,7 @@ class Tracker:
             tk.tracking_loss,
             dim=blocks,
             inputs=[self._rgb, self._depth, self._w_grad, res.color, res.depth, res.alpha]
-            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, k],
+            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, k],
             outputs=[self._d_color, self._d_depth, self._d_alpha, self._history],
             block_dim=tk.REDUCE_BLOCK,
             device=dev,

@@ -201,6 +201,33 @@ def solve_brightness(
     history_out[row, H_BIAS] = b
 
 
+@wp.func
+def depth_slope_weight(depth: wp.array2d(dtype=wp.float32), x: int, y: int, d: float, tau: float):
+    """1 / (1 + |grad D| / (tau D)): down-weights the depth residual where the observed depth changes
+    fast across pixels (slanted surfaces, near edges).  There a splat map's depth is biased towards
+    the camera by up to about one pixel's depth step (front-to-back compositing lets the nearer of
+    overlapping splats win; measured in experiments/results/tracking.md), while the photometric term
+    is not.  |grad D| from central differences of the valid neighbours (metres per pixel); tau <= 0:
+    weight 1."""
+    if tau <= 0.0:
+        return 1.0
+    h = depth.shape[0]
+    w = depth.shape[1]
+    gx = float(0.0)
+    gy = float(0.0)
+    if x > 0 and x < w - 1:
+        l = depth[y, x - 1]
+        r = depth[y, x + 1]
+        if l > 0.0 and r > 0.0:
+            gx = 0.5 * (r - l)
+    if y > 0 and y < h - 1:
+        u = depth[y - 1, x]
+        v = depth[y + 1, x]
+        if u > 0.0 and v > 0.0:
+            gy = 0.5 * (v - u)
+    return 1.0 / (1.0 + wp.sqrt(gx * gx + gy * gy) / (tau * d))
+
+
 @wp.kernel
 def tracking_loss(
     # in: observed frame (depth ignored unless use_depth), w_grad of Eq. 8
@@ -215,6 +242,7 @@ def tracking_loss(
     tau_alpha: float,
     use_depth: int,
     depth_weight: float,
+    depth_slope_tau: float,
     row: int,
     # out: loss gradients w.r.t. the rendered images; H_LOSS, H_PHOTO, H_WEIGHT of row `row`
     d_color_out: wp.array2d(dtype=wp.vec3),
@@ -252,8 +280,9 @@ def tracking_loss(
             if d_obs > 0.0 and a > ALPHA_DEPTH_MIN:
                 d_hat = rendered_depth[y, x]
                 e = d_hat / a - d_obs
-                loss += depth_weight * w_a * wp.abs(e)
-                k = inv_n * depth_weight * w_a * wp.sign(e) / a
+                w_d = depth_weight * w_a * depth_slope_weight(observed_depth, x, y, d_obs, depth_slope_tau)
+                loss += w_d * wp.abs(e)
+                k = inv_n * w_d * wp.sign(e) / a
                 d_depth = k
                 d_alpha = -k * d_hat / a
         d_depth_out[y, x] = d_depth
