@@ -6,7 +6,8 @@ its device, where ``rgb`` is an (H, W) ``wp.vec3`` array or (H, W, 3) NumPy imag
 Feature pixel (i, j) is centred at image coordinates (stride*j + (stride-1)/2, stride*i + (stride-1)/2).
 
 Backbones: ``classic`` (Warp, training-free, the default: see docs/matching.md), ``xfeat`` (optional
-extra ``rgs_warp[xfeat]``), ``dinov2`` (local weights file), ``dinov3`` (not supported yet).
+extra ``rgs_warp[xfeat]``), ``dinov2`` and ``dinov3`` (ViTs from a local official weights file named by
+``matching.weights_path``; stride 14 and 16).
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ def make_backbone(cfg: MatchingConfig, device=None):
 
         return DinoV2Backbone(cfg.weights_path, device)
     if cfg.backbone == "dinov3":
-        from rgs_warp.features.torch_backbones import dinov3_backbone
+        from rgs_warp.features.torch_backbones import DinoV3Backbone
 
-        return dinov3_backbone(cfg.weights_path, device)
+        return DinoV3Backbone(cfg.weights_path, device)
     raise ValueError(f"matching.backbone {cfg.backbone!r} is not one of {', '.join(BACKBONES)}")
 
 
