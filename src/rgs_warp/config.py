@@ -73,8 +73,9 @@ class TrackingConfig:
     tau_grad: float = 0.05  # Eq. 8 luminance-gradient threshold (intensity units per pixel); <= 0: off
     depth_weight: float = 1.0  # RGB-D depth L1 term (per metre) against the colour L1 (per channel)
     # depth term per pixel x 1 / (1 + |grad D| / (tau D)) (|grad D| metres per pixel of the observed
-    # depth): splat depth is biased towards the camera on slanted surfaces; 0 = off
-    depth_slope_tau: float = 0.0
+    # depth): splat depth is biased towards the camera on slanted surfaces; 0 = off.  0.003 by
+    # measurement (experiments/results/tracking.md, slam.md: ATE 0.82 -> 0.63 cm on the office)
+    depth_slope_tau: float = 0.003
     # Eq. 3 brightness model: gain (g = ratio of weighted means, b = 0; default, see kernels/tracking.py
     # solve_brightness for why), affine (Eq. 4 least squares), off (g = 1, b = 0; ablation)
     brightness: str = "gain"
@@ -205,8 +206,33 @@ class MappingConfig:
 
 
 @dataclass
+class DensifyConfig:
+    """Residual-driven densification of ``method=baseline`` (supplement Table 2; 3DGS's adaptive
+    density control, ``rgs_warp.densification``); ``method=rgs`` does not use it.  The iteration is
+    the cumulative number of mapping iterations of the run (``Mapper.total_iters``).  Opacity culling
+    at each densification step uses ``mapping.opacity_cull`` (Table 1, shared by both methods)."""
+
+    grad_threshold: float = 2e-4  # Table 2: mean screen-space (NDC) gradient norm that densifies
+    start: int = 500  # Table 2: densify at iterations start < it < stop ...
+    stop: int = 15000
+    interval: int = 100  # ... that are multiples of this (Tables 1-2)
+    opacity_reset_interval: int = 3000  # Table 1; 0 = never
+    # 3DGS resets to 0.01 and culls at 0.005; our culling is Table 1's 0.05, so the reset keeps 3DGS's
+    # factor 2 above it (a reset to 0.01 would put every Gaussian under the cull: the map is wiped)
+    opacity_reset_value: float = 0.1
+    percent_dense: float = 0.01  # 3DGS: clone if the largest scale <= this x scene_extent_m, else split
+    prune_scale_fraction: float = 0.1  # 3DGS: after the first reset, prune largest scale > this x extent
+    # the unit of the two fractions above (3DGS: 1.1 x the cameras' spread, meaningless for a trajectory
+    # that grows; MonoGS fixes cameras_extent = 6 m for indoor SLAM, as here)
+    scene_extent_m: float = 6.0
+
+
+@dataclass
 class EvalConfig:
     every: int = 5  # §3: photometric metrics on every 5th frame, keyframes excluded
+    # convergence.json: mean PSNR of the window keyframes every this many mapping iterations during
+    # the initialization (and always after each keyframe's mapping); 0 = only after each keyframe
+    convergence_every: int = 50
     # LPIPS needs local weights (nothing is downloaded): torchvision's AlexNet
     # (alexnet-owt-7be5be79.pth) and LPIPS v0.1's linear layers (alex.pth; may stay empty when the
     # `lpips` package, which ships them, is installed). Without them LPIPS is reported as n/a.
@@ -218,7 +244,9 @@ class EvalConfig:
 class Config:
     device: str = "auto"  # auto = cuda:0 when Warp sees a GPU, else cpu
     mode: str = "rgbd"  # rgbd | mono
-    method: str = "rgs"  # rgs | baseline (set by the method group)
+    # rgs: dense seeding at every keyframe + merge / prune; baseline: seeds at the first keyframe only,
+    # then grows by residual-driven densification (section `densify`).  Set by the method group.
+    method: str = "rgs"
     seed: int = 0
     data_root: str = ""  # default: $RGS_DATA, else the current directory
     output_dir: str = "runs"
@@ -231,6 +259,7 @@ class Config:
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     seeding: SeedingConfig = field(default_factory=SeedingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 
     def resolved_data_root(self) -> Path:
@@ -246,6 +275,7 @@ class Config:
 
 CHOICES = {
     "mode": ("rgbd", "mono"),
+    "method": ("rgs", "baseline"),
     "tracking.brightness": ("gain", "affine", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic"),
 }
