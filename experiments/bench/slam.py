@@ -5,6 +5,13 @@
 Default cases: the synthetic office at Replica size, RGB-D and monocular.  Every case writes its
 run folder under DIR/runs; DIR/slam.json holds all metrics and DIR/runs.tar.gz the small files of
 each run (metrics, log, top-view plot; not the map, renders or keyframes).
+
+``--diagnose`` adds, per case, where the photometric error comes from: PSNR of the scored frames
+rendered at their ground-truth poses (vs the estimated ones: the pose error's share) and of the
+keyframes at their refined poses (the fit to what the map was trained on); and writes
+DIR/mesh_inputs.tar (half-resolution rendered depth of every keyframe as uint16 mm, poses, camera,
+and the dataset's ground-truth mesh) so that the mesh metrics can be computed where open3d is
+installed: ``python experiments/mesh_from_inputs.py DIR/mesh_inputs.tar``.
 """
 
 from __future__ import annotations
@@ -17,8 +24,11 @@ import sys
 import tarfile
 from pathlib import Path
 
+import numpy as np
+
 from rgs_warp.config import load_config
-from rgs_warp.slam import run
+from rgs_warp.slam import SLAM, run
+from rgs_warp.types import Camera
 
 DEFAULT_CASES = [
     "office_rgbd:dataset=synthetic/office0_replica_size",
@@ -38,6 +48,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=os.environ.get("OUT", "bench_out"))
     ap.add_argument("--case", action="append", help="name:override,override (repeatable)")
     ap.add_argument("--common", default="", help="overrides applied to every case, comma separated")
+    ap.add_argument("--diagnose", action="store_true", help="PSNR at ground-truth poses, mesh inputs")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -50,6 +61,8 @@ def main(argv=None) -> int:
         )
         try:
             run_dir, metrics = run(cfg, progress=sys.stderr.isatty())
+            if args.diagnose:
+                metrics["diagnosis"] = diagnose(cfg, run_dir, out / "mesh_inputs" / name)
             results[name] = metrics
         except Exception as e:  # record and go on with the next case
             results[name] = {"error": f"{type(e).__name__}: {e}"}
@@ -69,11 +82,68 @@ def main(argv=None) -> int:
             f"{ph.get('psnr_db', float('nan')):>6.2f} {ph.get('ssim', float('nan')):>6.3f} {m['fps']:>6.2f} "
             f"{(m.get('tracking_fps') or float('nan')):>7.2f} {(m.get('peak_memory_mib') or float('nan')):>6.0f}"
         )
+    if args.diagnose:
+        for name, m in results.items():
+            d = m.get("diagnosis")
+            if d:
+                print(
+                    f"{name:<16} PSNR at estimated poses {d['psnr_est_pose_db']:.2f}, at true poses "
+                    f"{d['psnr_gt_pose_db']:.2f}, keyframes {d['psnr_keyframes_db']:.2f} dB"
+                )
+        with tarfile.open(out / "mesh_inputs.tar", "w") as tar:
+            tar.add(out / "mesh_inputs", arcname="mesh_inputs")
     with tarfile.open(out / "runs.tar.gz", "w:gz") as tar:
         for p in sorted((out / "runs").rglob("*")):
             if p.is_file() and (p.suffix in (".md", ".json", ".jsonl") or p.name == "trajectory_topview.png"):
                 tar.add(p, arcname=str(p.relative_to(out)))
     return 0
+
+
+def diagnose(cfg, run_dir: Path, mesh_dir: Path) -> dict:
+    """PSNR of the scored frames at their estimated and true poses, of the keyframes at their refined
+    poses; half-resolution keyframe depth renders + the ground-truth mesh into ``mesh_dir``."""
+    import shutil
+
+    from rgs_warp.datasets import open_dataset
+    from rgs_warp.eval import eval_frame_indices, psnr
+
+    slam = SLAM.load(run_dir)
+    ds = open_dataset(cfg, device=str(slam.device))
+    _, est = slam.trajectory()
+    idx = eval_frame_indices(len(est), slam.keyframe_indices, cfg.eval.every)
+
+    def score(indices, poses) -> float:
+        values = []
+        for i, T in zip(indices, poses, strict=True):
+            image = np.clip(slam.render(T).color.numpy(), 0.0, 1.0)
+            values.append(psnr(image, ds[int(i)].rgb))
+        return float(np.mean(values)) if values else float("nan")
+
+    kf = slam.keyframe_indices
+    out = {
+        "psnr_est_pose_db": score(idx, est[idx]),
+        "psnr_gt_pose_db": score(idx, [ds[int(i)].pose_gt for i in idx]),
+        "psnr_keyframes_db": score(kf, est[kf]),
+    }
+    c = slam.camera
+    half = Camera(c.fx / 2, c.fy / 2, (c.cx + 0.5) / 2 - 0.5, (c.cy + 0.5) / 2 - 0.5, c.width // 2, c.height // 2)
+    depths = []
+    for i in kf:
+        res = slam.render(est[i], camera=half)
+        alpha = res.alpha.numpy()
+        d = np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0)
+        depths.append(np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16))
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        mesh_dir / "keyframe_depth.npz",
+        depth_mm=np.stack(depths),
+        poses=est[kf],
+        camera=np.array([half.fx, half.fy, half.cx, half.cy, half.width, half.height]),
+    )
+    mesh = getattr(ds, "mesh_path", None)
+    if mesh is not None and Path(mesh).is_file() and Path(mesh).stat().st_size < 12 * 2**20:
+        shutil.copy(mesh, mesh_dir / "mesh_gt.ply")
+    return out
 
 
 if __name__ == "__main__":
