@@ -60,7 +60,11 @@ def _read_bytes(path: Path) -> bytes:
 
 
 def check_pose(T: np.ndarray, where: str) -> np.ndarray:
-    """Validate a camera-to-world pose: finite, rigid (orthonormal rotation, last row 0 0 0 1)."""
+    """Validate a camera-to-world pose: finite, rigid (orthonormal rotation to 1e-3, last row
+    0 0 0 1); returns it with the rotation replaced by the nearest rotation matrix (SVD) unless it
+    is one to 1e-9 already, since
+    text files round it (7-Scenes' KinectFusion poses are orthonormal only to ~2e-4, and a pose
+    written back, e.g. as a TUM trajectory, must be a rotation to 1e-6)."""
     if not np.all(np.isfinite(T)):
         raise DatasetError(f"{where}: pose has non-finite values")
     R = T[:3, :3]
@@ -68,7 +72,13 @@ def check_pose(T: np.ndarray, where: str) -> np.ndarray:
         raise DatasetError(f"{where}: pose rotation is not orthonormal (det {np.linalg.det(R):.4f})")
     if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
         raise DatasetError(f"{where}: pose last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
-    return T
+    if np.abs(R @ R.T - np.eye(3)).max() <= 1e-9:
+        return T  # already a rotation to float precision: returned as read
+    U, _, Vt = np.linalg.svd(R)
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = U @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
