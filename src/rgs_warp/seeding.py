@@ -179,6 +179,9 @@ def compact_mask(
     return indices_out, count_out
 
 
+CELL_PRIOR_POINTS = 1000  # weight of the nominal hash-grid cell size against measured radii
+
+
 class Seeder:
     """Initialises one Gaussian per Poisson-disk-subsampled triangulated point (supplement §4.5).
 
@@ -197,8 +200,8 @@ class Seeder:
     it (footprints, subsampling, compaction, initialisation, the writes into the map) runs on the
     device without a read-back: the map is reserved for the worst case (every point kept) and the
     initialisation kernel reads the kept count from the device.  The hash grid's cell size (a
-    performance parameter only) is the mean plane-fit radius of the previous call, read with the
-    count; the first call uses the radius at a nominal depth of 2 m.
+    performance parameter only) is the mean plane-fit radius of the previous calls, read with the
+    count, as a running mean weighted by point counts (see ``__init__``).
     """
 
     def __init__(self, cfg: SeedingConfig, camera: Camera, device=None):
@@ -234,7 +237,13 @@ class Seeder:
         self._view_T_CW_host = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **host)
         self._view_slot_host = wp.zeros(MAX_VIEWS, dtype=wp.int32, **host)
         self._view_exposure_host = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **host)
-        self._cell_size: float | None = None
+        # hash grid cell size: running, point-count-weighted mean of the plane-fit radius over the
+        # calls so far (halved weight per call), starting from the radius at a nominal 2 m with the
+        # weight of CELL_PRIOR_POINTS points: a call with a handful of (possibly outlying) points
+        # must not set it, or the next call's queries visit thousands of cells or whole-map cells
+        f = 0.5 * (camera.fx + camera.fy)
+        self._radius_sum = CELL_PRIOR_POINTS * cfg.plane_radius_px * 2.0 / f
+        self._radius_count = float(CELL_PRIOR_POINTS)
         self._capacity = 0
         self._ensure(1024)
 
@@ -319,16 +328,12 @@ class Seeder:
             outputs=[pts, footprint, radius, self._plane_radius_stats],
             device=dev,
         )
-        if self._cell_size is None:
-            # first call: the plane-fit radius at a nominal 2 m (performance only; later calls use
-            # the mean radius measured by the previous one, read with its count)
-            self._cell_size = self.cfg.plane_radius_px * 2.0 / (0.5 * (self.camera.fx + self.camera.fy))
         poisson_disk_subsample(
             pts,
             radius,
             confidence,
             candidate=points.valid,
-            cell_size=self._cell_size,
+            cell_size=self._radius_sum / self._radius_count,
             grid=self._grid,
             keep_out=keep,
             counters=self._counters,
@@ -354,15 +359,16 @@ class Seeder:
         if row0 < 0:
             return 0
         wp.copy(self._count_host, self._count)
-        self._cell_size = self._read_cell_size() or self._cell_size
+        self._update_cell_size()
         added = int(self._count_host.numpy()[0])
         gmap.count = row0 + added
         return added
 
-    def _read_cell_size(self) -> float:
-        """Mean plane-fit query radius of this call's valid points (0.0 when there are none); the
-        one synchronisation also completes any copy to the host queued before it."""
+    def _update_cell_size(self) -> None:
+        """Fold this call's plane-fit radii (sum, count) into the running cell size; the one
+        synchronisation also completes any copy to the host queued before it."""
         wp.copy(self._plane_radius_stats_host, self._plane_radius_stats)
         wp.synchronize_device(self.device)
-        total, count = self._plane_radius_stats_host.numpy()
-        return float(total / count) if count > 0 else 0.0
+        total, count = (float(v) for v in self._plane_radius_stats_host.numpy())
+        self._radius_sum = 0.5 * self._radius_sum + total
+        self._radius_count = 0.5 * self._radius_count + count
