@@ -3,7 +3,7 @@
 import pytest
 import yaml
 
-from rgs_warp.config import Config, ConfigError, group_options, help_text, load_config, save_config
+from rgs_warp.config import Config, ConfigError, config_from_dict, group_options, help_text, load_config, save_config
 from rgs_warp.slam import main
 
 
@@ -29,6 +29,30 @@ def test_defaults_and_overrides():
     assert cfg.render.background == (1.0, 1.0, 1.0) and cfg.dataset.max_frames == 10
     assert cfg.mapping.lr_color == pytest.approx(1e-3)
     assert cfg.tracking.lr == Config().tracking.lr  # untouched keys keep their defaults
+
+
+def test_baseline_method_has_the_table_2_values():
+    rgs, cfg = load_config(), load_config(["method=baseline", "mapping.iters=40"])
+    assert cfg.method == "baseline" and rgs.method == "rgs"
+    assert cfg.render.sh_degree == 3  # Table 2
+    d = cfg.densify
+    assert (d.grad_threshold, d.start, d.stop, d.interval) == (2e-4, 500, 15000, 100)
+    assert d.opacity_reset_interval == 3000  # Table 1
+    assert d.opacity_reset_value > cfg.mapping.opacity_cull == 0.05  # a reset must not wipe the map
+    m = cfg.mapping
+    assert (m.lr_color, m.lr_opacity, m.lr_scale, m.lr_rotation) == (2.5e-3, 2.5e-2, 5e-3, 1e-3)
+    assert m.lr_position == pytest.approx(1.6e-4 * d.scene_extent_m)  # 3DGS's spatial_lr_scale
+    assert m.lr_final_factor == pytest.approx(1.6e-6 / 1.6e-4)  # the decay to 1.6e-6
+    assert m.iters == 40  # overrides apply after the method
+    # everything else is rgs's: tracking, keyframes, window, loss, initialization
+    for section in ("tracking", "keyframes", "seeding", "matching"):
+        assert getattr(cfg, section) == getattr(rgs, section), section
+    same = ("window", "init_iters", "init_window", "lambda_dssim", "depth_weight", "robust_scale", "opacity_cull")
+    assert all(getattr(m, k) == getattr(rgs.mapping, k) for k in same)
+    with pytest.raises(ConfigError, match="unknown method 'baselin'. Did you mean 'baseline'"):
+        load_config(["method=baselin"])
+    with pytest.raises(ConfigError, match="method: 'x' is not one of rgs, baseline"):
+        config_from_dict({"method": "x"})  # e.g. a saved config.yaml
 
 
 def test_group_option_replaces_section_and_keys_apply_after():

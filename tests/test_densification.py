@@ -1,6 +1,7 @@
 """Densifier (3DGS adaptive density control) against NumPy references: gradient statistics from the
-renderer's screen-space gradients, clone / split / prune / opacity reset, MapAdam moment bookkeeping,
-the schedule, and an end-to-end run where the map grows where the residual is."""
+renderer's screen-space gradients, clone / split / prune flags / opacity reset, the rows it appends and
+flags, the schedule, and an end-to-end run where the map grows where the residual is.  The bookkeeping
+of the optimiser state around it (Mapper.sync / Mapper.remove) is tested in test_mapping.py."""
 
 from types import SimpleNamespace
 
@@ -12,8 +13,7 @@ from helpers_render import BACKGROUND, CAMERA, T_WC, to_map
 from reference_render import random_scene
 from rgs_warp.densification import Densifier
 from rgs_warp.kernels.projection import vec10
-from rgs_warp.optim import FIELDS, MapAdam, MapLearningRates
-from rgs_warp.render import GaussianGrads, Renderer
+from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
 
 W, H = 64, 48
@@ -42,7 +42,24 @@ def _map(rng, log_scales, opacity_logits, device, means=None, capacity=None):
     )
 
 
-def _feed(densifier, gmap, grad_ndc, visible):
+def _step(densifier, iteration, gmap, scene_extent):
+    """``densifier.step`` followed by the removal its caller owes (Mapper.remove, less the optimiser
+    state): the flagged rows leave the map and the statistics."""
+    out = densifier.step(iteration, gmap, scene_extent)
+    total = len(gmap)
+    if out.remove is not None:
+        assert out.remove.shape[0] == total
+        densifier.remove(out.remove)
+        gmap.remove(out.remove)
+    return {
+        "cloned": out.cloned,
+        "split": out.split,
+        "pruned": total - out.split - len(gmap),
+        "opacity_reset": out.opacity_reset,
+    }
+
+
+def _feed(densifier, gmap, grad_ndc, visible, loss_share=1.0):
     """Accumulate one fake render whose screen-space gradients have NDC norms ``grad_ndc`` (split over
     u and v) where ``visible``: the pixel gradient is the NDC one / (W/2) resp. / (H/2)."""
     n = len(gmap)
@@ -56,11 +73,7 @@ def _feed(densifier, gmap, grad_ndc, visible):
         radii=wp.array(radii, dtype=wp.vec2i, device=gmap.device),
         image_shape=(H, W),
     )
-    densifier.accumulate(fake, gmap)
-
-
-def _adam(gmap):
-    return MapAdam(gmap, MapLearningRates())
+    densifier.accumulate(fake, gmap, loss_share)
 
 
 def test_accumulate_matches_numpy_from_renderer(device):
@@ -89,6 +102,16 @@ def test_accumulate_matches_numpy_from_renderer(device):
     np.testing.assert_allclose(densifier.grad_norm_sum.numpy()[: len(gmap)], expected_sum, rtol=1e-5, atol=1e-12)
 
 
+def test_loss_share_counts_each_view_with_its_whole_loss(device):
+    # a mapping iteration averaging 4 views holds 1/4 of each view's gradient: divided back out
+    rng = np.random.default_rng(10)
+    gmap = _map(rng, np.full((5, 3), -3.0), np.zeros(5), device)
+    grads = rng.uniform(1e-4, 1e-3, 5)
+    densifier = Densifier()
+    _feed(densifier, gmap, grads / 4, np.ones(5, bool), loss_share=0.25)
+    np.testing.assert_allclose(densifier.grad_norm_sum.numpy()[:5], grads, rtol=1e-5)
+
+
 def test_clone_split_and_untouched(device):
     rng = np.random.default_rng(1)
     extent = 2.0  # clone when the largest scale <= 0.02
@@ -98,12 +121,11 @@ def test_clone_split_and_untouched(device):
     log_s = np.array([small, large, small, large, large, small])
     gmap = _map(rng, log_s, np.full(6, 2.0), device)
     before = gmap.to_numpy()
-    adam = _adam(gmap)
     densifier = Densifier()
     grads = np.array([1e-3, 5e-4, 1e-4, 1.95e-4, 1.0, 2.05e-4])
     _feed(densifier, gmap, grads, np.array([1, 1, 1, 1, 0, 1], bool))
     _feed(densifier, gmap, grads, np.array([1, 1, 1, 1, 0, 1], bool))
-    out = densifier.step(600, gmap, adam, extent)
+    out = _step(densifier, 600, gmap, extent)
     assert out == {"cloned": 2, "split": 1, "pruned": 0, "opacity_reset": False}
 
     after = gmap.to_numpy()
@@ -146,7 +168,7 @@ def test_split_children_follow_the_parent_gaussian(device):
     before = gmap.to_numpy()
     densifier = Densifier(seed=3)
     _feed(densifier, gmap, np.full(n, 1e-3), np.ones(n, bool))
-    out = densifier.step(700, gmap, _adam(gmap), 1.0)
+    out = _step(densifier, 700, gmap, 1.0)
     assert out["split"] == n and out["cloned"] == 0 and len(gmap) == 2 * n
     after = gmap.to_numpy()
     parents = np.repeat(np.arange(n), 2)
@@ -161,7 +183,7 @@ def test_split_children_follow_the_parent_gaussian(device):
     gmap2 = GaussianMap.from_numpy(*(before[key] for key in FIELD_KEYS), device=device)
     densifier2 = Densifier(seed=3)
     _feed(densifier2, gmap2, np.full(n, 1e-3), np.ones(n, bool))
-    densifier2.step(700, gmap2, _adam(gmap2), 1.0)
+    _step(densifier2, 700, gmap2, 1.0)
     np.testing.assert_array_equal(gmap2.to_numpy()["means"], after["means"])
 
 
@@ -176,63 +198,61 @@ def test_prune_low_opacity_and_oversized(device):
         before = gmap.to_numpy()
         densifier = Densifier()
         _feed(densifier, gmap, np.array([0.0, 0.0, 0.0, 1e-3]), np.ones(4, bool))
-        out = densifier.step(iteration, gmap, _adam(gmap), 2.0)
+        out = _step(densifier, iteration, gmap, 2.0)
         assert out["cloned"] == 1 and out["pruned"] == 5 - len(expected_left)
         np.testing.assert_array_equal(gmap.to_numpy()["means"], before["means"][expected_left])
 
 
-@pytest.mark.parametrize("value", [0.01, 0.02])  # float32(logit(0.02)) rounds to an opacity above 0.02
-def test_opacity_reset(device, value):
+@pytest.mark.parametrize("value", [0.1, 0.15])  # float32(logit(0.15)) rounds to an opacity above 0.15
+def test_opacity_reset_of_the_seen_gaussians(device, value):
     rng = np.random.default_rng(5)
     logit = np.log(value / (1 - value))
-    logits = np.array([4.0, 0.0, logit + 0.01, logit - 0.01, -8.0], np.float32)
-    gmap = _map(rng, np.full((5, 3), np.log(0.01)), logits, device)
+    logits = np.array([4.0, 0.0, logit + 0.01, logit - 0.01, -8.0, 3.0], np.float32)
+    gmap = _map(rng, np.full((6, 3), np.log(0.01)), logits, device)
     densifier = Densifier(start=0, interval=100, opacity_reset_interval=250, opacity_reset_value=value)
-    out = densifier.step(750, gmap, _adam(gmap), 1.0)  # not a densification step: nothing pruned
+    _feed(densifier, gmap, np.zeros(6), np.array([1, 1, 1, 1, 1, 0], bool))  # the last one unseen
+    out = _step(densifier, 750, gmap, 1.0)  # not a densification step: nothing pruned
     assert out == {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": True}
     after = gmap.to_numpy()["opacity_logits"]
-    assert np.all(_sigmoid(after) <= value)
+    assert np.all(_sigmoid(after[:5]) <= value)
     np.testing.assert_allclose(_sigmoid(after[:3]), value, rtol=1e-5)
-    np.testing.assert_array_equal(after[3:], logits[3:])  # already below: untouched
+    np.testing.assert_array_equal(after[3:5], logits[3:5])  # already below: untouched
+    assert after[5] == logits[5]  # not seen since the statistics restarted: outside the window
 
 
-def test_adam_moments_follow_densification(device):
+def test_reset_value_must_stay_above_the_culling():
+    # a reset to 0.01 with culling at 0.05 would remove every Gaussian at the next densification step
+    with pytest.raises(ValueError, match="opacity_reset_value"):
+        Densifier(opacity_reset_value=0.01, cull_opacity=0.05)
+    Densifier(opacity_reset_value=0.01, cull_opacity=0.05, opacity_reset_interval=0)  # never reset: fine
+
+
+def test_step_appends_rows_and_flags_parents_and_culled(device):
     rng = np.random.default_rng(6)
     n = 40
     log_s = np.where(rng.random((n, 1)) < 0.5, np.log(0.005), np.log(0.1)) * np.ones((1, 3))
     logits = np.where(rng.random(n) < 0.2, -4.0, 2.0)  # ~20% below the culling opacity
     gmap = _map(rng, log_s, logits, device, capacity=n)  # full: densification must grow it
-    adam = _adam(gmap)
-    g = GaussianGrads.of_map_grads(GaussianMap(gmap.capacity, gmap.sh_degree, device, requires_grad=True))
-    for name in FIELDS:
-        arr = getattr(g, name)
-        values = rng.standard_normal(arr.numpy().shape).astype(np.float32)
-        wp.copy(arr, wp.array(values, dtype=arr.dtype, device=device))
-    adam.step(g)
-    widths = {name: adam._m[name].shape[0] // gmap.capacity for name in FIELDS}
-    m_before = {name: adam._m[name].numpy()[: n * widths[name]].reshape(n, -1) for name in FIELDS}
-    v_before = {name: adam._v[name].numpy()[: n * widths[name]].reshape(n, -1) for name in FIELDS}
+    before = gmap.to_numpy()
     high = rng.random(n) < 0.6
     densifier = Densifier()
     _feed(densifier, gmap, np.where(high, 1e-3, 0.0), np.ones(n, bool))
-    out = densifier.step(800, gmap, adam, 1.0)
-    assert gmap.capacity > n and out["cloned"] > 0 and out["split"] > 0 and out["pruned"] > 0
-
+    out = densifier.step(800, gmap, 1.0)
     small = log_s[:, 0] < np.log(0.01)
-    opaque = logits > 0
-    survivors = np.flatnonzero(~(high & ~small) & opaque)  # not split, not culled
-    new = np.concatenate([[i] * (1 if small[i] else 2) for i in np.flatnonzero(high)])
-    new_kept = opaque[new]
-    assert len(gmap) == len(survivors) + new_kept.sum()
-    assert densifier.grad_norm_sum.shape[0] == gmap.capacity
-    for name in FIELDS:
-        w = widths[name]
-        m = adam._m[name].numpy().reshape(gmap.capacity, w)
-        v = adam._v[name].numpy().reshape(gmap.capacity, w)
-        np.testing.assert_array_equal(m[: len(survivors)], m_before[name][survivors], err_msg=name)
-        np.testing.assert_array_equal(v[: len(survivors)], v_before[name][survivors], err_msg=name)
-        assert np.abs(m_before[name][survivors]).min() > 0  # the check above compares real moments
-        assert not m[len(survivors) :].any() and not v[len(survivors) :].any()
+    cloned, split = np.flatnonzero(high & small), np.flatnonzero(high & ~small)
+    assert (out.cloned, out.split, out.opacity_reset) == (len(cloned), len(split), False)
+    assert len(cloned) and len(split)
+    # appended after the old rows in parent order (a clone: one row, a split: two), nothing removed yet
+    parents = np.concatenate([[i] * (1 if small[i] else 2) for i in np.flatnonzero(high)])
+    assert gmap.capacity > n and len(gmap) == n + len(parents)
+    after = gmap.to_numpy()
+    for key in FIELD_KEYS:
+        np.testing.assert_array_equal(after[key][:n], before[key], err_msg=key)
+    np.testing.assert_array_equal(after["opacity_logits"][n:], before["opacity_logits"][parents])
+    # flags: the split parents and every culled row (the culled parents' offspring included)
+    expected = np.concatenate([~(logits > 0) | (high & ~small), ~(logits[parents] > 0)])
+    np.testing.assert_array_equal(out.remove.numpy().astype(bool), expected)
+    assert not densifier.visible_count.numpy().any()  # statistics restart after densifying
 
 
 @pytest.mark.parametrize(
@@ -248,7 +268,7 @@ def test_schedule(device, iteration, densified, reset):
     before = gmap.to_numpy()
     densifier = Densifier(start=5, stop=30, interval=5, opacity_reset_interval=20)
     _feed(densifier, gmap, np.full(n, 1e-3), np.ones(n, bool))
-    out = densifier.step(iteration, gmap, _adam(gmap), 1.0)
+    out = _step(densifier, iteration, gmap, 1.0)
     assert (out["cloned"] == n) == densified and out["split"] == 0
     assert out["opacity_reset"] == reset
     if not densified and not reset:
@@ -305,7 +325,6 @@ def test_map_grows_where_the_residual_is(device):
     yy, xx = np.mgrid[0:H, 0:W]
     checker = ((xx // 2 + yy // 2) % 2).astype(np.float32)
     target[:, :24] = checker[:, :24, None] * np.array([0.9, 0.2, 0.1], np.float32)
-    adam = _adam(gmap)
     densifier = Densifier(start=2, stop=20, interval=4, opacity_reset_interval=0)
 
     def run(iterations):
@@ -315,7 +334,7 @@ def test_map_grows_where_the_residual_is(device):
             d = np.sign(res.color.numpy() - target) / (3 * W * H)
             renderer.backward(wp.array(d.astype(np.float32), dtype=wp.vec3, device=device))
             densifier.accumulate(renderer, gmap)
-            out = densifier.step(it, gmap, adam, scene_extent=1.0)
+            out = _step(densifier, it, gmap, 1.0)
         return out, gmap.to_numpy()
 
     def columns(m):

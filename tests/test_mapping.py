@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from helpers_maps import SH_C0, map_from_rgbd
-from rgs_warp.config import MappingConfig
+from rgs_warp.config import DensifyConfig, MappingConfig
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 from rgs_warp.datasets.synthetic.textures import linear_to_srgb
 from rgs_warp.eval.photometric import psnr
@@ -555,3 +555,79 @@ def test_statistics_follow_appended_and_removed_rows(device, room):
         mapper.remove(wp.zeros(len(gmap) + 1, dtype=wp.int32, device=device))
     result = mapper.optimize(kf, slots, 3, optimize_poses=False)  # the compacted state is usable
     assert np.all(np.isfinite(result.l1_history)) and np.isfinite(gmap.means.numpy()[: len(gmap)]).all()
+
+
+def test_densification_keeps_map_moments_and_statistics_aligned(device, room):
+    # method=baseline: the densifier clones, splits and culls inside optimize; every surviving row must
+    # keep its own Adam moments, m_i, v_i and EMA, and the appended rows start fresh (as after sync)
+    cam = room["camera"]
+    gmap = _room_map(room, device)
+    n0 = len(gmap)
+    logits = gmap.opacity_logits.numpy()
+    logits[:n0:7] = -5.0  # opacity 0.007: culled at the densification step (0.05)
+    gmap.opacity_logits.assign(logits)
+    max_scale = np.exp(gmap.log_scales.numpy()[:n0].max(axis=1))
+    # clone below the median largest scale, split above: both happen
+    densify = DensifyConfig(start=0, interval=3, opacity_reset_interval=0, scene_extent_m=np.median(max_scale) / 0.01)
+    kf, slots = _keyframes(room, room["frames"], device)
+    mapper = Mapper(MappingConfig(), cam, gmap, device, densify=densify)
+    snapshot = {}
+    step = mapper.densifier.step
+
+    def step_and_snapshot(iteration, *args):
+        # the state right before densification (after the Adam step of iteration 3), the rows it
+        # appends and the rows it flags (copies: on the CPU .numpy() views the device memory)
+        n = len(gmap)
+        fields = {name: value.copy() for name, value in gmap.to_numpy().items()}
+        state = {"n": n, "fields": fields, "moments": _moments(mapper, n), "stats": _stats(mapper, n)}
+        out = step(iteration, *args)
+        if out.remove is not None:
+            appended = gmap.means.numpy()[n : len(gmap)].copy()
+            snapshot.update(state, appended=appended, remove=out.remove.numpy().astype(bool))
+        return out
+
+    mapper.densifier.step = step_and_snapshot
+    result = mapper.optimize(kf, slots, 3, optimize_poses=False)
+    assert snapshot["n"] == n0 and mapper.total_iters == 3
+    assert result.cloned > 0 and result.split > 0 and result.pruned >= len(range(0, n0, 7))
+    n = len(gmap)
+    assert n == n0 + result.cloned + result.split - result.pruned
+    fields = gmap.to_numpy()
+    # survivors first, in their order: the old rows not flagged (neither culled nor split); then the
+    # appended rows not flagged
+    remove = snapshot["remove"]
+    assert len(remove) == n0 + result.cloned + 2 * result.split and np.count_nonzero(~remove) == n
+    kept = np.flatnonzero(~remove[:n0])
+    n_kept = len(kept)
+    assert 0 < n_kept < n0 and n_kept < n
+    for name in ("means", "log_scales", "sh"):
+        np.testing.assert_array_equal(fields[name][:n_kept], snapshot["fields"][name][kept], err_msg=name)
+    np.testing.assert_array_equal(fields["means"][n_kept:], snapshot["appended"][~remove[n0:]])
+    after = _moments(mapper, n)
+    for name in FIELDS:
+        for got, want in zip(after[name], snapshot["moments"][name], strict=True):
+            assert np.abs(want[kept]).max() > 0, name  # real moments are compared
+            np.testing.assert_array_equal(got[:n_kept], want[kept], err_msg=name)
+            assert not got[n_kept:].any(), name  # appended rows: zero moments
+    obs, vis, ema = _stats(mapper, n)
+    for got, want in zip((obs, vis, ema), snapshot["stats"], strict=True):
+        np.testing.assert_array_equal(got[:n_kept], want[kept])
+    assert not np.array_equal(ema[:n_kept], fields["means"][:n_kept])  # the EMA lags: a real check
+    assert not obs[n_kept:].any() and not vis[n_kept:].any()
+    np.testing.assert_array_equal(ema[n_kept:], fields["means"][n_kept:])  # fresh EMA at the position
+    # the densifier's statistics restarted and follow the map's capacity
+    assert mapper.densifier.grad_norm_sum.shape[0] == gmap.capacity
+    assert not mapper.densifier.visible_count.numpy().any()
+    # the state is usable: another call densifies again at iteration 6
+    again = mapper.optimize(kf, slots, 3, optimize_poses=False)
+    assert again.cloned + again.split > 0 and np.isfinite(again.l1_history).all()
+    # a removal outside a densification step (maintenance) compacts the densifier's statistics too
+    mapper.optimize(kf, slots, 2, optimize_poses=False)  # iterations 7, 8: statistics, no densification
+    n = len(gmap)
+    d = mapper.densifier
+    grad_sum, seen = d.grad_norm_sum.numpy()[:n].copy(), d.visible_count.numpy()[:n].copy()
+    assert seen.max() > 0
+    mask = np.random.default_rng(20).uniform(size=n) < 0.3
+    mapper.remove(wp.array(mask.astype(np.int32), dtype=wp.int32, device=device))
+    np.testing.assert_array_equal(d.grad_norm_sum.numpy()[: len(gmap)], grad_sum[~mask])
+    np.testing.assert_array_equal(d.visible_count.numpy()[: len(gmap)], seen[~mask])

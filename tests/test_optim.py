@@ -91,6 +91,12 @@ def test_moments_follow_growth_and_removal(device):
     np.testing.assert_array_equal(opt._m["means"].numpy().reshape(-1, 3)[:4], m_before[[0, 2, 3, 5]])
     opt.reset_rows(0, 1)
     assert not opt._v["sh"].numpy()[:27].any() and opt._v["sh"].numpy()[27:54].any()
+    assert opt._m["opacity_logits"].numpy()[:4].any()
+    opt.reset_field("opacity_logits")
+    assert not opt._m["opacity_logits"].numpy().any() and not opt._v["opacity_logits"].numpy().any()
+    assert opt._v["sh"].numpy()[27:54].any()  # other fields untouched
+    with pytest.raises(ValueError, match="unknown map field"):
+        opt.reset_field("colour")
 
 
 def test_cosine_factor():

@@ -45,6 +45,7 @@ def test_small_run_end_to_end(finished_run):
     assert len(load_ply(run_dir / "map.ply")) == metrics["gaussians"] > 1000
     assert json.loads((run_dir / "metrics.json").read_text())["frames"] == 20
     assert len((run_dir / "log.jsonl").read_text().splitlines()) == 20
+    _check_convergence(run_dir, cfg, metrics)
     # Thresholds a broken pipeline cannot meet: the camera travels 0.47 m and turns, and an estimate
     # standing still at the first pose scores 16.2 cm (SE(3)-aligned RMSE).  Measured on CPU at this
     # size (commit of this test): 4.4 cm (2.0 cm on keyframes), PSNR 16.8 dB on frames 5 and 15; the
@@ -65,6 +66,8 @@ def test_save_load_round_trip_and_resume(finished_run, device):
     ref_stamps, ref_poses = read_tum_trajectory(run_dir / "trajectory.txt")
     np.testing.assert_allclose(poses, ref_poses, atol=1e-6)
     assert len(slam.map) == metrics["gaussians"] and len(slam.keyframes) > 0
+    # the mapping-iteration count (the densification schedule's clock) continues where it stopped
+    assert slam.mapper.total_iters == json.loads((run_dir / "convergence.json").read_text())[-1]["iteration"]
     # the restored map renders the last keyframe as the saved map did
     saved = load_ply(run_dir / "map.ply", device=device)
     T = slam.keyframes.poses[slam.keyframes.slots()[-1]]
@@ -83,6 +86,79 @@ def test_save_load_round_trip_and_resume(finished_run, device):
     # frame 19, so the accuracy of one more step says little; the GPU runs measure accuracy)
     assert np.all(np.isfinite(T_new)) and np.linalg.norm(T_new[:3, 3] - poses[-1][:3, 3]) < 0.1
     assert len(slam.trajectory()[1]) == len(poses) + 1
+
+
+def _check_convergence(run_dir, cfg, metrics):
+    """convergence.json: window PSNR samples every eval.convergence_every iterations of the
+    initialization and after every keyframe's mapping, at increasing cumulative iterations."""
+    points = json.loads((run_dir / "convergence.json").read_text())
+    assert (run_dir / "convergence.png").stat().st_size > 1000
+    iters = [p["iteration"] for p in points]
+    assert iters == sorted(set(iters)) and iters[0] > 0
+    init = [p for p in points if p["phase"] == "init"]
+    per_kf = cfg.mapping.init_iters // cfg.mapping.init_window
+    init_window = cfg.mapping.init_window
+    every = cfg.eval.convergence_every
+    expected = sorted(
+        {*range(every, per_kf * init_window + 1, every), *range(per_kf, per_kf * init_window + 1, per_kf)}
+    )
+    assert [p["iteration"] for p in init] == expected
+    assert [p["frame"] for p in points if p["phase"] == "init" and p["iteration"] % per_kf == 0] == list(
+        range(init_window)
+    )
+    keyframe_points = [p for p in points if p["phase"] == "keyframe"]
+    assert len(keyframe_points) == metrics["keyframes"] - init_window
+    assert all(
+        p["iteration"] - q["iteration"] == cfg.mapping.iters
+        for q, p in zip(points[len(init) - 1 : -1], keyframe_points, strict=True)
+    )
+    assert all(10.0 < p["psnr_db"] < 60.0 and p["gaussians"] > 0 for p in points)
+    assert points[-1]["gaussians"] == metrics["gaussians"]
+
+
+# The baseline at a smaller size: densification from iteration 0 every 8 (the GPU runs use Table 2's
+# 500-15000 every 100, beyond these runs' 36 iterations)
+BASELINE = [
+    "method=baseline",
+    "dataset=synthetic/office0",
+    "dataset.width=80",
+    "dataset.height=45",
+    "dataset.max_frames=7",
+    "mapping.init_iters=20",
+    "mapping.iters=8",
+    "mapping.window=3",
+    "densify.start=0",
+    "densify.interval=8",
+    "eval.convergence_every=2",
+]
+
+
+def test_baseline_grows_by_densification_only(tmp_path, device):
+    cfg = load_config([*BASELINE, f"device={device}", f"output_dir={tmp_path}", "run_name=baseline"])
+    run_dir, metrics = run(cfg, progress=False)
+    assert metrics["method"] == "baseline" and metrics["frames"] == 7
+    log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    keyframes = [e for e in log if e["keyframe"]]
+    # one dense start at the first keyframe, none later; the densifier (and only it) adds Gaussians
+    assert keyframes[0]["seeded"] > 100 and all(e["seeded"] == 0 for e in keyframes[1:])
+    assert all(e["merged"] == 0 for e in keyframes)
+    grown = sum(e["cloned"] + e["split"] for e in keyframes)
+    assert grown > 0 and metrics["gaussians"] > keyframes[0]["seeded"]
+    assert metrics["gaussians"] == keyframes[0]["seeded"] + grown - sum(e["pruned"] for e in keyframes)
+    assert metrics["ate"]["all_frames"]["rmse_cm"] < 10.0 and metrics["photometric"]["psnr_db"] > 12.0
+    _check_convergence(run_dir, cfg, metrics)
+    points = json.loads((run_dir / "convergence.json").read_text())
+    assert points[-1]["gaussians"] > points[0]["gaussians"]
+
+
+def test_unknown_method_is_rejected(device):
+    from dataclasses import replace
+
+    from rgs_warp.types import Camera
+
+    cfg = replace(load_config([*OVERRIDES, f"device={device}"]), method="nosuch")
+    with pytest.raises(ValueError, match="unknown method 'nosuch': SLAM implements rgs, baseline"):
+        SLAM(cfg, Camera(80.0, 80.0, 79.5, 44.5, 160, 90), device=device)
 
 
 def test_cli_reports_bad_input(tmp_path, capsys):

@@ -7,7 +7,8 @@ run folder under DIR/runs; DIR/slam.json holds all metrics and DIR/runs.tar.gz t
 each run (metrics, log, top-view plot; not the map, renders or keyframes).
 
 ``--diagnose`` adds, per case, where the photometric error comes from: PSNR of the scored frames
-rendered at their ground-truth poses (vs the estimated ones: the pose error's share) and of the
+rendered at their ground-truth poses (SE(3)-aligned to the estimate, as the ATE; vs the estimated
+ones: the pose error's share) and of the
 keyframes at their refined poses (the fit to what the map was trained on); and writes
 DIR/mesh_inputs.tar (half-resolution rendered depth of every keyframe as uint16 mm, poses, camera,
 and the dataset's ground-truth mesh) so that the mesh metrics can be computed where open3d is
@@ -120,9 +121,15 @@ def diagnose(cfg, run_dir: Path, mesh_dir: Path) -> dict:
         return float(np.mean(values)) if values else float("nan")
 
     kf = slam.keyframe_indices
+    # true poses brought into the map's frame by the ATE's SE(3) alignment (gt ~ A est)
+    from rgs_warp.eval import ate
+    from rgs_warp.geometry import invert_pose
+
+    gt = np.array([ds[int(i)].pose_gt for i in range(len(est))])
+    A_inv = invert_pose(ate(est, gt, align="se3")["align_T"])
     out = {
         "psnr_est_pose_db": score(idx, est[idx]),
-        "psnr_gt_pose_db": score(idx, [ds[int(i)].pose_gt for i in idx]),
+        "psnr_gt_pose_db": score(idx, [A_inv @ gt[i] for i in idx]),
         "psnr_keyframes_db": score(kf, est[kf]),
     }
     c = slam.camera

@@ -5,12 +5,18 @@ The baseline grows its map where the photometric residual pulls Gaussians around
 norm of each Gaussian's screen-space mean gradient is averaged over the renders that saw it, and on
 schedule the Gaussians above a threshold are cloned (small ones, under-reconstruction) or split in
 two (large ones, over-reconstruction), transparent and oversized ones are pruned, and every few
-thousand iterations all opacities are lowered so that the optimisation can drop unneeded Gaussians.
+thousand iterations the opacities are lowered so that the optimisation can drop unneeded Gaussians.
+
+The Densifier changes the map and its own statistics only: it appends rows (as a Seeder does) and
+returns the rows to remove, so that the owner of the optimiser state (``Mapper``, which calls it
+inside its iterations) grows and compacts the Adam moments and the per-Gaussian statistics with the
+map in one place (``Mapper.sync`` / ``Mapper.remove``).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -23,11 +29,10 @@ from rgs_warp.kernels.densify import (
     write_densified,
 )
 from rgs_warp.kernels.map_ops import scatter_kept
-from rgs_warp.optim import MapAdam
 from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
 
-__all__ = ["Densifier"]
+__all__ = ["DensifyStep", "Densifier"]
 
 
 def _logit(p: float) -> float:
@@ -47,6 +52,19 @@ def _logit_at_most(p: float) -> float:
     return float(x)
 
 
+@dataclass
+class DensifyStep:
+    """What one ``Densifier.step`` did.  ``remove``: int32 flags (nonzero = remove) over the map's
+    rows after the appends, the split parents and the culled Gaussians, for the caller to remove
+    through its removal path (``Mapper.remove``); None when nothing was densified.  It is the
+    Densifier's scratch, valid until its next ``step``."""
+
+    cloned: int = 0
+    split: int = 0
+    opacity_reset: bool = False
+    remove: wp.array | None = None
+
+
 class Densifier:
     """3DGS adaptive density control over a GaussianMap and its MapAdam, on the device.
 
@@ -57,13 +75,16 @@ class Densifier:
     * ``interval=100``, ``start=500``, ``stop=15000``: densify and prune at iterations ``it`` with
       ``start < it < stop`` and ``it % interval == 0`` (3DGS's test: 600, 700, ..., 14900).
     * ``opacity_reset_interval=3000``: at ``it % opacity_reset_interval == 0`` (same window; 0 = never)
-      every opacity becomes ``min(opacity, opacity_reset_value)``, ``opacity_reset_value=0.01``.
+      the opacity of every Gaussian seen since the statistics were last restarted becomes
+      ``min(opacity, opacity_reset_value)``, ``opacity_reset_value=0.1``.  3DGS resets every Gaussian
+      (its training views see all of them within one interval); in SLAM the window sees a part of the
+      map, and a Gaussian reset outside it would stay faded until the camera came back.
     * ``percent_dense=0.01``: Gaussians whose largest scale is at most ``percent_dense * scene_extent``
       are cloned, larger ones split.
     * ``split_factor=1.6``: the two children of a split have the parent's scales / ``split_factor``.
     * ``cull_opacity=0.05``: prune Gaussians with opacity below this at every densification step
-      (3DGS: 0.005).  Note that a reset to 0.01 puts every Gaussian under a culling opacity of 0.05:
-      what has not climbed back above it by the next densification step is pruned.
+      (supplement Table 1; 3DGS: 0.005 with a reset to 0.01).  The reset value must stay above it,
+      or a reset followed by the next culling wipes the map: 0.1 keeps 3DGS's factor of 2.
     * ``prune_scale_fraction=0.1``: after the first opacity reset, also prune Gaussians whose largest
       scale exceeds this fraction of ``scene_extent`` (3DGS's world-space test; its screen-space test
       never fires in the reference code, which resets the statistic it reads just before, so it is
@@ -73,8 +94,8 @@ class Densifier:
 
     Statistics are rows of ``grad_norm_sum`` (float32, running sum of gradient norms) and
     ``visible_count`` (int32), the map's capacity long, rows at and beyond the map's count zero.
-    They follow the map's growth by themselves; a removal made outside ``step`` must be mirrored
-    with ``remove(mask)``, as for ``MapAdam``.
+    ``sync(gmap)`` follows the map's growth; every removal of map rows must be mirrored with
+    ``remove(mask)``, as for ``MapAdam`` (``Mapper.remove`` does both).
     """
 
     def __init__(
@@ -85,7 +106,7 @@ class Densifier:
         start: int = 500,
         stop: int = 15000,
         opacity_reset_interval: int = 3000,
-        opacity_reset_value: float = 0.01,
+        opacity_reset_value: float = 0.1,
         percent_dense: float = 0.01,
         split_factor: float = 1.6,
         cull_opacity: float = 0.05,
@@ -96,6 +117,11 @@ class Densifier:
             raise ValueError(f"interval must be positive, got {interval}")
         if split_factor <= 0.0:
             raise ValueError(f"split_factor must be positive, got {split_factor}")
+        if opacity_reset_interval > 0 and opacity_reset_value <= cull_opacity:
+            raise ValueError(
+                f"opacity_reset_value {opacity_reset_value} is not above cull_opacity {cull_opacity}: "
+                "a reset followed by the next culling would remove every Gaussian"
+            )
         self.grad_threshold = grad_threshold
         self.interval, self.start, self.stop = interval, start, stop
         self.opacity_reset_interval = opacity_reset_interval
@@ -109,8 +135,9 @@ class Densifier:
         self._device = None
 
     # ---- buffers -----------------------------------------------------------------------------
-    def _sync(self, gmap: GaussianMap) -> None:
-        """Statistics and scratch of the map's capacity, existing statistics kept."""
+    def sync(self, gmap: GaussianMap) -> None:
+        """Statistics and scratch of the map's capacity, existing statistics kept (rows appended
+        since start at zero)."""
         capacity = gmap.capacity
         if capacity == self._capacity and gmap.device == self._device:
             return
@@ -132,13 +159,16 @@ class Densifier:
         self._capacity, self._device = capacity, gmap.device
 
     # ---- statistics --------------------------------------------------------------------------
-    def accumulate(self, renderer: Renderer, gmap: GaussianMap) -> None:
+    def accumulate(self, renderer: Renderer, gmap: GaussianMap, loss_share: float = 1.0) -> None:
         """Add the latest full ``renderer.backward`` of ``gmap`` to the statistics (launches only).
 
         3DGS thresholds the gradient w.r.t. the projected mean in NDC, where u = ((ndc_x + 1) W - 1) / 2
         (v alike with H), so dL/d ndc_x = dL/du * W / 2 and dL/d ndc_y = dL/dv * H / 2; the renderer's
         ``grad2d`` holds dL/du, dL/dv in pixels, scaled here before taking the norm.  The threshold
         also assumes 3DGS's loss scale: a mean over pixels (and channels), not a sum.
+        ``loss_share``: the weight of this view's loss in the gradients (1 / views when an iteration
+        averages several views); they are divided by it, so that each render counts with the gradient
+        of its own whole loss, as in 3DGS's one-view iterations.
         Gaussians count as seen where their radius is positive (3DGS's visibility filter).
         """
         n = len(gmap)
@@ -146,12 +176,12 @@ class Densifier:
             return
         if renderer.grad2d.shape[0] < n or renderer.image_shape is None:
             raise ValueError("the renderer's latest backward is not of this map")
-        self._sync(gmap)
+        self.sync(gmap)
         height, width = renderer.image_shape
         wp.launch(
             accumulate_grad_stats,
             dim=n,
-            inputs=[renderer.grad2d, renderer.radii, wp.vec2(0.5 * width, 0.5 * height)],
+            inputs=[renderer.grad2d, renderer.radii, wp.vec2(0.5 * width / loss_share, 0.5 * height / loss_share)],
             outputs=[self.grad_norm_sum, self.visible_count],
             device=gmap.device,
         )
@@ -183,36 +213,35 @@ class Densifier:
             self.visible_count.zero_()
 
     # ---- schedule ----------------------------------------------------------------------------
-    def step(self, iteration: int, gmap: GaussianMap, adam: MapAdam, scene_extent: float) -> dict:
-        """Densify, prune and reset opacities when ``iteration`` calls for it (see the class).
+    def step(self, iteration: int, gmap: GaussianMap, scene_extent: float) -> DensifyStep:
+        """Reset opacities, densify and flag Gaussians for pruning when ``iteration`` calls for it
+        (see the class).
 
-        ``scene_extent``: the scene's size in metres (3DGS: 1.1 x the largest camera distance from the
-        cameras' centroid), the unit of ``percent_dense`` and ``prune_scale_fraction``.  ``adam`` must
-        be the map's optimiser: appended rows get zero moments, survivors keep theirs in their new
-        rows.  Returns {"cloned": int, "split": int, "pruned": int (split parents not included),
-        "opacity_reset": bool}.  A densification step reads two counts back to the host (plus the one
-        of ``GaussianMap.remove``); other iterations cost nothing.
+        ``scene_extent``: the scene's size in metres (the unit of ``percent_dense`` and
+        ``prune_scale_fraction``).  Clones and split children are appended to ``gmap`` (the caller's
+        optimiser state must follow, as after a Seeder: ``Mapper.sync``); the split parents and the
+        culled Gaussians come back in ``DensifyStep.remove`` for the caller to remove.  The reset
+        comes first, so that the statistics it reads are those of the rows before densification.
+        A densification step reads one count back to the host; other iterations cost nothing.
         """
-        if adam.gmap is not gmap:
-            raise ValueError("adam does not optimise this map")
-        result = {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": False}
+        result = DensifyStep()
         if not self.start < iteration < self.stop or len(gmap) == 0:
             return result
-        self._sync(gmap)
-        if iteration % self.interval == 0:
-            result.update(self._densify_and_prune(iteration, gmap, adam, scene_extent))
-        if self.opacity_reset_interval > 0 and iteration % self.opacity_reset_interval == 0 and len(gmap):
+        self.sync(gmap)
+        if self.opacity_reset_interval > 0 and iteration % self.opacity_reset_interval == 0:
             wp.launch(
                 clamp_opacity_logits,
                 dim=len(gmap),
-                inputs=[_logit_at_most(self.opacity_reset_value)],
+                inputs=[self.visible_count, _logit_at_most(self.opacity_reset_value)],
                 outputs=[gmap.opacity_logits],
                 device=gmap.device,
             )
-            result["opacity_reset"] = True
+            result.opacity_reset = True
+        if iteration % self.interval == 0:
+            self._densify(iteration, gmap, scene_extent, result)
         return result
 
-    def _densify_and_prune(self, iteration: int, gmap: GaussianMap, adam: MapAdam, scene_extent: float) -> dict:
+    def _densify(self, iteration: int, gmap: GaussianMap, scene_extent: float, result: DensifyStep) -> None:
         dev = gmap.device
         n = len(gmap)
         self._counts.zero_()
@@ -226,8 +255,8 @@ class Densifier:
         )
         new_rows, offsets = self._new_rows, self._offsets
         wp.utils.array_scan(new_rows[:n], offsets[:n], inclusive=False)
-        cloned, split = (int(c) for c in self._counts.numpy())
-        added = cloned + 2 * split
+        result.cloned, result.split = (int(c) for c in self._counts.numpy())
+        added = result.cloned + 2 * result.split
         if added:
             gmap.reserve(n + added)
             seed = (self.seed * 1_000_003 + iteration) % (2**31)
@@ -239,8 +268,7 @@ class Densifier:
                 device=dev,
             )
             gmap.count = n + added  # the rows n .. n + added were just written on the device
-            adam.reset_rows(n, added)
-            self._sync(gmap)  # removal flags for the grown map; new_rows keeps the arrays of before
+            self.sync(gmap)  # removal flags for the grown map; new_rows keeps the arrays of before
         total = n + added
         # 3DGS prunes oversized Gaussians only once the first opacity reset is behind.
         prune_big = self.prune_scale_fraction > 0.0 and iteration > self.opacity_reset_interval > 0
@@ -252,9 +280,6 @@ class Densifier:
             outputs=[self._remove],
             device=dev,
         )
-        mask = self._remove[:total]
-        adam.remove(mask)
-        gmap.remove(mask)
+        result.remove = self._remove[:total]
         # 3DGS restarts the statistics of every Gaussian after densifying.
         self.reset_stats()
-        return {"cloned": cloned, "split": split, "pruned": total - split - len(gmap)}

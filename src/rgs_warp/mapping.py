@@ -12,19 +12,24 @@ the gradients averaged over the views) and takes one Adam step:
   loss's twist gradient, Adam on each twist.  Keyframes in ``fixed`` (the first keyframe of the run,
   which fixes the gauge) keep their pose.
 Nothing is read back to the host inside the loop; the poses and the loss history come back once
-per call.
+per call.  Two optional passengers of the loop read a little at their own iterations only: the
+residual-driven densification of ``method=baseline`` (a ``Densifier``, stepped after every iteration
+with the cumulative iteration count ``total_iters``: one count read per densification step, plus the
+one of the map's compaction) and the convergence samples of ``psnr_every`` (renders of the window
+and one read of its squared errors).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
-from rgs_warp.config import MappingConfig
+from rgs_warp.config import DensifyConfig, MappingConfig
+from rgs_warp.densification import Densifier
 from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels import mapping as km
 from rgs_warp.kernels.map_ops import scatter_kept
@@ -34,6 +39,34 @@ from rgs_warp.losses import DSSIMLoss
 from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
 from rgs_warp.render import GaussianGrads, Renderer, RenderResult
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def _exposed_squared_error(
+    # in: keyframe image, render of the map at its pose, its exposure (Eq. 3)
+    observed: wp.array2d(dtype=wp.vec3),
+    rendered: wp.array2d(dtype=wp.vec3),
+    gain: float,
+    bias: float,
+    row: int,
+    # out: sum over pixels and channels of (clip(g I_hat + b, 0, 1) - I)^2, added to entry `row`
+    sums_out: wp.array(dtype=wp.float64),
+):
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    width = observed.shape[1]
+    e = float(0.0)
+    if i < observed.shape[0] * width:
+        y = i // width
+        x = i - y * width
+        c = gain * rendered[y, x] + wp.vec3(bias)
+        r = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0)) - observed[y, x]
+        e = wp.dot(r, r)
+    total = wp.tile_extract(wp.tile_sum(wp.tile(e)), 0)
+    if lane == 0:
+        wp.atomic_add(sums_out, row, wp.float64(total))
 
 
 @dataclass
@@ -46,6 +79,14 @@ class MappingResult:
     depth_l1_history: np.ndarray  # (iters,) mean |D_hat - D| (m) over pixels with depth; nan without
     pose_updates: int
     map_updates: int
+    # densification (method=baseline): Gaussians cloned, split (each replaced by two children), pruned
+    # by its culling (split parents not counted), opacity resets
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    opacity_resets: int = 0
+    # (cumulative iteration, mean window PSNR dB, Gaussians) every ``psnr_every`` iterations
+    psnr_curve: list[tuple[int, float, int]] = field(default_factory=list)
 
     @property
     def final_l1(self) -> float:
@@ -58,8 +99,11 @@ class Mapper:
     """Owns the optimiser state of a GaussianMap (``MapAdam``) and its per-Gaussian statistics.
 
     ``camera``: the keyframes' camera (the buffer's image size).  Rows appended to the map (by a
-    Seeder) are picked up by ``sync`` (called by ``optimize``); rows are removed through
-    ``remove(mask)``, so that the Adam moments and the statistics follow.
+    Seeder, or by the densifier) are picked up by ``sync`` (called by ``optimize``); rows are removed
+    through ``remove(mask)``, so that the Adam moments and the statistics follow.  ``densify``: the
+    residual-driven densification of ``method=baseline`` (None: the map grows only from outside);
+    its culling opacity is ``cfg.opacity_cull``.  ``total_iters`` counts the mapping iterations of
+    every call, the densification schedule's clock.
     """
 
     def __init__(
@@ -71,10 +115,26 @@ class Mapper:
         mode: str = "rgbd",
         renderer: Renderer | None = None,
         seed: int = 0,
+        densify: DensifyConfig | None = None,
     ):
         if mode not in ("rgbd", "mono"):
             raise ValueError(f"mode must be 'rgbd' or 'mono', got {mode!r}")
         self.cfg, self.camera, self.gmap, self.mode = cfg, camera, gmap, mode
+        self.densify_cfg = densify
+        self.densifier = None
+        if densify is not None:
+            self.densifier = Densifier(
+                grad_threshold=densify.grad_threshold,
+                interval=densify.interval,
+                start=densify.start,
+                stop=densify.stop,
+                opacity_reset_interval=densify.opacity_reset_interval,
+                opacity_reset_value=densify.opacity_reset_value,
+                percent_dense=densify.percent_dense,
+                cull_opacity=cfg.opacity_cull,
+                prune_scale_fraction=densify.prune_scale_fraction,
+                seed=seed,
+            )
         self.device = wp.get_device(device)
         self.renderer = renderer or Renderer(self.device)
         self.grads: GaussianGrads | None = None
@@ -98,14 +158,15 @@ class Mapper:
         self._stats_rows = 0
         self.sync()
         self._loss = wp.zeros((1, km.L_COLUMNS), dtype=wp.float64, device=dev)
+        self._squared_error = wp.zeros(1, dtype=wp.float64, device=dev)
         self._pose_capacity = 0
         self.total_iters = 0
 
     # ---- per-Gaussian statistics ---------------------------------------------------------------
     def sync(self) -> None:
         """Follow the map: statistics, gradients and Adam moments to its capacity; rows appended
-        since the last call (e.g. by a Seeder) get zero moments and statistics and start their EMA
-        at their position."""
+        since the last call (by a Seeder or the densifier) get zero moments and statistics and start
+        their EMA at their position."""
         gmap, dev = self.gmap, self.device
         n = len(gmap)
         kept = min(self._stats_rows, n)
@@ -128,6 +189,8 @@ class Mapper:
                 wp.zeros((gmap.capacity, gmap.num_sh), dtype=wp.vec3, device=dev),
             )
         self.adam.sync()
+        if self.densifier is not None:
+            self.densifier.sync(gmap)
         if n > kept:
             self.adam.reset_rows(kept, n - kept)
             wp.launch(
@@ -141,12 +204,14 @@ class Mapper:
 
     def remove(self, mask: wp.array) -> None:
         """Remove rows where ``mask`` (int32, length len(map)) is nonzero from the map, the Adam
-        moments and the statistics, keeping the order of the others."""
+        moments and the statistics (the densifier's included), keeping the order of the others."""
         self.sync()
         n = len(self.gmap)
         if mask.shape[0] != n:
             raise ValueError(f"mask has {mask.shape[0]} entries for {n} Gaussians")
         self.adam.remove(mask)
+        if self.densifier is not None:
+            self.densifier.remove(mask)
         dev = self.device
         removed_before = wp.empty(n, dtype=wp.int32, device=dev)
         wp.utils.array_scan(mask, removed_before, inclusive=False)
@@ -198,9 +263,14 @@ class Mapper:
         iters: int,
         fixed: Sequence[int] = (),
         optimize_poses: bool = True,
+        psnr_every: int = 0,
     ) -> MappingResult:
         """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  Keyframe poses
-        are refined in place in ``keyframes.poses`` except those of the slots in ``fixed``."""
+        are refined in place in ``keyframes.poses`` except those of the slots in ``fixed``.
+        ``psnr_every`` > 0: after every iteration whose cumulative count ``total_iters`` is a multiple
+        of it, the mean PSNR of the window (``window_psnr``) goes to ``MappingResult.psnr_curve``
+        (measured before that iteration's densification, whose fresh clones and split children the
+        following iterations have yet to fit)."""
         cfg, dev, gmap = self.cfg, self.device, self.gmap
         window = list(window)
         if not window:
@@ -226,7 +296,7 @@ class Mapper:
         use_depth = int(self.mode == "rgbd")
         n_pixels = self.camera.width * self.camera.height
         blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
-        pose_updates = map_updates = 0
+        result = MappingResult(iters, np.zeros(0), np.zeros(0), np.zeros(0), 0, 0)
         fixed_set = set(fixed)
         every = cfg.pose_only_every if optimize_poses else 0
         per_iter = k_win if cfg.views_per_iter <= 0 else min(cfg.views_per_iter, k_win)
@@ -238,71 +308,129 @@ class Mapper:
                     order = list(self.rng.permutation(k_win))
                 views.append(order.pop())
             lr_factor = cosine_factor(it, iters, cfg.lr_final_factor)
-            pose_iter = every > 0 and it % every == every - 1
-            if pose_iter:
+            if every > 0 and it % every == every - 1:
                 views = [j for j in views if window[j] not in fixed_set]
-                if not views:
-                    continue
-            n = len(gmap)
-            for v, j in enumerate(views):
-                slot = window[j]
-                res = self._view_loss(keyframes, slot, j, it, 1.0 / len(views), use_depth, blocks, pose_iter)
-                if pose_iter:
-                    _, pose_grad = self.renderer.backward(self._d_color, self._d_depth, None, pose_only=True)
-                    wp.launch(
-                        km.adam_keyframe_pose_step,
-                        dim=1,
-                        inputs=[pose_grad, j, cfg.pose_lr * lr_factor, cfg.adam_beta1, cfg.adam_beta2, 1e-8],
-                        outputs=[self._pose_m, self._pose_v, self._pose_steps, self._T_CW, self._T_WC],
-                        device=dev,
-                    )
-                    pose_updates += 1
-                    continue
-                if v == 0:
-                    self._opacity_grad_before[:n].zero_()
-                else:
-                    wp.copy(self._opacity_grad_before, self.grads.opacity_logits, count=n)
-                grads, _ = self.renderer.backward(
-                    self._d_color, self._d_depth, None, grads_out=self.grads, accumulate=v > 0
-                )
-                wp.launch(
-                    km.update_statistics,
-                    dim=n,
-                    inputs=[res.radii, grads.opacity_logits, self._opacity_grad_before],
-                    outputs=[self.obs_count, self.vis_count],
-                    device=dev,
-                )
-            if pose_iter:
-                continue
-            grads = self.grads
-            wp.launch(
-                km.regularize,
-                dim=n,
-                inputs=[gmap.means, gmap.log_scales, gmap.opacity_logits, self.ema_means]
-                + [cfg.reg_elongation, math.log(cfg.max_anisotropy), cfg.reg_opacity, cfg.max_abs_opacity_logit]
-                + [cfg.reg_anchor],
-                outputs=[grads.means, grads.log_scales, grads.opacity_logits],
-                device=dev,
-            )
-            self.adam.step(grads, lr_factor)
-            wp.launch(km.update_ema, dim=n, inputs=[gmap.means, cfg.ema_eta], outputs=[self.ema_means], device=dev)
-            map_updates += 1
-        self.total_iters += iters
+                for j in views:
+                    self._pose_step(keyframes, window[j], j, it, 1.0 / len(views), use_depth, blocks, lr_factor)
+                result.pose_updates += len(views)
+            else:
+                self._map_step(keyframes, window, views, it, use_depth, blocks, lr_factor)
+                result.map_updates += 1
+            self.total_iters += 1
+            if psnr_every > 0 and self.total_iters % psnr_every == 0:
+                psnr_db = self._window_psnr(keyframes, window, self._T_WC)
+                result.psnr_curve.append((self.total_iters, psnr_db, len(gmap)))
+            if self.densifier is not None:
+                self._densify(result)
 
         loss = self._loss[:iters].numpy()
-        if optimize_poses and pose_updates:
+        if optimize_poses and result.pose_updates:
             T_CW_new = self._T_CW[:k_win].numpy()
             for j, slot in enumerate(window):
                 if slot not in fixed_set:
                     keyframes.poses[slot] = invert_pose(T_CW_new[j])
         pixels = np.maximum(loss[:, km.L_PIXELS], 1.0)
         depth_px = loss[:, km.L_DEPTH_PIXELS]
-        depth_l1 = np.where(depth_px > 0, loss[:, km.L_DEPTH] / np.maximum(depth_px, 1.0), np.nan)
-        return MappingResult(
-            iters=iters,
-            loss_history=loss[:, km.L_LOSS].copy(),
-            l1_history=loss[:, km.L_ABS] / pixels,
-            depth_l1_history=depth_l1,
-            pose_updates=pose_updates,
-            map_updates=map_updates,
+        result.loss_history = loss[:, km.L_LOSS].copy()
+        result.l1_history = loss[:, km.L_ABS] / pixels
+        result.depth_l1_history = np.where(depth_px > 0, loss[:, km.L_DEPTH] / np.maximum(depth_px, 1.0), np.nan)
+        return result
+
+    def _pose_step(self, keyframes, slot, j, it, weight, use_depth, blocks, lr_factor) -> None:
+        """One Adam step on the twist of window view j (keyframe ``slot``), the map held fixed."""
+        cfg = self.cfg
+        self._view_loss(keyframes, slot, j, it, weight, use_depth, blocks, True)
+        _, pose_grad = self.renderer.backward(self._d_color, self._d_depth, None, pose_only=True)
+        wp.launch(
+            km.adam_keyframe_pose_step,
+            dim=1,
+            inputs=[pose_grad, j, cfg.pose_lr * lr_factor, cfg.adam_beta1, cfg.adam_beta2, 1e-8],
+            outputs=[self._pose_m, self._pose_v, self._pose_steps, self._T_CW, self._T_WC],
+            device=self.device,
         )
+
+    def _map_step(self, keyframes, window, views, it, use_depth, blocks, lr_factor) -> None:
+        """One Adam step on the map from the gradients of ``views`` (window positions), averaged."""
+        cfg, dev, gmap = self.cfg, self.device, self.gmap
+        n = len(gmap)
+        share = 1.0 / len(views)
+        for v, j in enumerate(views):
+            res = self._view_loss(keyframes, window[j], j, it, share, use_depth, blocks, False)
+            if v == 0:
+                self._opacity_grad_before[:n].zero_()
+            else:
+                wp.copy(self._opacity_grad_before, self.grads.opacity_logits, count=n)
+            grads, _ = self.renderer.backward(
+                self._d_color, self._d_depth, None, grads_out=self.grads, accumulate=v > 0
+            )
+            wp.launch(
+                km.update_statistics,
+                dim=n,
+                inputs=[res.radii, grads.opacity_logits, self._opacity_grad_before],
+                outputs=[self.obs_count, self.vis_count],
+                device=dev,
+            )
+            if self.densifier is not None:
+                self.densifier.accumulate(self.renderer, gmap, share)
+        grads = self.grads
+        wp.launch(
+            km.regularize,
+            dim=n,
+            inputs=[gmap.means, gmap.log_scales, gmap.opacity_logits, self.ema_means]
+            + [cfg.reg_elongation, math.log(cfg.max_anisotropy), cfg.reg_opacity, cfg.max_abs_opacity_logit]
+            + [cfg.reg_anchor],
+            outputs=[grads.means, grads.log_scales, grads.opacity_logits],
+            device=dev,
+        )
+        self.adam.step(grads, lr_factor)
+        wp.launch(km.update_ema, dim=n, inputs=[gmap.means, cfg.ema_eta], outputs=[self.ema_means], device=dev)
+
+    def _densify(self, result: MappingResult) -> None:
+        """The densifier's step at iteration ``total_iters``: appended rows enter the optimiser state
+        and statistics through ``sync``, flagged rows leave the map and both through ``remove``."""
+        step = self.densifier.step(self.total_iters, self.gmap, self.densify_cfg.scene_extent_m)
+        if step.opacity_reset:
+            # 3DGS restarts the opacity moments with the reset, so that the momentum gathered at the old
+            # opacities does not undo it
+            self.adam.reset_field("opacity_logits")
+            result.opacity_resets += 1
+        if step.remove is None:
+            return
+        before = len(self.gmap)
+        self.remove(step.remove)  # its sync() first gives the appended rows their fresh state
+        result.cloned += step.cloned
+        result.split += step.split
+        result.pruned += before - len(self.gmap) - step.split
+
+    # ---- convergence ---------------------------------------------------------------------------
+    def window_psnr(self, keyframes: KeyframeBuffer, window: Sequence[int]) -> float:
+        """Mean over the keyframes of ``window`` (slots) of the PSNR (dB) of the exposure-corrected
+        render clip(g I_hat + b, 0, 1) at the keyframe's pose against the keyframe image."""
+        window = list(window)
+        self._ensure_poses(len(window))
+        self._T_WC[: len(window)].assign(np.stack([keyframes.poses[s] for s in window]).astype(np.float32))
+        return self._window_psnr(keyframes, window, self._T_WC)
+
+    def _window_psnr(self, keyframes: KeyframeBuffer, window: list[int], T_WC: wp.array) -> float:
+        """``window_psnr`` at the poses ``T_WC[j]`` (device): k renders, one read of k sums."""
+        k = len(window)
+        if len(self.gmap) == 0:
+            return float("nan")
+        if self._squared_error.shape[0] < k:
+            self._squared_error = wp.zeros(k, dtype=wp.float64, device=self.device)
+        self._squared_error.zero_()
+        n_pixels = self.camera.width * self.camera.height
+        blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
+        for j, slot in enumerate(window):
+            g, b = (float(v) for v in keyframes.exposure[slot])
+            res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1])
+            wp.launch_tiled(
+                _exposed_squared_error,
+                dim=blocks,
+                inputs=[keyframes.rgb[slot], res.color, g, b, j],
+                outputs=[self._squared_error],
+                block_dim=REDUCE_BLOCK,
+                device=self.device,
+            )
+        mse = np.maximum(self._squared_error.numpy()[:k] / (3.0 * n_pixels), 1e-20)
+        return float(np.mean(-10.0 * np.log10(mse)))

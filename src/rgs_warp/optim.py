@@ -93,6 +93,14 @@ class MapAdam:
             for store in (self._m, self._v):
                 store[name][start * w : (start + count) * w].zero_()
 
+    def reset_field(self, name: str) -> None:
+        """Zero the moments of one field for every row (e.g. the opacities after a reset)."""
+        if name not in FIELDS:
+            raise ValueError(f"unknown map field {name!r}; fields: {', '.join(FIELDS)}")
+        self.sync()
+        for store in (self._m, self._v):
+            store[name].zero_()
+
     def remove(self, mask) -> None:
         """Compact the moments as ``GaussianMap.remove(mask)`` compacts the fields; call it first,
         with the same mask (length: the map's count before removal, nonzero = remove)."""

@@ -4,6 +4,10 @@
 the camera-to-world pose; every frame is tracked against the map, and when the co-visibility test
 accepts it as a keyframe, dense matching -> triangulation -> seeding -> windowed mapping -> merge /
 prune run before the next frame (same thread, deterministic).
+
+``method=baseline`` (the dense initialization baseline of supplement Table 2) seeds the first
+keyframe only and grows the map by residual-driven densification inside the mapping iterations
+(``Mapper`` with a ``Densifier``), without merge / prune; everything else is shared.
 """
 
 from __future__ import annotations
@@ -35,10 +39,13 @@ from rgs_warp.tracking import Tracker, TrackingResult
 from rgs_warp.triangulation import TriangulatedPoints, Triangulator
 from rgs_warp.types import Camera, Frame, GaussianMap
 
+METHODS = ("rgs", "baseline")
+
 USAGE = """usage: python -m rgs_warp.slam [group=option ...] [key=value ...]
 
 examples:
   python -m rgs_warp.slam                                  # generated synthetic room (CPU-sized)
+  python -m rgs_warp.slam method=baseline                  # the same with the dense initialization baseline
   python -m rgs_warp.slam dataset=replica/office0 data_root=/data tracking.iters=40
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen
 """
@@ -53,8 +60,8 @@ class FrameResult:
     tracking: TrackingResult | None  # None for the first frame (its pose is given)
     keyframe: bool
     keyframe_reason: str
-    seeded: int = 0  # Gaussians added at this keyframe
-    pruned: int = 0
+    seeded: int = 0  # Gaussians added at this keyframe by seeding
+    pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0
     mapping: MappingResult | None = None
     seconds: float = 0.0
@@ -63,7 +70,7 @@ class FrameResult:
 
 class SLAM:
     """RGS-SLAM on one camera.  ``track`` frames in order; read ``map``, ``keyframes``,
-    ``trajectory()``; ``render(T_WC)``; ``save(dir)`` / ``SLAM.load(dir)``.
+    ``trajectory()``, ``convergence``; ``render(T_WC)``; ``save(dir)`` / ``SLAM.load(dir)``.
 
     ``T_first_WC``: pose of the first frame (default identity: the trajectory is then relative to
     it; pass the ground-truth first pose to compare maps in the ground truth's frame).
@@ -74,8 +81,8 @@ class SLAM:
         self.camera = camera
         self.device = wp.get_device(resolve_device(cfg.device) if device is None else device)
         self.mode = cfg.mode
-        if cfg.method != "rgs":
-            raise ValueError(f"method {cfg.method!r} is not implemented by SLAM (expected 'rgs')")
+        if cfg.method not in METHODS:
+            raise ValueError(f"unknown method {cfg.method!r}: SLAM implements {', '.join(METHODS)}")
         dev = self.device
         self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=Renderer(dev))
@@ -95,7 +102,16 @@ class SLAM:
         )
         self.renderer = Renderer(dev)
         self._merge_scratch = maintenance.MergeScratch(dev)
-        self.mapper = Mapper(cfg.mapping, camera, self.map, dev, mode=self.mode, renderer=self.renderer, seed=cfg.seed)
+        self.mapper = Mapper(
+            cfg.mapping,
+            camera,
+            self.map,
+            dev,
+            mode=self.mode,
+            renderer=self.renderer,
+            seed=cfg.seed,
+            densify=cfg.densify if cfg.method == "baseline" else None,
+        )
         self.T_first = np.eye(4) if T_first_WC is None else np.asarray(T_first_WC, dtype=np.float64)
         self.poses: list[np.ndarray] = []  # camera-to-world of every tracked frame
         self.timestamps: list[float] = []
@@ -117,6 +133,9 @@ class SLAM:
         self._mono_depth = wp.full((camera.height, camera.width), cfg.matching.scene_depth_m, dtype=wp.float32, **kw)
         self._zero_alpha = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
         self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
+        # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
+        # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
+        self.convergence: list[dict] = []
 
     # ---- per frame -----------------------------------------------------------------------------
     def track(self, rgb, depth=None, timestamp: float | None = None) -> np.ndarray:
@@ -185,21 +204,39 @@ class SLAM:
         elif self.first_slot == slot:
             self.first_slot = -1  # the first keyframe left the buffer: nothing is fixed any more
         self.keyframe_indices.append(i)
+        # baseline: the one dense start is the first keyframe's; later the densifier grows the map
+        if cfg.method == "rgs" or len(self.keyframe_indices) == 1:
+            t0 = time.perf_counter()
+            result.seeded = self._seed(slot)
+            self.stats["seeding_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        result.seeded = self._seed(slot)
-        self.stats["seeding_s"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        window = kf.slots()[-(cfg.mapping.init_window if i < cfg.mapping.init_window else cfg.mapping.window) :]
-        if i < cfg.mapping.init_window:
-            iters = cfg.mapping.init_iters // cfg.mapping.init_window
-        else:
-            iters = cfg.mapping.iters
+        init = i < cfg.mapping.init_window
+        window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
+        iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         fixed = [self.first_slot] if self.first_slot is not None and self.first_slot >= 0 else []
-        result.mapping = self.mapper.optimize(kf, window, iters, fixed=fixed)
+        psnr_every = cfg.eval.convergence_every if init else 0
+        result.mapping = self.mapper.optimize(kf, window, iters, fixed=fixed, psnr_every=psnr_every)
         self.stats["mapping_s"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        result.pruned, result.merged = self._maintain(slot)
-        self.stats["maintenance_s"] += time.perf_counter() - t0
+        if cfg.method == "rgs":
+            t0 = time.perf_counter()
+            result.pruned, result.merged = self._maintain(slot)
+            self.stats["maintenance_s"] += time.perf_counter() - t0
+        else:
+            result.pruned = result.mapping.pruned
+        self._log_convergence(i, "init" if init else "keyframe", window, result.mapping)
+
+    def _log_convergence(self, i: int, phase: str, window: list[int], mapping: MappingResult) -> None:
+        """The samples taken during keyframe i's mapping, then the window's PSNR after it (and after
+        the maintenance), which replaces a sample at the same iteration; nothing without mapping."""
+        if mapping.iters == 0:
+            return
+        points = list(mapping.psnr_curve)
+        if points and points[-1][0] == self.mapper.total_iters:
+            points.pop()
+        points.append((self.mapper.total_iters, self.mapper.window_psnr(self.keyframes, window), len(self.map)))
+        for it, psnr_db, n in points:
+            psnr_db = float(psnr_db) if np.isfinite(psnr_db) else None
+            self.convergence.append({"iteration": it, "frame": i, "phase": phase, "psnr_db": psnr_db, "gaussians": n})
 
     # ---- seeding -------------------------------------------------------------------------------
     def _seed(self, slot: int) -> int:
@@ -308,6 +345,7 @@ class SLAM:
             rgb=np.stack([kf.rgb[s].numpy() for s in slots]) if slots else np.zeros((0,)),
             depth=np.stack([kf.depth[s].numpy() for s in slots]) if slots else np.zeros((0,)),
             keyframe_indices=np.array(self.keyframe_indices),
+            mapping_iters=self.mapper.total_iters,  # the densification schedule's clock
             camera=np.array([self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy]),
             size=np.array([self.camera.width, self.camera.height]),
             first_pose=self.T_first,
@@ -317,8 +355,8 @@ class SLAM:
 
     @classmethod
     def load(cls, directory: str | Path, device=None) -> SLAM:
-        """A SLAM restored from ``save``: map, trajectory and keyframe buffer; tracking continues
-        from the last pose (the optimiser state starts afresh)."""
+        """A SLAM restored from ``save``: map, trajectory, keyframe buffer and the count of mapping
+        iterations; tracking continues from the last pose (the optimiser state starts afresh)."""
         directory = Path(directory)
         for name in ("map.ply", "trajectory.txt", "keyframes.npz", "config.yaml"):
             if not (directory / name).is_file():
@@ -342,6 +380,8 @@ class SLAM:
             slot = slam.keyframes.add(frame_id, data["poses"][k], data["rgb"][k], depth, data["exposure"][k])
             slam._slot_of_frame[frame_id] = slot
         slam.first_slot = -1  # the gauge is the loaded map's
+        if "mapping_iters" in data:  # folders saved before it was recorded start the count afresh
+            slam.mapper.total_iters = int(data["mapping_iters"])
         if slam.poses:
             slam.tracker.reset(slam.poses[-1], slam.poses[-2] if len(slam.poses) > 1 else None)
         if len(slam.keyframes):
@@ -411,9 +451,10 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
 
     The folder gets: ``config.yaml``, ``dataset.json``, ``trajectory.txt`` (TUM, readable by evo),
     ``map.ply`` (3DGS layout), ``keyframes.npz``, ``metrics.json`` + ``metrics.md``,
-    ``trajectory_topview.png``, ``renders/*.png`` (render | ground truth side by side) and
-    ``log.jsonl`` (one line per frame).  If the run stops early (error, Ctrl-C), what was tracked so
-    far is still saved, and the error is re-raised.
+    ``trajectory_topview.png``, ``renders/*.png`` (render | ground truth side by side),
+    ``log.jsonl`` (one line per frame) and ``convergence.json`` + ``convergence.png`` (``SLAM.convergence``:
+    window PSNR against the cumulative mapping iterations).  If the run stops early (error, Ctrl-C),
+    what was tracked so far is still saved, and the error is re-raised.
     """
     device = resolve_device(cfg.device)
     ds = open_dataset(cfg, device=device)
@@ -445,6 +486,8 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
                 entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
                 if result.mapping is not None and result.mapping.iters:
                     entry["mapping_l1"] = result.mapping.final_l1
+                if cfg.method == "baseline" and result.mapping is not None:
+                    entry.update(cloned=result.mapping.cloned, split=result.mapping.split)
             log.write(json.dumps(entry) + "\n")
             elapsed = time.perf_counter() - t_start
             bar.set_postfix(
@@ -458,9 +501,38 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
         bar.close()
         log.close()
         slam.save(run_dir)
+        write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
     wall = time.perf_counter() - t_start
     metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall)
     return run_dir, metrics
+
+
+def write_convergence(run_dir: Path, points: list[dict], title: str) -> None:
+    """``convergence.json`` (the points of ``SLAM.convergence``) and ``convergence.png``: the window's
+    PSNR against the cumulative mapping iterations (initialization samples joined by a line, one
+    marker per keyframe's mapping after it) with the number of Gaussians on a second axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    (run_dir / "convergence.json").write_text(json.dumps(points, indent=1) + "\n", encoding="utf-8")
+    fig, ax = plt.subplots(figsize=(7.0, 4.0), dpi=150)
+    count_ax = ax.twinx()
+    for phase, style in (("init", "-o"), ("keyframe", "s")):
+        shown = [p for p in points if p["phase"] == phase and p["psnr_db"] is not None]
+        label = "initialization window" if phase == "init" else "window after a keyframe's mapping"
+        ax.plot([p["iteration"] for p in shown], [p["psnr_db"] for p in shown], style, markersize=3, label=label)
+    count_ax.plot([p["iteration"] for p in points], [p["gaussians"] for p in points], color="gray", linewidth=0.8)
+    count_ax.set_ylabel("Gaussians", color="gray")
+    ax.set_xlabel("mapping iterations (cumulative)")
+    ax.set_ylabel("mean window PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(True, linewidth=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(run_dir / "convergence.png")
+    plt.close(fig)
 
 
 def evaluate_run(cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wall_s: float) -> dict:

@@ -4,7 +4,10 @@
 [--out experiments/results] [--quick] [key=value ...]`` writes ``<out>/eval.json`` (every run and
 aggregate), ``<out>/eval.md`` (one table per metric group: rows = metric x method, columns = the
 scenes of a benchmark + "Avg.", mean ± std over the repeats, best in bold, second best underlined as
-in the supplement §3) and ``<out>/eval_*.png``; the run folders go to ``<out>/eval_runs/``.
+in the supplement §3, and a convergence table: the mapping iterations each method's initialization
+needs to reach a PSNR common to the methods, see ``convergence_comparison``) and
+``<out>/eval_*.png`` (bars per metric, the methods' convergence curves overlaid per scene); the run
+folders go to ``<out>/eval_runs/``.
 
 A run that raises (an absent dataset, a method not implemented yet) is recorded with its error and
 the suite goes on; a metric a run could not compute (None with ``<name>_na_reason``, see
@@ -51,6 +54,9 @@ QUICK_MAX_FRAMES = 15
 CPU_SEVENSCENES = ("dataset.stride=5", "dataset.downscale=2")
 # Replica (1200x680) and TUM (640x480) on the CPU: about the synthetic scenes' 240x136 / 320x240.
 CPU_DOWNSCALE = {"replica": 5, "tum": 2}
+# The common PSNR of the convergence table: the lowest of the methods' final initialization PSNRs
+# less this margin, so that every method's curve crosses it on its way up.
+CONVERGENCE_MARGIN_DB = 0.5
 
 
 @dataclass(frozen=True)
@@ -161,14 +167,26 @@ def _one_run(entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runn
 
 
 def _read_convergence(run_dir: Path) -> list[dict] | None:
-    """``convergence.json`` of a run: a list of ``{"iteration": int, "psnr_db": float}``."""
+    """``convergence.json`` of a run (``rgs_warp.slam.write_convergence``): a list of
+    ``{"iteration", "frame", "phase" ("init" | "keyframe"), "psnr_db", "gaussians"}``; points without
+    a PSNR (an empty map) are left out."""
     path = run_dir / "convergence.json"
     if not path.is_file():
         return None
     try:
         points = json.loads(path.read_text())
-        return [{"iteration": int(p["iteration"]), "psnr_db": float(p["psnr_db"])} for p in points]
-    except (ValueError, TypeError, KeyError):
+        return [
+            {
+                "iteration": int(p["iteration"]),
+                "frame": int(p["frame"]),
+                "phase": str(p["phase"]),
+                "psnr_db": float(p["psnr_db"]),
+                "gaussians": int(p["gaussians"]),
+            }
+            for p in points
+            if p.get("psnr_db") is not None
+        ]
+    except (ValueError, TypeError, KeyError, AttributeError):
         return None
 
 
@@ -225,6 +243,7 @@ def run_suite(
         ],
         "aggregate": aggregate,
         "averages": benchmark_averages(aggregate, scenes, methods),
+        "convergence": convergence_comparison(runs, scenes, methods),
         "runs": runs,
     }
     result["plots"] = write_plots(result, out_dir)
@@ -309,6 +328,56 @@ def benchmark_averages(aggregate: dict, scenes: Sequence[str], methods: Sequence
                 else:
                     reason = "no value on " + ("any scene" if len(missing) == len(members) else ", ".join(missing))
                     out[bench][method][m.id] = {"mean": None, "na_reason": reason}
+    return out
+
+
+def final_init_psnr(curve: list[dict]) -> float | None:
+    """PSNR of a run's last initialization sample (the window after the initialization's last
+    keyframe), None without one."""
+    init = [p for p in curve if p["phase"] == "init"]
+    return init[-1]["psnr_db"] if init else None
+
+
+def iterations_to_reach(curve: list[dict], target_db: float) -> int | None:
+    """The first logged initialization iteration from which on the window PSNR stays at or above
+    ``target_db`` for the rest of the initialization; None if its last sample is below."""
+    init = [p for p in curve if p["phase"] == "init"]
+    reached = None
+    for p in reversed(init):
+        if p["psnr_db"] < target_db:
+            break
+        reached = p["iteration"]
+    return reached
+
+
+def convergence_comparison(runs: list[dict], scenes: Sequence[str], methods: Sequence[str]) -> dict:
+    """``{scene: {"target_db", "methods": {method: {"final_init_db", "iterations", "values", "n",
+    "runs"}}}}`` for every scene with convergence curves: target_db = the lowest over the methods of
+    their mean final initialization PSNR (``final_init_psnr``) less ``CONVERGENCE_MARGIN_DB``;
+    ``iterations`` = the mean over the repeats of ``iterations_to_reach(curve, target_db)`` (None when
+    no repeat reached it), ``values`` the repeats' own, ``n`` how many reached it of ``runs`` curves."""
+    out: dict = {}
+    for scene in scenes:
+        curves = {
+            m: [r["convergence"] for r in runs if r["scene"] == scene and r["method"] == m and r.get("convergence")]
+            for m in methods
+        }
+        finals = {m: [v for v in map(final_init_psnr, c) if v is not None] for m, c in curves.items()}
+        means = {m: float(np.mean(v)) for m, v in finals.items() if v}
+        if not means:
+            continue
+        target = min(means.values()) - CONVERGENCE_MARGIN_DB
+        cells = {}
+        for m in methods:
+            values = [it for it in (iterations_to_reach(c, target) for c in curves[m]) if it is not None]
+            cells[m] = {
+                "final_init_db": means.get(m),
+                "iterations": float(np.mean(values)) if values else None,
+                "values": values,
+                "n": len(values),
+                "runs": len(curves[m]),
+            }
+        out[scene] = {"target_db": target, "methods": cells}
     return out
 
 
@@ -476,6 +545,7 @@ def render_markdown(result: dict) -> str:
         lines += [f"## {group}", ""]
         for bench in benches:
             lines += [f"### {bench}", "", *_table(result, group, bench, notes), ""]
+    lines += _convergence_section(result)
     for name in result["plots"]:
         lines += [f"![{name}]({name})", ""]
     lines += ["## Scenes", ""]
@@ -492,6 +562,44 @@ def render_markdown(result: dict) -> str:
     if notes.texts:
         lines += ["## Notes", "", *notes.lines(), ""]
     return "\n".join(lines)
+
+
+def _convergence_section(result: dict) -> list[str]:
+    """The convergence table of eval.md: per scene, the common PSNR and each method's iterations."""
+    comparison = result["convergence"]
+    if not comparison:
+        return []
+    methods = result["header"]["methods"]
+    lines = [
+        "## Convergence",
+        "",
+        "Mapping iterations of the initialization (cumulative, over its growing window of keyframes) "
+        "each method needs to reach a PSNR common to the methods. The common PSNR of a scene is the "
+        "lowest of the methods' final initialization PSNRs (mean window PSNR after the initialization's "
+        f"last keyframe, mean over the repeats) minus {CONVERGENCE_MARGIN_DB} dB; a run needs the first "
+        "logged iteration from which on its mean window PSNR (exposure-corrected render against the "
+        "keyframes, sampled every `eval.convergence_every` iterations and after each keyframe's mapping) "
+        "stays at or above it until the end of the initialization. Cells: mean over the repeats that "
+        "reached it (their count if not all), then the method's final initialization PSNR.",
+        "",
+        "| Scene | common PSNR (dB) | " + " | ".join(methods) + " |",
+        "|---|---:|" + "---:|" * len(methods),
+    ]
+    for scene, entry in comparison.items():
+        cells = []
+        for method in methods:
+            c = entry["methods"][method]
+            if not c["runs"]:
+                cells.append("n/a (no curve)")
+                continue
+            text = "not reached" if c["iterations"] is None else f"{c['iterations']:.0f}"
+            if c["iterations"] is not None and c["n"] < c["runs"]:
+                text += f" ({c['n']} of {c['runs']} runs)"
+            if c["final_init_db"] is not None:
+                text += f" ({c['final_init_db']:.2f} dB)"
+            cells.append(text)
+        lines.append(f"| {scene} | {entry['target_db']:.2f} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -524,26 +632,35 @@ def _bar_plot(result: dict, metric: Metric, path: Path) -> bool:
 
 
 def _convergence_plot(result: dict, path: Path) -> bool:
-    """PSNR against mapping iterations, one panel per scene, one colour per method, a line per repeat."""
+    """Per scene (a column), the methods' convergence curves overlaid (a colour per method, a line per
+    repeat): window PSNR against the cumulative mapping iterations with the common PSNR of the
+    convergence table dashed (top), and the number of Gaussians (bottom)."""
     curves = [r for r in result["runs"] if r.get("convergence")]
     if not curves:
         return False
     scenes = list(dict.fromkeys(r["scene"] for r in curves))
     colours = {k: f"C{i}" for i, k in enumerate(result["header"]["methods"])}
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.5 * len(scenes), 4.0), dpi=150, squeeze=False)
-    for ax, scene in zip(axes[0], scenes, strict=True):
+    fig, axes = plt.subplots(2, len(scenes), figsize=(4.5 * len(scenes), 6.5), dpi=150, squeeze=False, sharex="col")
+    for col, scene in enumerate(scenes):
+        top, bottom = axes[0, col], axes[1, col]
         labelled = set()
         for r in (r for r in curves if r["scene"] == scene):
             it = [p["iteration"] for p in r["convergence"]]
-            psnr = [p["psnr_db"] for p in r["convergence"]]
             label = None if r["method"] in labelled else r["method"]
             labelled.add(r["method"])
-            ax.plot(it, psnr, color=colours.get(r["method"], "gray"), linewidth=1.0, alpha=0.8, label=label)
-        ax.set_title(scene)
-        ax.set_xlabel("mapping iterations")
-        ax.set_ylabel("PSNR (dB)")
-        ax.grid(True, linewidth=0.3)
-        ax.legend()
+            style = {"color": colours.get(r["method"], "gray"), "linewidth": 1.0, "alpha": 0.8}
+            top.plot(it, [p["psnr_db"] for p in r["convergence"]], label=label, **style)
+            bottom.plot(it, [p["gaussians"] for p in r["convergence"]], **style)
+        target = result.get("convergence", {}).get(scene, {}).get("target_db")
+        if target is not None:
+            top.axhline(target, color="black", linestyle="--", linewidth=0.8, label="common PSNR")
+        top.set_title(scene)
+        top.set_ylabel("mean window PSNR (dB)")
+        bottom.set_ylabel("Gaussians")
+        bottom.set_xlabel("mapping iterations (cumulative)")
+        for ax in (top, bottom):
+            ax.grid(True, linewidth=0.3)
+        top.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -1,6 +1,6 @@
 """Adaptive density control of 3DGS (Kerbl et al. 2023, §5.2), the map growth of the dense
 initialization baseline: screen-space gradient statistics, clone / split selection, writing the new
-rows, pruning flags and the opacity reset.
+rows, pruning flags and the opacity reset (of the Gaussians seen since the statistics restarted).
 
 Actions per Gaussian (``new_rows``): 0 = untouched, 1 = cloned (one exact copy appended),
 2 = split (two children appended, the parent removed afterwards).
@@ -139,10 +139,13 @@ def flag_pruned(
 
 @wp.kernel
 def clamp_opacity_logits(
+    # in: renders that saw each Gaussian since the statistics restarted (only those are reset)
+    visible_count: wp.array(dtype=wp.int32),
     # in: largest logit kept (the logit of the reset opacity)
     max_logit: float,
     # in/out:
     opacity_logits_out: wp.array(dtype=wp.float32),
 ):
     i = wp.tid()
-    opacity_logits_out[i] = wp.min(opacity_logits_out[i], max_logit)
+    if visible_count[i] > 0:
+        opacity_logits_out[i] = wp.min(opacity_logits_out[i], max_logit)
