@@ -133,18 +133,26 @@ BASELINE = [
 ]
 
 
-def test_baseline_grows_by_densification_only(tmp_path, device):
+def test_baseline_grows_by_densification_and_depth_coverage(tmp_path, device, monkeypatch):
+    from rgs_warp.matching import DenseMatcher
+
+    def no_matching(*args, **kwargs):
+        raise AssertionError("method=baseline must not run the dense matcher")
+
+    monkeypatch.setattr(DenseMatcher, "match", no_matching)
     cfg = load_config([*BASELINE, f"device={device}", f"output_dir={tmp_path}", "run_name=baseline"])
     run_dir, metrics = run(cfg, progress=False)
     assert metrics["method"] == "baseline" and metrics["frames"] == 7
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
     keyframes = [e for e in log if e["keyframe"]]
-    # one dense start at the first keyframe, none later; the densifier (and only it) adds Gaussians
-    assert keyframes[0]["seeded"] > 100 and all(e["seeded"] == 0 for e in keyframes[1:])
+    # one dense start at the first keyframe; later only depth seeds where the map does not cover the
+    # keyframe (fewer than a whole view's), the densifier grows the rest
+    assert keyframes[0]["seeded"] > 100 and all(e["seeded"] < keyframes[0]["seeded"] for e in keyframes[1:])
     assert all(e["merged"] == 0 for e in keyframes)
     grown = sum(e["cloned"] + e["split"] for e in keyframes)
+    seeded = sum(e["seeded"] for e in keyframes)
     assert grown > 0 and metrics["gaussians"] > keyframes[0]["seeded"]
-    assert metrics["gaussians"] == keyframes[0]["seeded"] + grown - sum(e["pruned"] for e in keyframes)
+    assert metrics["gaussians"] == seeded + grown - sum(e["pruned"] for e in keyframes)
     assert metrics["ate"]["all_frames"]["rmse_cm"] < 10.0 and metrics["photometric"]["psnr_db"] > 12.0
     _check_convergence(run_dir, cfg, metrics)
     points = json.loads((run_dir / "convergence.json").read_text())

@@ -244,8 +244,9 @@ class EvalConfig:
 class Config:
     device: str = "auto"  # auto = cuda:0 when Warp sees a GPU, else cpu
     mode: str = "rgbd"  # rgbd | mono
-    # rgs: dense seeding at every keyframe + merge / prune; baseline: seeds at the first keyframe only,
-    # then grows by residual-driven densification (section `densify`).  Set by the method group.
+    # rgs: dense seeding at every keyframe + merge / prune; baseline: a dense start at the first
+    # keyframe, then residual-driven densification (section `densify`) and depth seeds in uncovered
+    # regions only.  Set by the method group.
     method: str = "rgs"
     seed: int = 0
     data_root: str = ""  # default: $RGS_DATA, else the current directory

@@ -5,9 +5,12 @@ the camera-to-world pose; every frame is tracked against the map, and when the c
 accepts it as a keyframe, dense matching -> triangulation -> seeding -> windowed mapping -> merge /
 prune run before the next frame (same thread, deterministic).
 
-``method=baseline`` (the dense initialization baseline of supplement Table 2) seeds the first
-keyframe only and grows the map by residual-driven densification inside the mapping iterations
-(``Mapper`` with a ``Densifier``), without merge / prune; everything else is shared.
+``method=baseline`` (the dense initialization baseline of supplement Table 2) makes one dense start
+at the first keyframe and grows the map by residual-driven densification inside the mapping
+iterations (``Mapper`` with a ``Densifier``), without dense matching or merge / prune; later
+keyframes only get measured-depth seeds where the map does not cover them yet (RGB-D), since
+densification cannot reach regions no Gaussian sees (a run without them is lost once the camera
+leaves the first view).  Everything else is shared.
 """
 
 from __future__ import annotations
@@ -205,10 +208,10 @@ class SLAM:
             self.first_slot = -1  # the first keyframe left the buffer: nothing is fixed any more
         self.keyframe_indices.append(i)
         # baseline: the one dense start is the first keyframe's; later the densifier grows the map
-        if cfg.method == "rgs" or len(self.keyframe_indices) == 1:
-            t0 = time.perf_counter()
-            result.seeded = self._seed(slot)
-            self.stats["seeding_s"] += time.perf_counter() - t0
+        # and new regions get depth seeds only (no matching)
+        t0 = time.perf_counter()
+        result.seeded = self._seed(slot, matches=cfg.method == "rgs" or len(self.keyframe_indices) == 1)
+        self.stats["seeding_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         init = i < cfg.mapping.init_window
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
@@ -239,14 +242,15 @@ class SLAM:
             self.convergence.append({"iteration": it, "frame": i, "phase": phase, "psnr_db": psnr_db, "gaussians": n})
 
     # ---- seeding -------------------------------------------------------------------------------
-    def _seed(self, slot: int) -> int:
-        """Dense initialization at keyframe ``slot``: matches with its neighbours, triangulated,
-        seeded where the map does not explain the keyframe yet; then (RGB-D, ``seeding.depth_fill``,
-        or the very first keyframe) measured-depth seeds where the map still does not cover it."""
+    def _seed(self, slot: int, matches: bool = True) -> int:
+        """Dense initialization at keyframe ``slot``: (``matches``) matches with its neighbours,
+        triangulated, seeded where the map does not explain the keyframe yet; then (RGB-D,
+        ``seeding.depth_fill``, or the very first keyframe) measured-depth seeds where the map still
+        does not cover it."""
         cfg, kf, dev = self.cfg, self.keyframes, self.device
         added = 0
         T = kf.poses[slot]
-        neighbours = self.matcher.select_neighbours(slot, kf) if len(kf) >= 2 else []
+        neighbours = self.matcher.select_neighbours(slot, kf) if matches and len(kf) >= 2 else []
         if neighbours:
             m = self.matcher.match(slot, kf, neighbours, use_depth=self.mode == "rgbd")
             pts = self.triangulator.triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
