@@ -211,7 +211,10 @@ def main() -> None:
     parser.add_argument("--map-every", type=int, default=10, help="map frames: every n-th frame of the segment")
     parser.add_argument("--refine-iters", type=int, default=15, help="colour refit of the map (0: off)")
     parser.add_argument(
-        "--refit", default="colours", choices=["colours", "mapper"], help="colour-only Adam (host) or the Mapper (device)"
+        "--refit",
+        default="colours",
+        choices=["colours", "mapper"],
+        help="colour-only Adam (host) or the Mapper (device)",
     )
     parser.add_argument("--scene", default="room0")
     parser.add_argument(
@@ -262,7 +265,8 @@ def main() -> None:
                 run = run_sequence(seqs[drift], camera, gmap, args.frames, kind, drift, brightness, device, overrides)
                 report["runs"].append(run)
                 print(
-                    f"{kind:8s} {overrides} drift={drift!s:5s} brightness={brightness!s:5s} ATE {run['ate_rmse_cm']:.3f} cm "
+                    f"{kind:8s} {overrides} drift={drift!s:5s} brightness={brightness!s:5s} "
+                    f"ATE {run['ate_rmse_cm']:.3f} cm "
                     f"(se3 {run['ate_rmse_cm_se3']:.3f}), max {run['max_err_mm']:.2f} mm / "
                     f"{run['max_err_deg']:.3f} deg, converged {run['converged']}, lost {run['lost']}, "
                     f"{run['seconds_per_frame']:.1f} s/frame",
@@ -319,7 +323,8 @@ def markdown(report: dict) -> str:
         "",
         head,
         f"Map: {report['map']['gaussians']:,} Gaussians on the GT depth of frames {report['map']['frames']} "
-        f"(1.5x wider view, one disc every {report['map']['stride']} pixels, {refit}). Tracker defaults (RGB-D, 30 iterations), start from the "
+        f"(1.5x wider view, one disc every {report['map']['stride']} pixels, {refit}). "
+        "Tracker defaults (RGB-D, 30 iterations), start from the "
         "true first pose, then the constant-velocity prediction.",
         "",
         "| observations | tracking overrides | exposure drift | brightness (Eq. 3-4) | ATE RMSE (cm, no alignment) "
@@ -328,7 +333,8 @@ def markdown(report: dict) -> str:
     ]
     for r in report["runs"]:
         lines.append(
-            f"| {r['observations']} | {overrides_text(r.get('tracking'))} | {'on' if r['exposure_drift'] else 'off'} | {'on' if r['brightness'] else 'off'} "
+            f"| {r['observations']} | {overrides_text(r.get('tracking'))} | {'on' if r['exposure_drift'] else 'off'} "
+            f"| {'on' if r['brightness'] else 'off'} "
             f"| {r['ate_rmse_cm']:.3f} | {r['ate_rmse_cm_se3']:.3f} | {r['max_err_mm']:.2f} / {r['max_err_deg']:.3f} "
             f"| {r['converged']}/{len(r['frames'])} | {r['lost']} | {r['seconds_per_frame']:.1f} |"
         )

@@ -228,6 +228,46 @@ class DensifyConfig:
 
 
 @dataclass
+class BootstrapConfig:
+    """Monocular two-view bootstrap (``rgs_warp.bootstrap``; mode=mono only)."""
+
+    enabled: bool = True  # False: the first keyframe is a plane at matching.scene_depth_m
+    # Search.  A coarse pass matches every coarse_step-th feature pixel over the whole image; the
+    # median of its distinctive matches' displacements (the global image motion, mostly camera
+    # rotation) centres every query's window.  The window then only has to hold what that misses:
+    # the parallax and the non-uniform part of the rotational flow (a 10 deg pan moves the image
+    # centre by 0.18 f and the border of a 90 deg field of view by 0.43 f).
+    coarse_step: int = 4  # feature px between the coarse pass's queries (0: no coarse pass)
+    search_radius: int = 12  # feature px, window half-width around the query's moved cell
+    ratio_exclusion: int = 2  # feature px: the second best is sought outside this of the best
+    min_similarity: float = 0.5  # Eq. 10 of the best match
+    max_ratio: float = 0.9  # Lowe's ratio of descriptor distances, best / second best
+    max_fb_px: float = 1.0  # forward-backward error, image px (mutual consistency)
+    refine_radius_px: int = 3  # image-resolution ZNCC refinement within +/- this (0: parabola only)
+    patch_radius_px: int = 3  # ZNCC patch (2r+1)^2, as the DenseMatcher's
+    # Relative pose
+    ransac_iters: int = 512  # 8-point samples; with 30 % outliers P(no clean one) = (1 - 0.7^8)^512 ~ 1e-13
+    ransac_threshold_px: float = 1.0  # Sampson error of an inlier, image px
+    ransac_seed: int = 0  # fixed: the same pair always gives the same pose
+    refine_rounds: int = 2  # rounds of Sampson-error refinement on the inliers and re-selection
+    min_inliers: int = 100  # fewer: the pose is not trusted
+    # Below this fraction of the selected matches the pose explains too little of the image to be
+    # trusted.  Measured on frame 0 with frames 1-30 of office0 / room0 (160x90, 320x180): poses
+    # within 0.5 deg of the truth had 0.82-1.0; room0 frames 16-28 at 320x180 have 0.53-0.77 (frame
+    # 27 was 16 deg off without the gate); office0 frames 17-19, 40-50 deg of rotation from frame 0,
+    # pass with 0.81-0.82 and are 8-9 deg off (not caught: the caller stops at frame 6 there).
+    min_inlier_ratio: float = 0.8
+    min_cheirality_ratio: float = 0.9  # of the inliers in front of both cameras for the chosen (R, t)
+    min_parallax_deg: float = 2.0  # median parallax angle of the inliers; below: wait for a later frame
+    # Points: kept when their reprojection error (RMS over both views) and parallax allow a depth
+    max_reproj_px: float = 1.0
+    min_point_parallax_deg: float = 0.5
+    # Waiting: the SLAM tries frames 1, 2, ... against frame 0 and gives up after this many, falling
+    # back to a plane at matching.scene_depth_m (the gauge: median depth of the first points)
+    max_wait_frames: int = 30
+
+
+@dataclass
 class EvalConfig:
     every: int = 5  # §3: photometric metrics on every 5th frame, keyframes excluded
     # convergence.json: mean PSNR of the window keyframes every this many mapping iterations during
@@ -261,6 +301,7 @@ class Config:
     seeding: SeedingConfig = field(default_factory=SeedingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    bootstrap: BootstrapConfig = field(default_factory=BootstrapConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
 
     def resolved_data_root(self) -> Path:

@@ -27,6 +27,7 @@ import warp as wp
 from tqdm import tqdm
 
 from rgs_warp import maintenance
+from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
 from rgs_warp.config import Config, ConfigError, help_text, load_config, save_config
 from rgs_warp.datasets import DatasetError, open_dataset
 from rgs_warp.geometry import invert_pose
@@ -136,6 +137,15 @@ class SLAM:
         self._mono_depth = wp.full((camera.height, camera.width), cfg.matching.scene_depth_m, dtype=wp.float32, **kw)
         self._zero_alpha = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
         self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
+        # frames below this index are forced keyframes of the initialization window; a monocular
+        # two-view bootstrap replaces that window (set to 0 when it has built the first map)
+        self._init_window_end = cfg.mapping.init_window
+        self._bootstrap = (
+            MonoBootstrap(cfg.bootstrap, camera, dev, backbone=self.matcher.backbone, matching=cfg.matching)
+            if self.mode == "mono" and cfg.bootstrap.enabled
+            else None
+        )
+        self._boot_frames: list[tuple[np.ndarray, float]] = []  # (rgb, timestamp) while it waits
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
@@ -157,7 +167,9 @@ class SLAM:
             raise ValueError("mode 'rgbd' needs a depth image for every frame (or set mode=mono)")
         if not use_depth:
             depth = None
-        init_phase = i < self.cfg.mapping.init_window
+        if self._bootstrap is not None:
+            return self._process_bootstrap(rgb, timestamp, t0)
+        init_phase = i < self._init_window_end
         tracking = None
         if i == 0:
             T = self.T_first.copy()
@@ -172,7 +184,7 @@ class SLAM:
             decision = self.selector.should_add(self.tracker.alpha, T)
             is_kf, reason = decision.is_keyframe, decision.reason
             if init_phase:
-                is_kf, reason = True, f"initial window ({i + 1}/{self.cfg.mapping.init_window})"
+                is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end})"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         if is_kf:
             self.selector.accept(T)
@@ -194,8 +206,8 @@ class SLAM:
             return wp.zeros((tc.height, tc.width), dtype=wp.float32, device=self.device)
         return self.renderer.forward(self.map, tc, T_WC).alpha
 
-    def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult) -> None:
-        cfg = self.cfg
+    def _store_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure) -> int:
+        """Frame i into the keyframe buffer (the oldest leaves when full); returns its slot."""
         kf = self.keyframes
         evicted = kf.frame_ids[kf.slots()[0]] if len(kf) == kf.capacity else None
         if evicted is not None:
@@ -207,13 +219,92 @@ class SLAM:
         elif self.first_slot == slot:
             self.first_slot = -1  # the first keyframe left the buffer: nothing is fixed any more
         self.keyframe_indices.append(i)
+        return slot
+
+    def _process_bootstrap(self, rgb, timestamp: float | None, t0: float) -> FrameResult:
+        """Monocular start (``bootstrap.py``): frame 0 waits for a frame k with enough parallax; then
+        keyframes 0 and k are seeded from their triangulated matches and mapped together
+        (``mapping.init_iters``), and the frames in between are tracked against that map.  After
+        ``bootstrap.max_wait_frames`` frames without success the start falls back to frame 0 alone
+        on a plane at ``matching.scene_depth_m`` (the frames since are then tracked against it)."""
+        cfg, dev = self.cfg, self.device
+        i = len(self.poses)
+        rgb_host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
+        self._boot_frames.append((rgb_host, float(i) if timestamp is None else float(timestamp)))
+        T0 = self.T_first.copy()
+        result = FrameResult(i, T0, None, False, "monocular bootstrap: first frame, waiting for parallax")
+        boot = None
+        if i > 0:
+            tb = time.perf_counter()
+            boot = self._bootstrap.try_init(self._boot_frames[0][0], rgb_host)
+            self.stats["seeding_s"] += time.perf_counter() - tb
+            if boot is None and i < cfg.bootstrap.max_wait_frames:
+                result.keyframe_reason = f"monocular bootstrap: {self._bootstrap.last_rejection}"
+        if i == 0 or (boot is None and i < cfg.bootstrap.max_wait_frames):
+            self.poses.append(T0)  # provisional: replaced once the first map exists
+            self.timestamps.append(self._boot_frames[-1][1])
+            self.stats["frames"] += 1
+            result.seconds = time.perf_counter() - t0
+            return result
+        frames, self._boot_frames, self._bootstrap = self._boot_frames, [], None
+        self._init_window_end = 0
+        tb = time.perf_counter()
+        slot0 = self._store_keyframe(0, T0, frames[0][0], None, (1.0, 0.0))
+        if boot is not None:
+            T_k = T0 @ boot.T_0k
+            slot_k = self._store_keyframe(i, T_k, rgb_host, None, (1.0, 0.0))
+            points = to_triangulated_points(boot, T0, dev)
+            confidence = wp.array(boot.confidence, dtype=wp.float32, device=dev)
+            result.seeded = self.seeder.seed(points, confidence, self.keyframes, [slot0, slot_k], self.map)
+            window, retrack = [slot0, slot_k], range(1, i)
+            result.keyframe, result.keyframe_reason = (
+                True,
+                f"monocular bootstrap with frame 0 ({len(boot.points)} points)",
+            )
+        else:
+            result.seeded = self._seed(slot0)  # the first keyframe's plane at matching.scene_depth_m
+            window, retrack = [slot0], range(1, i + 1)
+            result.keyframe_reason = f"monocular bootstrap gave up after {i} frames: plane at frame 0"
+        self.stats["seeding_s"] += time.perf_counter() - tb
+        tm = time.perf_counter()
+        result.mapping = self.mapper.optimize(
+            self.keyframes, window, cfg.mapping.init_iters, fixed=[slot0], psnr_every=cfg.eval.convergence_every
+        )
+        self.stats["mapping_s"] += time.perf_counter() - tm
+        self._log_convergence(i, "init", window, result.mapping)
+        # the frames that waited, tracked against the first map
+        self.tracker.reset(T0)
+        for j in retrack:
+            tr0 = time.perf_counter()
+            tracking = self.tracker.track(frames[j][0], None, self.map)
+            self.stats["tracking_s"] += time.perf_counter() - tr0
+            if j < i:
+                self.poses[j] = tracking.T_WC
+            else:
+                result.tracking, result.T_WC = tracking, tracking.T_WC
+        if boot is not None:
+            result.T_WC = self.keyframes.poses[slot_k].copy()
+            self.tracker.reset(result.T_WC, self.poses[i - 1] if i > 1 else T0)
+        self.poses[0] = self.keyframes.poses[slot0].copy()
+        self.selector.should_add(self._alpha_at(result.T_WC), result.T_WC)
+        self.selector.accept(result.T_WC)
+        self.poses.append(result.T_WC)
+        self.timestamps.append(frames[-1][1])
+        self.stats["frames"] += 1
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult) -> None:
+        cfg = self.cfg
+        kf = self.keyframes
+        slot = self._store_keyframe(i, T, rgb, depth, exposure)
         # baseline: the one dense start is the first keyframe's; later the densifier grows the map
         # and new regions get depth seeds only (no matching)
         t0 = time.perf_counter()
         result.seeded = self._seed(slot, matches=cfg.method == "rgs" or len(self.keyframe_indices) == 1)
         self.stats["seeding_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        init = i < cfg.mapping.init_window
+        init = i < self._init_window_end
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         fixed = [self.first_slot] if self.first_slot is not None and self.first_slot >= 0 else []
