@@ -184,3 +184,58 @@ def test_slam_rejects_missing_depth_in_rgbd_mode(device):
     slam = SLAM(cfg, Camera(80.0, 80.0, 79.5, 44.5, 160, 90), device=device)
     with pytest.raises(ValueError, match="depth"):
         slam.track(np.zeros((90, 160, 3), np.float32), None)
+
+
+MONO = [
+    "mode=mono",
+    "dataset=synthetic/office0",
+    "dataset.width=160",
+    "dataset.height=90",
+    "mapping.init_iters=40",
+    "mapping.iters=8",
+    "mapping.window=3",
+]
+
+
+def _frames(cfg, n):
+    from rgs_warp.datasets import open_dataset
+
+    ds = open_dataset(cfg, device="cpu")
+    return ds.camera, [ds[i] for i in range(n)]
+
+
+def test_mono_bootstrap_builds_the_first_map_from_two_views(device):
+    from rgs_warp.geometry import invert_pose, rotation_angle_deg
+
+    cfg = load_config([*MONO, "dataset.max_frames=8", f"device={device}"])
+    camera, frames = _frames(cfg, 8)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
+    # frame 0 waits; office0 at 160x90 has enough parallax with frame 6 (tests/test_bootstrap.py)
+    k = next(r.index for r in results if r.keyframe)
+    assert all(not r.keyframe and r.seeded == 0 and "monocular bootstrap" in r.keyframe_reason for r in results[:k])
+    assert 2 <= k <= 7 and "monocular bootstrap with frame 0" in results[k].keyframe_reason
+    assert slam.keyframe_indices[:2] == [0, k] and results[k].seeded > 50 and results[k].mapping.iters == 40
+    _, poses = slam.trajectory()
+    assert len(poses) == 8
+    # the gauge: frame 0 is the given pose; the scale is the bootstrap's (median depth 2 m), so
+    # compare the direction of travel and the rotation of frame k with the truth
+    T_0k_est = invert_pose(poses[0]) @ poses[k]
+    T_0k_gt = invert_pose(frames[0].pose_gt) @ frames[k].pose_gt
+    np.testing.assert_allclose(poses[0], frames[0].pose_gt, atol=1e-9)
+    d_est, d_gt = T_0k_est[:3, 3], T_0k_gt[:3, 3]
+    cos = d_est @ d_gt / np.linalg.norm(d_est) / np.linalg.norm(d_gt)
+    assert cos > np.cos(np.radians(10.0)), np.degrees(np.arccos(cos))
+    assert rotation_angle_deg(T_0k_est[:3, :3].T @ T_0k_gt[:3, :3]) < 1.0
+    # the frames that waited were re-tracked against the first map (not left at frame 0's pose)
+    assert all(np.abs(poses[j] - poses[0]).max() > 1e-6 for j in range(1, k))
+
+
+def test_mono_bootstrap_falls_back_to_a_plane(device):
+    cfg = load_config([*MONO, "dataset.max_frames=3", "bootstrap.max_wait_frames=2", f"device={device}"])
+    camera, frames = _frames(cfg, 3)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
+    assert "gave up after 2 frames" in results[2].keyframe_reason
+    assert slam.keyframe_indices == [0] and len(slam.map) > 100 and results[2].tracking is not None
+    assert len(slam.trajectory()[1]) == 3
