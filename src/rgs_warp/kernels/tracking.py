@@ -127,10 +127,7 @@ def brightness_sums(
 ):
     # Eq. 4 as weighted least squares over pixels and channels, weight w_alpha (Eq. 7): pixels the map
     # does not cover say nothing about the exposure; w_grad is left out on purpose, flat areas
-    # constrain the gain and bias as well as edges do.  The render enters alpha-normalised (its
-    # colour sum_i w_i c_i / alpha, the background being black): a partly covered pixel is darker by
-    # its opacity, not by the exposure, and read as exposure it drove the gain up frame after frame
-    # through the mapper (monocular office run: g 1 -> 1.2 by frame 80, then past 20).
+    # constrain the gain and bias as well as edges do.
     block, lane = wp.tid()
     i = block * REDUCE_BLOCK + lane
     width = observed.shape[1]
@@ -140,7 +137,7 @@ def brightness_sums(
         x = i - y * width
         a = alpha[y, x]
         w = alpha_weight(a, tau_alpha)
-        xr = rendered[y, x] / wp.max(a, ALPHA_DEPTH_MIN)
+        xr = rendered[y, x]
         yo = observed[y, x]
         s = vec8(
             3.0 * w,
