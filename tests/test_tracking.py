@@ -77,8 +77,8 @@ def _brightness_inputs(rng, shape):
     return observed, rendered, depth, alpha
 
 
-@pytest.mark.parametrize("ridge", [0.0, 1e-2])
-def test_brightness_solve_matches_lstsq(device, ridge):
+@pytest.mark.parametrize("ridge,min_alpha", [(0.0, 0.0), (1e-2, 0.0), (1e-2, 0.7)])
+def test_brightness_solve_matches_lstsq(device, ridge, min_alpha):
     rng = np.random.default_rng(1)
     shape = (23, 31)  # 713 pixels: a partly filled last block
     observed, rendered, depth, alpha = _brightness_inputs(rng, shape)
@@ -89,15 +89,17 @@ def test_brightness_solve_matches_lstsq(device, ridge):
         tk.brightness_sums,
         dim=_blocks(shape),
         inputs=[wp.array(observed, dtype=wp.vec3, device=device), wp.array(rendered, dtype=wp.vec3, device=device)]
-        + [wp.array(depth, device=device), wp.array(alpha, device=device), tau_alpha, row],
+        + [wp.array(depth, device=device), wp.array(alpha, device=device), tau_alpha, min_alpha, row],
         outputs=[hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
     )
     wp.launch(tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_AFFINE, ridge, row], outputs=[hist], device=device)
     h = hist.numpy()
-    # Eq. 4 weighted by w_alpha over pixels x channels, plus the ridge rows sqrt(ridge * sum w) (g - 1, b)
-    w = np.repeat(np.clip(alpha / tau_alpha, 0, 1).reshape(-1), 3)
+    # Eq. 4 weighted by w_alpha (or 0/1 at min_alpha) over pixels x channels, plus the ridge rows
+    # sqrt(ridge * sum w) (g - 1, b)
+    w_pixel = (alpha >= min_alpha).astype(float) if min_alpha > 0 else np.clip(alpha / tau_alpha, 0, 1)
+    w = np.repeat(w_pixel.reshape(-1), 3)
     x, y = rendered.reshape(-1).astype(np.float64), observed.reshape(-1).astype(np.float64)
     A = np.stack([x, np.ones_like(x)], 1) * np.sqrt(w)[:, None]
     rhs = y * np.sqrt(w)
@@ -137,7 +139,7 @@ def test_gain_model_is_unbiased_under_misalignment_where_least_squares_is_not(de
             tk.brightness_sums,
             dim=_blocks(shape),
             inputs=[wp.array(observed, dtype=wp.vec3, device=device), wp.array(rendered, dtype=wp.vec3, device=device)]
-            + [wp.zeros(shape, dtype=wp.float32, device=device), wp.array(alpha, device=device), 0.5, 0],
+            + [wp.zeros(shape, dtype=wp.float32, device=device), wp.array(alpha, device=device), 0.5, 0.0, 0],
             outputs=[hist],
             block_dim=tk.REDUCE_BLOCK,
             device=device,
@@ -146,6 +148,33 @@ def test_gain_model_is_unbiased_under_misalignment_where_least_squares_is_not(de
         gains[model] = hist.numpy()[0, tk.H_GAIN]
     assert gains[tk.BRIGHTNESS_AFFINE] < 0.9  # regression dilution
     assert abs(gains[tk.BRIGHTNESS_GAIN] - 1.0) < 0.01
+
+
+def test_gain_ignores_partly_covered_pixels(device):
+    # a render over a black background is darker by the opacity where the map is thin; with Eq. 7's
+    # weights those pixels read as a gain > 1, on the fully covered ones alone the gain is exact
+    rng = np.random.default_rng(5)
+    shape = (40, 40)
+    colour = rng.uniform(0.1, 0.9, shape + (3,))
+    alpha = np.where(rng.uniform(size=shape) < 0.5, 1.0, rng.uniform(0.5, 0.9, shape)).astype(np.float32)
+    rendered = (alpha[..., None] * colour).astype(np.float32)
+    gains = {}
+    for min_alpha in (0.0, 0.98):
+        hist = _history(1, device)
+        wp.launch_tiled(
+            tk.brightness_sums,
+            dim=_blocks(shape),
+            inputs=[wp.array(colour.astype(np.float32), dtype=wp.vec3, device=device)]
+            + [wp.array(rendered, dtype=wp.vec3, device=device), wp.zeros(shape, dtype=wp.float32, device=device)]
+            + [wp.array(alpha, device=device), 0.5, min_alpha, 0],
+            outputs=[hist],
+            block_dim=tk.REDUCE_BLOCK,
+            device=device,
+        )
+        wp.launch(tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_GAIN, 1e-3, 0], outputs=[hist], device=device)
+        gains[min_alpha] = hist.numpy()[0, tk.H_GAIN]
+    assert gains[0.0] > 1.1
+    assert gains[0.98] == pytest.approx(1.0, abs=1e-6)
 
 
 def _slope_weight_reference(obs_depth, tau):

@@ -79,6 +79,10 @@ class TrackingConfig:
     # Eq. 3 brightness model: gain (g = ratio of weighted means, b = 0; default, see kernels/tracking.py
     # solve_brightness for why), affine (Eq. 4 least squares), off (g = 1, b = 0; ablation)
     brightness: str = "gain"
+    # Eq. 3-4 are solved on the pixels the map covers at least this much (partly covered pixels bias
+    # the gain, and the mapper feeds the bias back: kernels/tracking.py brightness_sums); 0: Eq. 7's
+    # w_alpha weights instead
+    brightness_min_alpha: float = 0.98
     brightness_ridge: float = 1e-3  # pull of (g, b) towards (1, 0), relative to the Eq. 4 weight sum
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha

@@ -246,7 +246,7 @@ class Tracker:
         wp.launch_tiled(
             tk.brightness_sums,
             dim=blocks,
-            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, k],
+            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, k],
             outputs=[self._history],
             block_dim=tk.REDUCE_BLOCK,
             device=dev,

@@ -121,12 +121,18 @@ def brightness_sums(
     rendered_depth: wp.array2d(dtype=wp.float32),
     alpha: wp.array2d(dtype=wp.float32),
     tau_alpha: float,
+    min_alpha: float,
     row: int,
     # out: columns H_S0..H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand)
     history_out: wp.array2d(dtype=wp.float64),
 ):
-    # Eq. 4 as weighted least squares over pixels and channels, weight w_alpha (Eq. 7): pixels the map
-    # does not cover say nothing about the exposure; w_grad is left out on purpose, flat areas
+    # Eq. 4 as least squares over the pixels the map covers fully (alpha >= min_alpha) and channels:
+    # pixels it does not cover say nothing about the exposure, and partly covered ones render darker
+    # by their opacity (over the black background), which would read as a gain > 1; dividing the
+    # opacity out instead is biased the other way, since the mapper brightens thin regions to match
+    # the keyframes, and either bias is fed back by the mapper frame after frame (GPU office runs:
+    # g 1 -> 1.2 -> 20 monocular, 1 -> 0.8 with the division; experiments/results/slam.md).  min_alpha
+    # <= 0 falls back to the w_alpha weights of Eq. 7.  w_grad is left out on purpose, flat areas
     # constrain the gain and bias as well as edges do.
     block, lane = wp.tid()
     i = block * REDUCE_BLOCK + lane
@@ -137,6 +143,8 @@ def brightness_sums(
         x = i - y * width
         a = alpha[y, x]
         w = alpha_weight(a, tau_alpha)
+        if min_alpha > 0.0:
+            w = wp.where(a >= min_alpha, 1.0, 0.0)
         xr = rendered[y, x]
         yo = observed[y, x]
         s = vec8(
