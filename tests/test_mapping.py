@@ -374,6 +374,41 @@ def test_mask_covered_points(device):
     np.testing.assert_array_equal(valid.numpy(), ref)
 
 
+def test_reject_depth_inconsistent_points(device):
+    rng = np.random.default_rng(19)
+    H, W, n = 12, 16, 300
+    fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
+    T_WC = se3_exp(np.array([-0.1, 0.2, 0.3, -0.2, 0.1, 0.1]))
+    uv = np.stack([rng.uniform(-2, W + 1, n), rng.uniform(-2, H + 1, n)], axis=1)  # some off the image
+    z = rng.uniform(1.0, 3.0, n)
+    P = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
+    X = P @ T_WC[:3, :3].T + T_WC[:3, 3]
+    measured = rng.uniform(1.0, 3.0, (H, W)).astype(np.float32)
+    measured[rng.uniform(size=(H, W)) < 0.15] = 0.0  # no measurement there
+    pu = np.clip(np.round(uv[:, 0]).astype(int), 0, W - 1)
+    pv = np.clip(np.round(uv[:, 1]).astype(int), 0, H - 1)
+    agree = rng.uniform(size=n) < 0.5
+    has = measured[pv, pu] > 0
+    measured[pv[agree & has], pu[agree & has]] = (z * (1 + rng.uniform(-0.03, 0.03, n)))[agree & has]
+    valid0 = (rng.uniform(size=n) < 0.8).astype(np.int32)
+    tol = 0.05
+    valid = wp.array(valid0, dtype=wp.int32, device=device)
+    wp.launch(
+        km.reject_depth_inconsistent_points,
+        dim=n,
+        inputs=[wp.array(uv, dtype=wp.vec2d, device=device), wp.array(measured, device=device)]
+        + [wp.array(X, dtype=wp.vec3d, device=device), wp.mat44d(invert_pose(T_WC)), tol],
+        outputs=[valid],
+        device=device,
+    )
+    d = measured[pv, pu].astype(np.float64)
+    inconsistent = (d > 0) & (np.abs(z - d) > tol * d)
+    ref = np.where(inconsistent, 0, valid0)
+    assert (valid0 & inconsistent).sum() > 20 and (valid0 & ~inconsistent & (d > 0)).sum() > 20
+    assert (valid0 & (d == 0)).sum() > 5  # points without a measurement are kept
+    np.testing.assert_array_equal(valid.numpy(), ref)
+
+
 # ---- the Mapper on a synthetic room -----------------------------------------------------------------
 # room0 at 96x54 (fx = 48), keyframes 0, 4, 8 of 100 frames (~15 cm / 15 deg apart), ray traced without
 # noise.  The map holds discs on the ground-truth depth of the keyframes (tests/helpers_maps.py).

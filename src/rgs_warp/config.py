@@ -162,6 +162,9 @@ class SeedingConfig:
     # whose map depth is off the seed's by more than covered_depth_tol (relative)
     covered_alpha: float = 0.5
     covered_depth_tol: float = 0.05
+    # RGB-D: triangulated seeds whose reference-view depth is off the measured depth by more than this
+    # (relative) are dropped (wrong matches, low parallax); the depth fill covers them; 0 = off
+    depth_consistency_tol: float = 0.05
     # RGB-D: also seed from the measured depth where the map still does not cover the keyframe after
     # the triangulated seeds (plain walls have no matches); the first keyframe always is (mono: at
     # matching.scene_depth_m)

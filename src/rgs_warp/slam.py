@@ -345,6 +345,15 @@ class SLAM:
         if neighbours:
             m = self.matcher.match(slot, kf, neighbours, use_depth=self.mode == "rgbd")
             pts = self.triangulator.triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
+            if self.mode == "rgbd" and cfg.seeding.depth_consistency_tol > 0.0:
+                wp.launch(
+                    km.reject_depth_inconsistent_points,
+                    dim=pts.X.shape[0],
+                    inputs=[m.ref_uv, kf.depth[slot], pts.X, wp.mat44d(invert_pose(T))]
+                    + [cfg.seeding.depth_consistency_tol],
+                    outputs=[pts.valid],
+                    device=dev,
+                )
             if len(self.map):
                 res = self.renderer.forward(self.map, self.camera, T)
                 wp.launch(

@@ -325,3 +325,32 @@ def mask_covered_points(
     if wp.abs(d_map - float(p[2])) > depth_rel_tol * float(p[2]):
         return
     valid[i] = 0
+
+
+@wp.kernel
+def reject_depth_inconsistent_points(
+    # in: reference-view pixels of the triangulated points and the reference keyframe's measured depth
+    ref_uv: wp.array(dtype=wp.vec2d),
+    measured_depth: wp.array2d(dtype=wp.float32),
+    X: wp.array(dtype=wp.vec3d),
+    T_CW: wp.mat44d,
+    depth_rel_tol: float,
+    # in/out: validity of each point
+    valid: wp.array(dtype=wp.int32),
+):
+    # RGB-D: a triangulated point whose depth in the reference view is off the sensor's by more than
+    # depth_rel_tol is a wrong match (or a low-parallax triangulation) and would seed a floater; the
+    # measured-depth fill covers its pixel instead.  Pixels without a measurement keep their points.
+    i = wp.tid()
+    if valid[i] == 0:
+        return
+    u = int(wp.round(float(ref_uv[i][0])))
+    v = int(wp.round(float(ref_uv[i][1])))
+    u = wp.clamp(u, 0, measured_depth.shape[1] - 1)
+    v = wp.clamp(v, 0, measured_depth.shape[0] - 1)
+    d = measured_depth[v, u]
+    if d <= 0.0:
+        return
+    p = T_CW @ wp.vec4d(X[i][0], X[i][1], X[i][2], wp.float64(1.0))
+    if wp.abs(float(p[2]) - d) > depth_rel_tol * d:
+        valid[i] = 0
