@@ -294,6 +294,18 @@ def depth_points(
     valid_out[i] = wp.where(ok, 1, 0)
 
 
+@wp.func
+def reference_pixel(coordinate: wp.float64, size: int):
+    """The pixel index of an image coordinate (pixel centres at integers), clamped into the image."""
+    return wp.clamp(int(wp.round(float(coordinate))), 0, size - 1)
+
+
+@wp.func
+def camera_depth(X: wp.vec3d, T_CW: wp.mat44d):
+    """z of the world point X in the camera T_CW (metres, float32)."""
+    return float((T_CW @ wp.vec4d(X[0], X[1], X[2], wp.float64(1.0)))[2])
+
+
 @wp.kernel
 def mask_covered_points(
     # in: reference-view pixels of the triangulated points and the map's render at the reference
@@ -313,16 +325,14 @@ def mask_covered_points(
     i = wp.tid()
     if valid[i] == 0:
         return
-    u = int(wp.round(float(ref_uv[i][0])))
-    v = int(wp.round(float(ref_uv[i][1])))
-    u = wp.clamp(u, 0, alpha.shape[1] - 1)
-    v = wp.clamp(v, 0, alpha.shape[0] - 1)
+    u = reference_pixel(ref_uv[i][0], alpha.shape[1])
+    v = reference_pixel(ref_uv[i][1], alpha.shape[0])
     a = alpha[v, u]
     if a < max_alpha:
         return
-    p = T_CW @ wp.vec4d(X[i][0], X[i][1], X[i][2], wp.float64(1.0))
+    z = camera_depth(X[i], T_CW)
     d_map = rendered_depth[v, u] / a
-    if wp.abs(d_map - float(p[2])) > depth_rel_tol * float(p[2]):
+    if wp.abs(d_map - z) > depth_rel_tol * z:
         return
     valid[i] = 0
 
@@ -344,13 +354,10 @@ def reject_depth_inconsistent_points(
     i = wp.tid()
     if valid[i] == 0:
         return
-    u = int(wp.round(float(ref_uv[i][0])))
-    v = int(wp.round(float(ref_uv[i][1])))
-    u = wp.clamp(u, 0, measured_depth.shape[1] - 1)
-    v = wp.clamp(v, 0, measured_depth.shape[0] - 1)
+    u = reference_pixel(ref_uv[i][0], measured_depth.shape[1])
+    v = reference_pixel(ref_uv[i][1], measured_depth.shape[0])
     d = measured_depth[v, u]
     if d <= 0.0:
         return
-    p = T_CW @ wp.vec4d(X[i][0], X[i][1], X[i][2], wp.float64(1.0))
-    if wp.abs(float(p[2]) - d) > depth_rel_tol * d:
+    if wp.abs(camera_depth(X[i], T_CW) - d) > depth_rel_tol * d:
         valid[i] = 0
