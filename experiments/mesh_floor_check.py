@@ -1,6 +1,6 @@
 """Floor of the mesh metrics on a synthetic scene: the same TSDF fusion and metrics as a run
 (``rgs_warp.eval.tsdf_fuse`` / ``mesh_metrics``) fed with the *ground-truth* depth at the keyframe
-poses of a run, next to the map's rendered depth, both from a case folder of the ``mesh_inputs.tar``
+poses of a run, next to the map's rendered depth, both from a case folder of the ``mesh_inputs.tar.gz``
 that ``experiments/bench/slam.py --diagnose`` writes.  Result: experiments/results/slam.md (runs 4-8).
 
     python experiments/mesh_floor_check.py MESH_INPUTS/office --scene office0 --width 1200 --height 680

@@ -1,10 +1,10 @@
 """Mesh metrics (Acc / Comp / Comp.Ratio, §3) of runs made where open3d is missing (the lent GPU):
-``experiments/bench/slam.py --diagnose`` writes ``mesh_inputs.tar`` (per case: half-resolution
+``experiments/bench/slam.py --diagnose`` writes ``mesh_inputs.tar.gz`` (per case: half-resolution
 rendered depth of every keyframe, their poses, the camera and, when small, the dataset's
 ground-truth mesh); this fuses the depth with the same TSDF and metrics as ``python -m
 rgs_warp.slam`` (``rgs_warp.eval.tsdf_fuse`` / ``mesh_metrics``) and prints / writes JSON.
 
-    python experiments/mesh_from_inputs.py OUT/mesh_inputs.tar [--gt-mesh mesh.ply] [--json out.json]
+    python experiments/mesh_from_inputs.py OUT/mesh_inputs.tar.gz [--gt-mesh mesh.ply] [--json out.json]
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def case_metrics(folder: Path, gt_mesh: Path | None) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("inputs", type=Path, help="mesh_inputs.tar or its extracted folder")
+    ap.add_argument("inputs", type=Path, help="mesh_inputs.tar.gz or its extracted folder")
     ap.add_argument("--gt-mesh", type=Path, default=None, help="ground-truth mesh for every case")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)

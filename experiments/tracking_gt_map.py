@@ -1,4 +1,4 @@
-"""Tracking against a map built from ground truth (issue 5 acceptance), on the CPU.
+"""Tracking against a map built from ground truth (issue 5 acceptance), on the CPU or a GPU (``--device``).
 
 Scene room0 at a small resolution, n_frames=200 (~1.9 cm / 1.9 deg between frames).  The map holds flat
 discs on the ground-truth depth of every 10th frame of the tracked segment, rendered with a 1.5x wider
