@@ -91,7 +91,9 @@ def main(argv=None) -> int:
                 print(
                     f"{name:<16} PSNR at estimated poses {d['psnr_est_pose_db']:.2f}, "
                     f"re-tracked {d['psnr_retracked_db']:.2f} (moved {d['retrack_shift_cm']:.2f} cm), "
-                    f"keyframes {d['psnr_keyframes_db']:.2f} dB"
+                    f"keyframes {d['psnr_keyframes_db']:.2f} dB; uncovered {100 * d['uncovered_fraction']:.2f} % "
+                    f"of pixels with {100 * d['uncovered_error_share']:.1f} % of the error, covered pixels "
+                    f"{d['psnr_covered_db']:.2f} dB, worst frame {d['worst_frame']} {d['worst_psnr_db']:.2f} dB"
                 )
         with tarfile.open(out / "mesh_inputs.tar.gz", "w:gz") as tar:
             tar.add(out / "mesh_inputs", arcname="mesh_inputs")
@@ -125,6 +127,35 @@ def diagnose(cfg, run_dir: Path, mesh_dir: Path) -> dict:
             values.append(psnr(image, ds[int(i)].rgb))
         return float(np.mean(values)) if values else float("nan")
 
+    # where the held-out error sits: pixels the map does not cover (alpha < 0.5), and the rest
+    uncovered, err_uncovered, psnr_covered, worst = [], [], [], (np.inf, None)
+    for i in idx:
+        res = slam.render(est[i])
+        ref = ds[int(i)].rgb
+        err = np.mean((np.clip(res.color.numpy(), 0.0, 1.0) - ref) ** 2, axis=-1)
+        low = res.alpha.numpy() < 0.5
+        uncovered.append(float(low.mean()))
+        err_uncovered.append(float(err[low].sum() / max(err.sum(), 1e-20)))
+        covered_mse = float(err[~low].mean()) if (~low).any() else float("nan")
+        psnr_covered.append(-10.0 * np.log10(max(covered_mse, 1e-20)))
+        p = -10.0 * np.log10(max(float(err.mean()), 1e-20))
+        if p < worst[0]:
+            worst = (p, int(i), err)
+    if worst[1] is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        mesh_dir.mkdir(parents=True, exist_ok=True)
+        fig, ax = plt.subplots(figsize=(8, 4.6))
+        im = ax.imshow(np.sqrt(worst[2]), cmap="magma", vmin=0.0, vmax=0.3)
+        ax.set_title(f"{cfg.run_name}: RMS colour error of frame {worst[1]} ({worst[0]:.1f} dB)")
+        ax.axis("off")
+        fig.colorbar(im, ax=ax, fraction=0.03)
+        fig.savefig(mesh_dir.parent.parent / f"error_{cfg.run_name}.png", dpi=80, bbox_inches="tight")
+        plt.close(fig)
+
     retracked = []
     for i in idx:
         frame = ds[int(i)]
@@ -138,6 +169,11 @@ def diagnose(cfg, run_dir: Path, mesh_dir: Path) -> dict:
         "psnr_retracked_db": score(idx, retracked),
         "retrack_shift_cm": float(np.median(shift) * 100.0) if len(shift) else float("nan"),
         "psnr_keyframes_db": score(kf, est[kf]),
+        "uncovered_fraction": float(np.mean(uncovered)) if uncovered else float("nan"),
+        "uncovered_error_share": float(np.mean(err_uncovered)) if err_uncovered else float("nan"),
+        "psnr_covered_db": float(np.mean(psnr_covered)) if psnr_covered else float("nan"),
+        "worst_frame": worst[1],
+        "worst_psnr_db": float(worst[0]),
     }
     c = slam.camera
     half = Camera(c.fx / 2, c.fy / 2, (c.cx + 0.5) / 2 - 0.5, (c.cy + 0.5) / 2 - 0.5, c.width // 2, c.height // 2)

@@ -170,6 +170,10 @@ class SeedingConfig:
     # matching.scene_depth_m)
     depth_fill: bool = True
     depth_stride: int = 2  # px between depth seeds (experiments/results/slam.md: 4 -> 2 -> 1)
+    # RGB-D: a tracked frame that is not a keyframe also gets measured-depth seeds where the map does
+    # not cover it, when more than this fraction of its pixels is uncovered (new surface shows up
+    # between keyframes; seen by no keyframe it would stay a hole); negative = off
+    frame_fill_min_uncovered: float = 0.002
     depth_max_rel_jump: float = 0.05  # skip depth seeds on discontinuities (second difference / depth)
 
 

@@ -19,6 +19,7 @@ class KeyframeDecision:
     translation_m: float  # relative to the last keyframe
     rotation_deg: float
     reason: str
+    coverage: float = 1.0  # fraction of the frame's pixels the map covers (accumulated opacity > threshold)
 
 
 class KeyframeSelector:
@@ -32,7 +33,7 @@ class KeyframeSelector:
         self.device = device
         self._last_mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
         self._mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
-        self._counts = wp.zeros(2, dtype=wp.int32, device=device)
+        self._counts = wp.zeros(3, dtype=wp.int32, device=device)
         self._last_pose: np.ndarray | None = None
 
     def should_add(self, alpha: wp.array2d, T_WC: np.ndarray) -> KeyframeDecision:
@@ -43,16 +44,17 @@ class KeyframeSelector:
             visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
             return KeyframeDecision(True, 1.0, 0.0, 0.0, "first frame")
         visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
-        inter, union = self._counts.numpy()
+        inter, union, visible = self._counts.numpy()
+        coverage = float(visible) / float(alpha.shape[0] * alpha.shape[1])
         iou = float(inter) / float(union) if union > 0 else 0.0
         rel = invert_pose(self._last_pose) @ T_WC
         dt = float(np.linalg.norm(rel[:3, 3]))
         drot = rotation_angle_deg(rel[:3, :3])
         moved = dt > self.cfg.min_translation_m or drot > self.cfg.min_rotation_deg
         if iou < self.cfg.iou_threshold and moved:
-            return KeyframeDecision(True, iou, dt, drot, f"IoU {iou:.3f} < {self.cfg.iou_threshold}")
+            return KeyframeDecision(True, iou, dt, drot, f"IoU {iou:.3f} < {self.cfg.iou_threshold}", coverage)
         reason = "overlap high" if iou >= self.cfg.iou_threshold else "motion below bounds"
-        return KeyframeDecision(False, iou, dt, drot, reason)
+        return KeyframeDecision(False, iou, dt, drot, reason, coverage)
 
     def accept(self, T_WC: np.ndarray) -> None:
         """Make the frame last passed to ``should_add`` the reference keyframe."""
@@ -69,8 +71,8 @@ class KeyframeBuffer:
     """
 
     def __init__(self, capacity: int, width: int, height: int, device: str):
-        if not 2 <= capacity:
-            raise ValueError(f"keyframe buffer capacity must be >= 2, got {capacity}")
+        if not 1 <= capacity:
+            raise ValueError(f"keyframe buffer capacity must be >= 1, got {capacity}")
         self.capacity = capacity
         self.device = device
         self.rgb = wp.zeros((capacity, height, width), dtype=wp.vec3, device=device)

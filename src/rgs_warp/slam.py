@@ -64,7 +64,7 @@ class FrameResult:
     tracking: TrackingResult | None  # None for the first frame (its pose is given)
     keyframe: bool
     keyframe_reason: str
-    seeded: int = 0  # Gaussians added at this keyframe by seeding
+    seeded: int = 0  # Gaussians added by seeding (a keyframe's, or a frame fill's: seeding.frame_fill_min_uncovered)
     pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0
     mapping: MappingResult | None = None
@@ -92,7 +92,12 @@ class SLAM:
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=Renderer(dev))
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
+        if cfg.keyframes.buffer_size < 2:
+            n_kf = cfg.keyframes.buffer_size
+            raise ValueError(f"keyframes.buffer_size must be >= 2 (triangulation needs pairs), got {n_kf}")
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
+        # a tracked frame's images when it gets depth seeds without being a keyframe (frame fill)
+        self._fill_frame: KeyframeBuffer | None = None
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         # Poisson radius and tangential scale in units of the sample spacing of each seed source
@@ -186,6 +191,11 @@ class SLAM:
             if init_phase:
                 is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end})"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
+        fill = self.cfg.seeding.frame_fill_min_uncovered
+        if not is_kf and use_depth and fill >= 0.0 and not tracking.lost and 1.0 - decision.coverage > fill:
+            t1 = time.perf_counter()
+            result.seeded = self._fill_frame_gaps(T, rgb, depth, (tracking.gain, tracking.bias))
+            self.stats["seeding_s"] += time.perf_counter() - t1
         if is_kf:
             self.selector.accept(T)
             exposure = (1.0, 0.0) if tracking is None else (tracking.gain, tracking.bias)
@@ -368,20 +378,36 @@ class SLAM:
         first = len(self.map) == 0
         if first or (self.mode == "rgbd" and cfg.seeding.depth_fill):
             alpha = self._zero_alpha if first else self.renderer.forward(self.map, self.camera, T).alpha
-            depth = kf.depth[slot] if self.mode == "rgbd" else self._mono_depth
-            stride = cfg.seeding.depth_stride
-            p = self._depth_pts
-            wp.launch(
-                km.depth_points,
-                dim=self._depth_grid,
-                inputs=[depth, self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy, wp.mat44d(T), stride]
-                + [cfg.seeding.depth_max_rel_jump, cfg.seeding.min_residual_px, 90.0, alpha, cfg.seeding.covered_alpha],
-                outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
-                device=dev,
-            )
-            self._depth_conf.fill_(1.0 if self.mode == "rgbd" else 0.0)
-            added += self.depth_seeder.seed(p, self._depth_conf, kf, [slot], self.map)
+            added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
         return added
+
+    def _fill_frame_gaps(self, T: np.ndarray, rgb, depth, exposure) -> int:
+        """Measured-depth seeds from a tracked frame that is not a keyframe, where the map does not
+        cover it (``seeding.frame_fill_min_uncovered``): surface that appears between keyframes and
+        that no keyframe may see again.  The seeds take the frame's colour (exposure-corrected) and
+        are refined by mapping wherever a later keyframe sees them."""
+        if self._fill_frame is None:
+            self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, self.device)
+        self._fill_frame.add(len(self.poses), T, rgb, depth, exposure)
+        return self._depth_seed(self._fill_frame, 0, self.renderer.forward(self.map, self.camera, T).alpha)
+
+    def _depth_seed(self, frames: KeyframeBuffer, slot: int, alpha: wp.array, depth: wp.array | None = None) -> int:
+        """Seeds from the measured depth of ``frames`` slot ``slot`` (``depth`` in its place, e.g. the
+        monocular first keyframe's nominal plane) where ``alpha`` is below ``seeding.covered_alpha``."""
+        cfg = self.cfg.seeding
+        T = frames.poses[slot]
+        p = self._depth_pts
+        wp.launch(
+            km.depth_points,
+            dim=self._depth_grid,
+            inputs=[frames.depth[slot] if depth is None else depth]
+            + [self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy, wp.mat44d(T), cfg.depth_stride]
+            + [cfg.depth_max_rel_jump, cfg.min_residual_px, 90.0, alpha, cfg.covered_alpha],
+            outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
+            device=self.device,
+        )
+        self._depth_conf.fill_(1.0 if self.mode == "rgbd" else 0.0)
+        return self.depth_seeder.seed(p, self._depth_conf, frames, [slot], self.map)
 
     # ---- maintenance ---------------------------------------------------------------------------
     def _maintain(self, slot: int) -> tuple[int, int]:
@@ -588,6 +614,8 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
                 frame_losses.append(result.tracking.loss)
             if result.keyframe:
                 entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
+            elif result.seeded:
+                entry["seeded"] = result.seeded
                 if result.mapping is not None and result.mapping.iters:
                     entry["mapping_l1"] = result.mapping.final_l1
                 if cfg.method == "baseline" and result.mapping is not None:

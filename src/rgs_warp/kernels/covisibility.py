@@ -21,6 +21,7 @@ def _visibility_iou_rows(
     y = wp.tid()
     inter = int(0)
     union = int(0)
+    visible = int(0)
     for x in range(alpha.shape[1]):
         vis = alpha[y, x] > alpha_threshold
         mask_out[y, x] = wp.uint8(1) if vis else wp.uint8(0)
@@ -29,14 +30,17 @@ def _visibility_iou_rows(
             inter += 1
         if vis or prev:
             union += 1
+        if vis:
+            visible += 1
     wp.atomic_add(counts_out, 0, inter)
     wp.atomic_add(counts_out, 1, union)
+    wp.atomic_add(counts_out, 2, visible)
 
 
 def visibility_iou(
     alpha: wp.array2d, last_mask: wp.array2d, alpha_threshold: float, mask_out: wp.array2d, counts_out: wp.array
 ) -> None:
-    """Writes ``mask_out = alpha > alpha_threshold`` and ``counts_out = [|V ∩ V_last|, |V ∪ V_last|]``."""
+    """Writes ``mask_out = alpha > alpha_threshold`` and ``counts_out = [|V ∩ V_last|, |V ∪ V_last|, |V|]``."""
     counts_out.zero_()
     wp.launch(
         _visibility_iou_rows,
