@@ -666,3 +666,15 @@ def test_densification_keeps_map_moments_and_statistics_aligned(device, room):
     mapper.remove(wp.array(mask.astype(np.int32), dtype=wp.int32, device=device))
     np.testing.assert_array_equal(d.grad_norm_sum.numpy()[: len(gmap)], grad_sum[~mask])
     np.testing.assert_array_equal(d.visible_count.numpy()[: len(gmap)], seen[~mask])
+
+
+def test_union_alpha(device):
+    rng = np.random.default_rng(23)
+    a, b = rng.uniform(0, 1, (2, 7, 9)).astype(np.float32)
+    out = wp.zeros((7, 9), dtype=wp.float32, device=device)
+    aw, bw = wp.array(a, device=device), wp.array(b, device=device)
+    wp.launch(km.union_alpha, dim=(7, 9), inputs=[aw, bw], outputs=[out], device=device)
+    # compositing the two layers in either order leaves transmittance (1 - a)(1 - b)
+    np.testing.assert_allclose(out.numpy(), 1.0 - (1.0 - a) * (1.0 - b), atol=1e-6)
+    wp.launch(km.union_alpha, dim=(7, 9), inputs=[aw, bw], outputs=[aw], device=device)  # in place
+    np.testing.assert_allclose(aw.numpy(), out.numpy(), atol=0)

@@ -186,6 +186,48 @@ def test_slam_rejects_missing_depth_in_rgbd_mode(device):
         slam.track(np.zeros((90, 160, 3), np.float32), None)
 
 
+def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
+    """RGB-D frames that are not keyframes seed their uncovered pixels from the measured depth, but
+    the seeds join the map only at the next keyframe (or ``finish``): tracking does not change the
+    map between keyframes, so the co-visibility test keeps seeing the keyframes' map."""
+    from rgs_warp.geometry import invert_pose
+
+    n = 9
+    base = [*OVERRIDES, "mapping.init_iters=20", "mapping.iters=3", f"device={device}"]
+    # no keyframe after the initial window of 5 (IoU is never below 0)
+    cfg = load_config([*base, "keyframes.iou_threshold=0.0"])
+    camera, frames = _frames(cfg, n)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results, sizes = [], []
+    for f in frames:
+        results.append(slam.process(f.rgb, f.depth, f.timestamp))
+        sizes.append(len(slam.map))
+    after_init = results[5:]
+    assert not any(r.keyframe or r.tracking.lost for r in after_init)
+    pending = len(slam._pending)
+    assert pending == sum(r.seeded for r in after_init) > 20  # the camera pans into new surface
+    size = sizes[4]
+    assert sizes[5:] == [size] * (n - 5)  # the map itself did not change
+    # the seeds sit on the measured depth of the frame they came from: project the last frame's
+    # into it (those of earlier frames may be hidden there)
+    last = after_init[-1]
+    if last.seeded:
+        X = slam._pending.means.numpy()[pending - last.seeded : pending]
+        T_CW = invert_pose(last.T_WC)
+        Xc = X @ T_CW[:3, :3].T + T_CW[:3, 3]
+        u = np.round(camera.fx * Xc[:, 0] / Xc[:, 2] + camera.cx).astype(int)
+        v = np.round(camera.fy * Xc[:, 1] / Xc[:, 2] + camera.cy).astype(int)
+        d = frames[n - 1].depth[np.clip(v, 0, camera.height - 1), np.clip(u, 0, camera.width - 1)]
+        np.testing.assert_allclose(np.median(np.abs(Xc[:, 2] - d) / d), 0.0, atol=0.02)
+    slam.finish()
+    assert len(slam.map) == size + pending and len(slam._pending) == 0
+    # off: nothing waits
+    cfg_off = load_config([*base, "keyframes.iou_threshold=0.0", "seeding.frame_fill_min_uncovered=-1"])
+    slam = SLAM(cfg_off, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = [slam.process(f.rgb, f.depth, f.timestamp) for f in frames]
+    assert all(r.seeded == 0 for r in results[5:]) and len(slam._pending) == 0
+
+
 MONO = [
     "mode=mono",
     "dataset=synthetic/office0",

@@ -96,8 +96,10 @@ class SLAM:
             n_kf = cfg.keyframes.buffer_size
             raise ValueError(f"keyframes.buffer_size must be >= 2 (triangulation needs pairs), got {n_kf}")
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
-        # a tracked frame's images when it gets depth seeds without being a keyframe (frame fill)
+        # frame fill (seeding.frame_fill_min_uncovered): a tracked frame's images, and the seeds taken
+        # from frames since the last keyframe, which join the map when the next keyframe is processed
         self._fill_frame: KeyframeBuffer | None = None
+        self._pending = GaussianMap(1024, sh_degree=cfg.render.sh_degree, device=dev)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         # Poisson radius and tangential scale in units of the sample spacing of each seed source
@@ -194,7 +196,7 @@ class SLAM:
         fill = self.cfg.seeding.frame_fill_min_uncovered
         if not is_kf and use_depth and fill >= 0.0 and not tracking.lost and 1.0 - decision.coverage > fill:
             t1 = time.perf_counter()
-            result.seeded = self._fill_frame_gaps(T, rgb, depth, (tracking.gain, tracking.bias))
+            result.seeded = self._fill_frame_gaps(T, (tracking.gain, tracking.bias))
             self.stats["seeding_s"] += time.perf_counter() - t1
         if is_kf:
             self.selector.accept(T)
@@ -311,6 +313,7 @@ class SLAM:
         # baseline: the one dense start is the first keyframe's; later the densifier grows the map
         # and new regions get depth seeds only (no matching)
         t0 = time.perf_counter()
+        self._join_pending()
         result.seeded = self._seed(slot, matches=cfg.method == "rgs" or len(self.keyframe_indices) == 1)
         self.stats["seeding_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -381,19 +384,43 @@ class SLAM:
             added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
         return added
 
-    def _fill_frame_gaps(self, T: np.ndarray, rgb, depth, exposure) -> int:
-        """Measured-depth seeds from a tracked frame that is not a keyframe, where the map does not
-        cover it (``seeding.frame_fill_min_uncovered``): surface that appears between keyframes and
-        that no keyframe may see again.  The seeds take the frame's colour (exposure-corrected) and
-        are refined by mapping wherever a later keyframe sees them."""
+    def _fill_frame_gaps(self, T: np.ndarray, exposure) -> int:
+        """Measured-depth seeds from the frame just tracked (not a keyframe) where neither the map
+        nor the seeds pending since the last keyframe cover it (``seeding.frame_fill_min_uncovered``):
+        surface that shows up between keyframes, which no keyframe may see again.  The seeds take the
+        frame's colour (exposure-corrected) and wait in ``_pending``: tracking does not change the map
+        (§4.6), so the co-visibility test of the next frames sees the same map; they join it at the
+        next keyframe, before its seeding, and its mapping refines those it sees."""
+        dev = self.device
         if self._fill_frame is None:
-            self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, self.device)
+            self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, dev)
+        rgb, depth = self.tracker.frame
         self._fill_frame.add(len(self.poses), T, rgb, depth, exposure)
-        return self._depth_seed(self._fill_frame, 0, self.renderer.forward(self.map, self.camera, T).alpha)
+        alpha = self.renderer.forward(self.map, self.camera, T).alpha
+        if len(self._pending):
+            alpha = wp.clone(alpha)  # the renderer's buffers are reused by the next render
+            pending = self.renderer.forward(self._pending, self.camera, T).alpha
+            wp.launch(km.union_alpha, dim=alpha.shape, inputs=[alpha, pending], outputs=[alpha], device=dev)
+        return self._depth_seed(self._fill_frame, 0, alpha, target=self._pending)
 
-    def _depth_seed(self, frames: KeyframeBuffer, slot: int, alpha: wp.array, depth: wp.array | None = None) -> int:
+    def _join_pending(self) -> None:
+        """The frame-fill seeds since the last keyframe join the map."""
+        p, n = self._pending, len(self._pending)
+        if n:
+            self.map.append(p.means[:n], p.rotations[:n], p.log_scales[:n], p.opacity_logits[:n], p.sh[:n])
+            p.count = 0
+
+    def _depth_seed(
+        self,
+        frames: KeyframeBuffer,
+        slot: int,
+        alpha: wp.array,
+        depth: wp.array | None = None,
+        target: GaussianMap | None = None,
+    ) -> int:
         """Seeds from the measured depth of ``frames`` slot ``slot`` (``depth`` in its place, e.g. the
-        monocular first keyframe's nominal plane) where ``alpha`` is below ``seeding.covered_alpha``."""
+        monocular first keyframe's nominal plane) where ``alpha`` is below ``seeding.covered_alpha``,
+        appended to ``target`` (default the map)."""
         cfg = self.cfg.seeding
         T = frames.poses[slot]
         p = self._depth_pts
@@ -407,7 +434,7 @@ class SLAM:
             device=self.device,
         )
         self._depth_conf.fill_(1.0 if self.mode == "rgbd" else 0.0)
-        return self.depth_seeder.seed(p, self._depth_conf, frames, [slot], self.map)
+        return self.depth_seeder.seed(p, self._depth_conf, frames, [slot], self.map if target is None else target)
 
     # ---- maintenance ---------------------------------------------------------------------------
     def _maintain(self, slot: int) -> tuple[int, int]:
@@ -457,6 +484,11 @@ class SLAM:
         """Render the map from a camera-to-world pose (default camera: the SLAM's); the result's
         images are the renderer's buffers, valid until the next render."""
         return self.renderer.forward(self.map, camera or self.camera, T_WC, self.cfg.render.background)
+
+    def finish(self) -> None:
+        """End of the sequence: the frame-fill seeds that wait for the next keyframe join the map
+        (without mapping).  ``run`` calls it after the last frame; ``track`` may go on after it."""
+        self._join_pending()
 
     def save(self, directory: str | Path) -> Path:
         """Write ``map.ply``, ``trajectory.txt`` (TUM), ``keyframes.npz`` and ``config.yaml``."""
@@ -632,6 +664,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
     finally:
         bar.close()
         log.close()
+        slam.finish()
         slam.save(run_dir)
         write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
     wall = time.perf_counter() - t_start

@@ -121,6 +121,7 @@ class Tracker:
         self._T_WC_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=pinned)
         self._poses: list[np.ndarray] = []
         self._last_render = None
+        self._frame: tuple | None = None
 
     # ---- motion model ------------------------------------------------------------------------
     def reset(self, T_WC: np.ndarray | None = None, T_prev_WC: np.ndarray | None = None) -> None:
@@ -136,6 +137,14 @@ class Tracker:
         if self._last_render is None:
             raise RuntimeError("no frame tracked yet")
         return self._last_render.alpha
+
+    @property
+    def frame(self) -> tuple[wp.array, wp.array | None]:
+        """The last tracked frame's (rgb, depth) on the device at the input resolution (depth None in
+        "mono"); valid until the next ``track``."""
+        if self._frame is None:
+            raise RuntimeError("no frame tracked yet")
+        return self._frame
 
     def set_last_pose(self, T_WC: np.ndarray) -> None:
         """Replace the latest pose (e.g. after mapping refined the keyframe's pose)."""
@@ -186,6 +195,7 @@ class Tracker:
         rgb = self._stage(rgb, self._rgb_host, rgb_dst, full, wp.vec3, "rgb")
         if depth is not None:
             depth = self._stage(depth, self._depth_host, depth_dst, full, wp.float32, "depth")
+        self._frame = (rgb, depth)
         if cfg.downscale > 1:
             has_depth = depth is not None
             wp.launch(

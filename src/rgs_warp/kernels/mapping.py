@@ -361,3 +361,15 @@ def reject_depth_inconsistent_points(
         return
     if wp.abs(camera_depth(X[i], T_CW) - d) > depth_rel_tol * d:
         valid[i] = 0
+
+
+@wp.kernel
+def union_alpha(
+    # in: accumulated opacities of two maps rendered at the same pose
+    alpha_a: wp.array2d(dtype=wp.float32),
+    alpha_b: wp.array2d(dtype=wp.float32),
+    # out: the opacity of both together, 1 - (1 - a)(1 - b) (order-independent)
+    alpha_out: wp.array2d(dtype=wp.float32),
+):
+    y, x = wp.tid()
+    alpha_out[y, x] = 1.0 - (1.0 - alpha_a[y, x]) * (1.0 - alpha_b[y, x])
