@@ -92,6 +92,14 @@ def test_data_root(monkeypatch, tmp_path):
     assert str(cfg.dataset_path()) == "/abs/office0"
 
 
+def test_off_on_yes_no_stay_strings():
+    # YAML 1.1 reads off / on / yes / no as booleans; the configs read YAML 1.2 booleans only
+    assert load_config(["tracking.brightness=off"]).tracking.brightness == "off"
+    assert load_config(["seeding.depth_fill=false"]).seeding.depth_fill is False
+    with pytest.raises(ConfigError, match="expected true or false"):
+        load_config(["seeding.depth_fill=no"])
+
+
 def test_saved_config_round_trips(tmp_path):
     cfg = load_config(["dataset=tum/fr1_desk", "tracking.iters=45"])
     save_config(cfg, tmp_path / "config.yaml")

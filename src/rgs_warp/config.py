@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -415,9 +416,28 @@ def _set_tree(obj, tree: dict, prefix: str = "") -> None:
             setattr(obj, k, value)
 
 
+class _YamlLoader(yaml.SafeLoader):
+    """YAML with only true / false as booleans (YAML 1.2): PyYAML's YAML 1.1 also reads on / off /
+    yes / no as booleans, which turned ``tracking.brightness=off`` into False."""
+
+
+_YamlLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_YamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
+)
+
+
+def parse_yaml(text: str):
+    """YAML as the configs read it (booleans only true / false)."""
+    return yaml.load(text, Loader=_YamlLoader)
+
+
 def _load_yaml(path: Path) -> dict:
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = parse_yaml(path.read_text()) or {}
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: invalid YAML: {e}") from None
     if not isinstance(data, dict):
@@ -453,7 +473,7 @@ def load_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
             selections[k] = raw.strip()
             continue
         try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
+            value = parse_yaml(raw) if raw.strip() else ""
         except yaml.YAMLError:
             value = raw
         keys.append((k, value))

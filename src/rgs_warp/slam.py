@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from rgs_warp import maintenance
 from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
-from rgs_warp.config import Config, ConfigError, help_text, load_config, save_config
+from rgs_warp.config import Config, ConfigError, help_text, load_config, parse_yaml, save_config
 from rgs_warp.datasets import DatasetError, open_dataset
 from rgs_warp.geometry import invert_pose
 from rgs_warp.io.ply import load_ply, save_ply
@@ -555,11 +555,9 @@ class SLAM:
 
 
 def _load_saved_config(directory: Path) -> Config:
-    import yaml
-
     from rgs_warp.config import config_from_dict
 
-    return config_from_dict(yaml.safe_load((directory / "config.yaml").read_text(encoding="utf-8")))
+    return config_from_dict(parse_yaml((directory / "config.yaml").read_text(encoding="utf-8")))
 
 
 def resolve_device(name: str) -> str:
