@@ -46,16 +46,20 @@ def _numpy_adam(params, grads_seq, lrs, n, max_norm, b1=0.9, b2=0.999, eps=1e-15
             m[k] = b1 * m[k] + (1 - b1) * g
             v2[k] = b2 * v2[k] + (1 - b2) * g * g
             lr = lrs.of(k) * (factors[t - 1] if factors else 1.0)
+            if k == "sh":  # rows of coefficients: the first (DC) at lrs.sh, the others at lrs.sh_rest
+                lr = np.full(p[k].shape, lr)
+                lr[:, 1:] *= lrs.rest(k) / lrs.of(k)
             p[k] -= lr * (m[k] / (1 - b1**t)) / (np.sqrt(v2[k] / (1 - b2**t)) + eps)
     return p
 
 
+@pytest.mark.parametrize("sh_rest", [None, 2.5e-4])
 @pytest.mark.parametrize("grad_scale", [1e-3, 10.0])  # below and far above the clipping norm
-def test_adam_matches_numpy(device, grad_scale):
+def test_adam_matches_numpy(device, grad_scale, sh_rest):
     rng = np.random.default_rng(0)
     gmap = _map(rng, 40, device, capacity=64)
     start = {k: v.copy() for k, v in gmap.to_numpy().items()}
-    lrs = MapLearningRates(means=1e-3, rotations=2e-3, log_scales=3e-3, opacity_logits=4e-3, sh=5e-3)
+    lrs = MapLearningRates(means=1e-3, rotations=2e-3, log_scales=3e-3, opacity_logits=4e-3, sh=5e-3, sh_rest=sh_rest)
     opt = MapAdam(gmap, lrs, max_grad_norm=1.0)
     seq, factors = [], []
     for step in range(3):

@@ -4,7 +4,7 @@
 
 Default cases: the synthetic office at Replica size, RGB-D and monocular.  Every case writes its
 run folder under DIR/runs; DIR/slam.json holds all metrics and DIR/runs.tar.gz the small files of
-each run (metrics, log, top-view plot; not the map, renders or keyframes).
+each run (metrics, log, config, trajectory, top-view plot; not the map, renders or keyframes).
 
 ``--diagnose`` adds, per case, the PSNR of the
 keyframes at their refined poses (the fit to what the map was trained on), the PSNR of the scored
@@ -99,7 +99,8 @@ def main(argv=None) -> int:
             tar.add(out / "mesh_inputs", arcname="mesh_inputs")
     with tarfile.open(out / "runs.tar.gz", "w:gz") as tar:
         for p in sorted((out / "runs").rglob("*")):
-            if p.is_file() and (p.suffix in (".md", ".json", ".jsonl") or p.name == "trajectory_topview.png"):
+            small = p.name in ("trajectory_topview.png", "trajectory.txt", "config.yaml")
+            if p.is_file() and (p.suffix in (".md", ".json", ".jsonl") or small):
                 tar.add(p, arcname=str(p.relative_to(out)))
     return 0
 

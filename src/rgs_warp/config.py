@@ -185,7 +185,10 @@ class MappingConfig:
     window: int = 5  # keyframes in the sliding window (Table 1)
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
-    lr_color: float = 2e-3  # Table 1
+    lr_color: float = 2e-3  # Table 1 (the DC colour)
+    # the higher SH bands at this fraction of lr_color (3DGS's feature_rest rate, 1/20): fitted at the
+    # DC's rate they explain the window's views by view dependence that other views do not share
+    lr_color_rest_factor: float = 0.05
     lr_opacity: float = 2e-3  # Table 1
     lr_position: float = 1e-3  # Table 1 (metres)
     lr_rotation: float = 1e-3  # Table 1

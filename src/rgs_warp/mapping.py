@@ -144,6 +144,7 @@ class Mapper:
             log_scales=cfg.lr_scale,
             opacity_logits=cfg.lr_opacity,
             sh=cfg.lr_color,
+            sh_rest=cfg.lr_color * cfg.lr_color_rest_factor,
         )
         self.adam = MapAdam(gmap, lrs, betas=(cfg.adam_beta1, cfg.adam_beta2), max_grad_norm=cfg.grad_clip)
         self.rng = np.random.default_rng(seed)

@@ -22,10 +22,15 @@ class MapLearningRates:
     rotations: float = 1e-3
     log_scales: float = 1e-3
     opacity_logits: float = 2e-3
-    sh: float = 2e-3
+    sh: float = 2e-3  # the DC (degree-0) colour coefficients
+    sh_rest: float | None = None  # the higher SH bands (3DGS: sh / 20); None: as sh
 
     def of(self, name: str) -> float:
         return getattr(self, name)
+
+    def rest(self, name: str) -> float:
+        """The rate of a field's non-leading entries (the higher SH bands; otherwise ``of``)."""
+        return self.sh_rest if name == "sh" and self.sh_rest is not None else self.of(name)
 
 
 def cosine_factor(step: int, total: int, final: float = 0.0) -> float:
@@ -140,12 +145,15 @@ class MapAdam:
             outputs=[self.clip],
             device=self.gmap.device,
         )
+        width_sh = 3 * self.gmap.num_sh
         for name, g, count in flats:
-            lr_t = self.lrs.of(name) * lr_factor * correction
+            scale = lr_factor * correction
+            lr_t, lr_rest_t = self.lrs.of(name) * scale, self.lrs.rest(name) * scale
+            width, lead = (width_sh, 3) if name == "sh" else (1, 1)
             wp.launch(
                 adam_step,
                 dim=count,
-                inputs=[g, self.clip, lr_t, self.beta1, self.beta2, self.eps],
+                inputs=[g, self.clip, lr_t, width, lead, lr_rest_t, self.beta1, self.beta2, self.eps],
                 outputs=[_flat(getattr(self.gmap, name)), self._m[name], self._v[name]],
                 device=self.gmap.device,
             )

@@ -28,6 +28,11 @@ def adam_step(
     grad: wp.array(dtype=wp.float32),
     clip: wp.array(dtype=wp.float32),
     lr_t: float,  # lr * sqrt(1 - b2^t) / (1 - b1^t): bias correction folded into the step size
+    # entries i with (i mod row_width) >= row_lead step with lr_rest_t instead (the SH rows: the first
+    # 3 floats are the DC colour, the rest the higher bands); row_lead = row_width: one rate
+    row_width: int,
+    row_lead: int,
+    lr_rest_t: float,
     beta1: float,
     beta2: float,
     eps: float,
@@ -42,4 +47,7 @@ def adam_step(
     vi = beta2 * v[i] + (1.0 - beta2) * g * g
     m[i] = mi
     v[i] = vi
-    param[i] = param[i] - lr_t * mi / (wp.sqrt(vi) + eps)
+    lr = lr_t
+    if i % row_width >= row_lead:
+        lr = lr_rest_t
+    param[i] = param[i] - lr * mi / (wp.sqrt(vi) + eps)
