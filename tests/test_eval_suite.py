@@ -216,6 +216,38 @@ def test_unknown_method_is_a_failed_row(tmp_path):
     assert "run failed: ConfigError" in (tmp_path / "eval.md").read_text()
 
 
+def test_resume_reuses_finished_runs_with_the_same_overrides(tmp_path):
+    calls = []
+
+    def counting_runner(cfg, run_dir, progress=True):
+        calls.append((cfg.dataset.name, cfg.method, cfg.seed))
+        return fake_runner(cfg, run_dir, progress)
+
+    def run(extra=(), resume=True):
+        return suite.run_suite(
+            PLAN[:2],
+            ("rgs",),
+            2,
+            tmp_path,
+            runner=counting_runner,
+            extra_overrides=list(extra),
+            progress=False,
+            resume=resume,
+        )
+
+    first = run(resume=False)
+    assert len(calls) == 4
+    again = run()  # all four finished with the same overrides: read back, none run
+    assert len(calls) == 4 and all(r["resumed"] for r in again["runs"])
+    assert [r["metrics"] for r in again["runs"]] == [r["metrics"] for r in first["runs"]]
+    # a cut-short suite: one run's record is gone (it never finished), a different override reruns all
+    (tmp_path / "eval_runs" / "synthetic-office0-rgs-1" / suite.RECORD_FILE).unlink()
+    run()
+    assert calls[4:] == [("office0", "rgs", 1)]
+    run(extra=["tracking.iters=7"])
+    assert len(calls) == 9
+
+
 def test_default_plan_scene_selection(tmp_path, monkeypatch):
     shared = tmp_path / "shared"
     (shared / suite.SEVENSCENES_SAMPLE).mkdir(parents=True)

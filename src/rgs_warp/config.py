@@ -38,6 +38,11 @@ class DatasetConfig:
     max_frames: int | None = None
     downscale: int = 1
     prefetch: int = 2
+    # depth pixels line up with colour pixels (Replica, TUM, the synthetic scenes); 7-Scenes' do not
+    # (separately calibrated Kinect cameras): there frames that are not keyframes give no seeds
+    # (seeding.frame_fill_min_uncovered), whose depth would carry another pixel's colour and which
+    # no mapping may correct (experiments/results/slam.md, run 19)
+    depth_registered: bool = True
     # TUM only
     camera: str = "auto"  # fr1 | fr2 | fr3 | auto (from the folder name)
     max_dt: float = 0.08  # s, timestamp association tolerance

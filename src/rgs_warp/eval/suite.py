@@ -145,14 +145,23 @@ def _error_text(e: BaseException) -> str:
     return f"{type(e).__name__}: {e}".strip()
 
 
-def _one_run(entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runner, extra: Sequence[str]) -> dict:
+RECORD_FILE = "suite_record.json"  # in a finished run's folder: what --resume reuses
+
+
+def _one_run(
+    entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runner, extra: Sequence[str], resume: bool = False
+) -> dict:
     name = _run_name(entry["scene"], method, repeat)
     run_dir = runs_dir / name
     record = {"scene": entry["scene"], "method": method, "repeat": repeat, "seed": repeat, "run_dir": str(run_dir)}
-    if run_dir.exists():  # a folder of an earlier suite: its files (convergence.json) must not mix in
-        shutil.rmtree(run_dir)
     overrides = [*entry["overrides"], f"method={method}", f"seed={repeat}", *extra]
     overrides += [f"output_dir={runs_dir}", f"run_name={name}"]
+    if resume:
+        done = _finished_record(run_dir, overrides)
+        if done is not None:
+            return done
+    if run_dir.exists():  # a folder of an earlier suite: its files (convergence.json) must not mix in
+        shutil.rmtree(run_dir)
     t0 = time.perf_counter()
     try:
         cfg = load_config(overrides)
@@ -163,6 +172,21 @@ def _one_run(entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runn
         record.update(status="ok", error=None, metrics=metrics)
     record["seconds"] = time.perf_counter() - t0
     record["convergence"] = _read_convergence(run_dir) if record["status"] == "ok" else None
+    if record["status"] == "ok":
+        (run_dir / RECORD_FILE).write_text(json.dumps(_to_json({**record, "overrides": overrides}), indent=1))
+    return record
+
+
+def _finished_record(run_dir: Path, overrides: list[str]) -> dict | None:
+    """The record of a run that finished in ``run_dir`` with exactly these overrides (--resume), with
+    ``"resumed": True``; None if there is none or it was run differently."""
+    try:
+        record = json.loads((run_dir / RECORD_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if record.pop("overrides", None) != overrides or record.get("status") != "ok":
+        return None
+    record["resumed"] = True
     return record
 
 
@@ -210,11 +234,14 @@ def run_suite(
     runner: Runner | None = None,
     extra_overrides: Sequence[str] = (),
     progress: bool = True,
+    resume: bool = False,
 ) -> dict:
     """Run every present scene of ``plan`` with every method, ``repeats`` times (``seed=0..repeats-1``),
     aggregate and write ``out_dir/eval.json``, ``out_dir/eval.md`` and the plots; returns what
     ``eval.json`` holds. ``runner`` defaults to ``rgs_warp.slam.run``; ``extra_overrides`` go to every
-    run after the plan's own (``device=cuda:0``, ``tracking.iters=40``)."""
+    run after the plan's own (``device=cuda:0``, ``tracking.iters=40``).  ``resume``: a run whose folder
+    holds the record of a finished run with the same overrides is read back instead of run again (a
+    suite cut short goes on where it stopped)."""
     if runner is None:
         from rgs_warp.slam import run as runner
     out_dir = Path(out_dir)
@@ -226,7 +253,7 @@ def run_suite(
     bar = tqdm(total=len(jobs), desc="eval", unit="run", disable=not progress)
     for entry, method, repeat in jobs:
         bar.set_postfix_str(_run_name(entry["scene"], method, repeat))
-        runs.append(_one_run(entry, method, repeat, runs_dir, runner, extra_overrides))
+        runs.append(_one_run(entry, method, repeat, runs_dir, runner, extra_overrides, resume))
         if progress:
             bar.write(_progress_line(runs[-1]))
         bar.update(1)
@@ -690,6 +717,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default="rgs,baseline", help="comma-separated methods (default rgs,baseline)")
     p.add_argument("--out", type=Path, default=Path("experiments/results"), help="output folder")
     p.add_argument("--quick", action="store_true", help=f"smoke run: 1 repeat, {QUICK_MAX_FRAMES} frames a sequence")
+    p.add_argument("--scenes", default="", help="comma-separated scenes of the plan to run (default all present)")
+    p.add_argument("--resume", action="store_true", help="reuse the runs of an earlier suite with the same overrides")
     p.add_argument("overrides", nargs="*", metavar="key=value")
     return p
 
@@ -710,7 +739,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     data_root = Path(cfg.data_root) if cfg.data_root else None
     plan = default_plan(device, data_root, quick=args.quick)
-    result = run_suite(plan, methods, repeats, args.out, extra_overrides=extra)
+    if args.scenes:
+        wanted = [w.strip() for w in args.scenes.split(",") if w.strip()]
+        known = [e["scene"] for e in plan]
+        unknown = [w for w in wanted if w not in known]
+        if unknown:
+            print(f"error: unknown scene(s) {', '.join(unknown)}; the plan has {', '.join(known)}", file=sys.stderr)
+            return 2
+        plan = [e for e in plan if e["scene"] in wanted]
+    result = run_suite(plan, methods, repeats, args.out, extra_overrides=extra, resume=args.resume)
     ok = sum(r["status"] == "ok" for r in result["runs"])
     print(f"{ok} of {len(result['runs'])} runs ok; report {args.out / 'eval.md'}")
     return 0 if ok else 1
