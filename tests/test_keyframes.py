@@ -15,12 +15,12 @@ def test_visibility_iou_matches_numpy(device):
     alpha = rng.random((37, 53)).astype(np.float32)
     last = (rng.random((37, 53)) > 0.4).astype(np.uint8)
     mask = wp.zeros((37, 53), dtype=wp.uint8, device=device)
-    counts = wp.zeros(2, dtype=wp.int32, device=device)
+    counts = wp.zeros(3, dtype=wp.int32, device=device)
     for _ in range(2):  # counts are reset on every call
         visibility_iou(wp.array(alpha, device=device), wp.array(last, device=device), 0.3, mask, counts)
     vis = alpha > 0.3
     np.testing.assert_array_equal(mask.numpy(), vis.astype(np.uint8))
-    np.testing.assert_array_equal(counts.numpy(), [(vis & (last > 0)).sum(), (vis | (last > 0)).sum()])
+    np.testing.assert_array_equal(counts.numpy(), [(vis & (last > 0)).sum(), (vis | (last > 0)).sum(), vis.sum()])
 
 
 def _alpha(width, height, x0, x1, device):
@@ -38,7 +38,7 @@ def test_selector_decisions(device):
     sel.accept(T0)
     # Same view: IoU 1, no keyframe.
     d = sel.should_add(_alpha(40, 10, 0, 20, device), T0)
-    assert not d.is_keyframe and d.iou == pytest.approx(1.0)
+    assert not d.is_keyframe and d.iou == pytest.approx(1.0) and d.coverage == pytest.approx(0.5)
     # Half the visible area changed (IoU 10/30) and moved 10 cm: keyframe.
     T1 = se3_exp(np.array([0.1, 0, 0, 0, 0, 0]))
     d = sel.should_add(_alpha(40, 10, 10, 30, device), T1)
@@ -54,6 +54,25 @@ def test_selector_decisions(device):
     sel.accept(T3)
     d = sel.should_add(_alpha(40, 10, 10, 30, device), T3)
     assert d.iou == pytest.approx(1.0)  # the accepted frame's mask is now the reference
+
+
+@pytest.mark.parametrize("ratio", [0.0, 1.5])
+def test_selector_tracking_loss_trigger(device, ratio):
+    cfg = KeyframeConfig(iou_threshold=0.8, min_translation_m=0.05, min_rotation_deg=5.0, max_loss_ratio=ratio)
+    sel = KeyframeSelector(cfg, 40, 10, device)
+    same = _alpha(40, 10, 0, 20, device)  # IoU 1 throughout: only the loss can make a keyframe
+    T0, T_far = np.eye(4), se3_exp(np.array([0.1, 0, 0, 0, 0, 0]))
+    sel.should_add(same, T0)
+    sel.accept(T0)
+    assert not sel.should_add(same, T0, loss=0.10).is_keyframe  # the reference after the keyframe
+    assert not sel.should_add(same, T_far, loss=0.14).is_keyframe  # below 1.5 x 0.10
+    assert not sel.should_add(same, T0, loss=0.20).is_keyframe  # above, but has not moved
+    d = sel.should_add(same, T_far, loss=0.16)
+    assert d.is_keyframe == (ratio > 0) and (ratio == 0 or d.reason.startswith("tracking loss 0.1600"))
+    sel.accept(T_far)  # a new keyframe: a new reference
+    assert not sel.should_add(same, T_far, loss=0.30).is_keyframe
+    assert not sel.should_add(same, T0, loss=0.40).is_keyframe
+    assert sel.should_add(same, T0, loss=0.46).is_keyframe == (ratio > 0)
 
 
 def test_buffer_fifo(device):

@@ -106,6 +106,11 @@ class KeyframeConfig:
     min_translation_m: float = 0.05
     min_rotation_deg: float = 5.0
     buffer_size: int = 10  # §4.3: 8-12
+    # not in the paper: also a keyframe when the frame's tracking loss exceeds this multiple of the
+    # loss of the first frame tracked after the last keyframe (motion bounds still apply): the view
+    # went where the map is covered but poorly fitted, which the IoU does not see (7-Scenes runs
+    # went 80 frames without a keyframe before failing); 0 = off.  Not measured on the GPU yet.
+    max_loss_ratio: float = 0.0
 
 
 @dataclass

@@ -26,7 +26,9 @@ class KeyframeSelector:
     """A frame becomes a keyframe when its visibility IoU with the last keyframe falls below
     ``iou_threshold`` AND it moved by more than ``min_translation_m`` or ``min_rotation_deg``
     (the bounds keep near-duplicate viewpoints out, which would add cost but no baseline).
-    The first frame is always a keyframe."""
+    The first frame is always a keyframe.  With ``max_loss_ratio`` > 0, a frame whose tracking loss
+    exceeds that multiple of the first loss after the last keyframe is one too (motion bounds
+    still apply)."""
 
     def __init__(self, cfg: KeyframeConfig, width: int, height: int, device: str):
         self.cfg = cfg
@@ -34,10 +36,12 @@ class KeyframeSelector:
         self._last_mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
         self._mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
         self._counts = wp.zeros(3, dtype=wp.int32, device=device)
+        self._loss_ref: float | None = None  # tracking loss of the first frame after the last keyframe
         self._last_pose: np.ndarray | None = None
 
-    def should_add(self, alpha: wp.array2d, T_WC: np.ndarray) -> KeyframeDecision:
-        """Decide on a tracked frame from its rendered accumulated opacity and pose."""
+    def should_add(self, alpha: wp.array2d, T_WC: np.ndarray, loss: float | None = None) -> KeyframeDecision:
+        """Decide on a tracked frame from its rendered accumulated opacity, pose and (optional)
+        tracking loss."""
         if alpha.shape != self._mask.shape:
             raise ValueError(f"alpha is {alpha.shape}, the selector was built for {self._mask.shape}")
         if self._last_pose is None:
@@ -53,6 +57,13 @@ class KeyframeSelector:
         moved = dt > self.cfg.min_translation_m or drot > self.cfg.min_rotation_deg
         if iou < self.cfg.iou_threshold and moved:
             return KeyframeDecision(True, iou, dt, drot, f"IoU {iou:.3f} < {self.cfg.iou_threshold}", coverage)
+        ratio = self.cfg.max_loss_ratio
+        if ratio > 0.0 and loss is not None and np.isfinite(loss):
+            if self._loss_ref is None:
+                self._loss_ref = float(loss)
+            elif moved and loss > ratio * self._loss_ref:
+                reason = f"tracking loss {loss:.4f} > {ratio} x {self._loss_ref:.4f}"
+                return KeyframeDecision(True, iou, dt, drot, reason, coverage)
         reason = "overlap high" if iou >= self.cfg.iou_threshold else "motion below bounds"
         return KeyframeDecision(False, iou, dt, drot, reason, coverage)
 
@@ -60,6 +71,7 @@ class KeyframeSelector:
         """Make the frame last passed to ``should_add`` the reference keyframe."""
         wp.copy(self._last_mask, self._mask)
         self._last_pose = np.array(T_WC, dtype=np.float64)
+        self._loss_ref = None
 
 
 class KeyframeBuffer:

@@ -188,7 +188,7 @@ class SLAM:
             tracking = self.tracker.track(rgb, depth, self.map)
             self.stats["tracking_s"] += time.perf_counter() - tr0
             T = tracking.T_WC
-            decision = self.selector.should_add(self.tracker.alpha, T)
+            decision = self.selector.should_add(self.tracker.alpha, T, None if tracking.lost else tracking.loss)
             is_kf, reason = decision.is_keyframe, decision.reason
             if init_phase:
                 is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end})"
@@ -491,7 +491,8 @@ class SLAM:
         self._join_pending()
 
     def save(self, directory: str | Path) -> Path:
-        """Write ``map.ply``, ``trajectory.txt`` (TUM), ``keyframes.npz`` and ``config.yaml``."""
+        """Write ``map.ply``, ``trajectory.txt`` (TUM), ``keyframes.npz`` and ``config.yaml``.  The
+        frame-fill seeds still waiting for a keyframe are not in ``map.ply`` unless ``finish`` ran."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         save_ply(directory / "map.ply", self.map)

@@ -40,7 +40,10 @@ def _visibility_iou_rows(
 def visibility_iou(
     alpha: wp.array2d, last_mask: wp.array2d, alpha_threshold: float, mask_out: wp.array2d, counts_out: wp.array
 ) -> None:
-    """Writes ``mask_out = alpha > alpha_threshold`` and ``counts_out = [|V ∩ V_last|, |V ∪ V_last|, |V|]``."""
+    """Writes ``mask_out = alpha > alpha_threshold`` and ``counts_out = [|V ∩ V_last|, |V ∪ V_last|, |V|]``
+    (``counts_out`` holds 3 entries)."""
+    if counts_out.shape[0] != 3:
+        raise ValueError(f"counts_out needs 3 entries, got {counts_out.shape[0]}")
     counts_out.zero_()
     wp.launch(
         _visibility_iou_rows,
