@@ -159,6 +159,12 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     assert out["ssim"] == pytest.approx((1.0 + ssim(b, a)) / 2, abs=1e-12)
     assert out["depth_l1_cm"] == pytest.approx(0.5, abs=1e-5)
     assert out["lpips"] is None and "no AlexNet weights path" in out["lpips_na_reason"]
+    # a frame where the map renders no depth (lost region) is left out; none at all: n/a with why
+    empty = np.zeros_like(depth)
+    out2 = photometric_metrics([a, b], [a, a], None, [empty, depth], [depth, depth + 0.02])
+    assert out2["depth_l1_cm"] == pytest.approx(2.0, abs=1e-4)
+    out3 = photometric_metrics([a], [a], None, [empty], [depth])
+    assert out3["depth_l1_cm"] is None and "rendered and a measured depth" in out3["depth_l1_cm_na_reason"]
 
     out["psnr_db"] = psnr(b, a)
     metrics = {

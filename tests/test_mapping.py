@@ -439,8 +439,10 @@ def _keyframes(room, frames, device) -> tuple[KeyframeBuffer, list[int]]:
 
 
 def test_mapping_refines_corrupted_colours(device, room):
-    # Measured (CPU): PSNR 16.9 / 17.0 / 16.8 dB -> 20.5 / 21.4 / 21.0 dB (+3.7 / +4.5 / +4.3) in 60
-    # iterations; mean L1 of the first 6 iterations 0.106, of the last 6 0.056.
+    # Measured (CPU): +1.3 / +1.8 / +2.0 dB in 60 iterations with the higher SH bands at 1/20 of the
+    # colour rate (mapping.lr_color_rest_factor); at the full rate they took up part of the noise as
+    # view dependence (PSNR 16.9 / 17.0 / 16.8 -> 20.5 / 21.4 / 21.0 dB). Mean L1 of the first 6
+    # iterations 0.109, of the last 6 0.081 (at the full rate 0.106 -> 0.056).
     cam = room["camera"]
     gmap = _room_map(room, device)
     n = len(gmap)
@@ -459,11 +461,11 @@ def test_mapping_refines_corrupted_colours(device, room):
     mapper = Mapper(MappingConfig(), cam, gmap, device, renderer=renderer)
     result = mapper.optimize(kf, slots, 60, optimize_poses=False)
     gain = psnrs() - before
-    assert np.all(gain > 2.0), gain
+    assert np.all(gain > 1.0), gain
     assert (result.iters, result.map_updates, result.pose_updates) == (60, 60, 0)
     assert np.array_equal(kf.poses, poses)
     h = result.l1_history
-    assert h[-6:].mean() < 0.7 * h[:6].mean(), h
+    assert h[-6:].mean() < 0.85 * h[:6].mean(), h
     assert np.polyfit(np.arange(len(h)), h, 1)[0] < 0
     assert np.all(np.isfinite(result.depth_l1_history))  # RGB-D: every keyframe has depth
     # each of the 60 iterations renders the 3 keyframes of the window

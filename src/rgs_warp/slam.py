@@ -142,6 +142,10 @@ class SLAM:
         )
         self._depth_conf = wp.zeros(n_depth, dtype=wp.float32, **kw)
         self._mono_depth = wp.full((camera.height, camera.width), cfg.matching.scene_depth_m, dtype=wp.float32, **kw)
+        # seeding.mono_fill: the plane of a monocular keyframe's fill seeds
+        self._fill_plane = (
+            wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw) if self.mode == "mono" else None
+        )
         self._zero_alpha = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
         self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
         # frames below this index are forced keyframes of the initialization window; a monocular
@@ -382,6 +386,14 @@ class SLAM:
         if first or (self.mode == "rgbd" and cfg.seeding.depth_fill):
             alpha = self._zero_alpha if first else self.renderer.forward(self.map, self.camera, T).alpha
             added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
+        elif self.mode == "mono" and cfg.seeding.mono_fill:
+            res = self.renderer.forward(self.map, self.camera, T)
+            alpha = res.alpha.numpy()
+            covered = alpha >= cfg.seeding.covered_alpha
+            if covered.any() and not covered.all():
+                plane = float(np.median(res.depth.numpy()[covered] / alpha[covered]))
+                self._fill_plane.fill_(plane)
+                added += self._depth_seed(kf, slot, res.alpha, self._fill_plane)
         return added
 
     def _fill_frame_gaps(self, T: np.ndarray, exposure) -> int:
@@ -645,12 +657,12 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
                 frame_losses.append(result.tracking.loss)
             if result.keyframe:
                 entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
-            elif result.seeded:
-                entry["seeded"] = result.seeded
                 if result.mapping is not None and result.mapping.iters:
                     entry["mapping_l1"] = result.mapping.final_l1
                 if cfg.method == "baseline" and result.mapping is not None:
                     entry.update(cloned=result.mapping.cloned, split=result.mapping.split)
+            elif result.seeded:  # frame fill: seeds waiting for the next keyframe
+                entry["seeded"] = result.seeded
             log.write(json.dumps(entry) + "\n")
             elapsed = time.perf_counter() - t_start
             bar.set_postfix(
@@ -750,7 +762,7 @@ def evaluate_run(cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wal
         res = slam.render(est[i])
         renders.append(np.clip(res.color.numpy(), 0.0, 1.0))
         refs.append(frame.rgb)
-        if frame.depth is not None:
+        if frame.depth is not None and cfg.mode == "rgbd":  # monocular depth has the map's own scale
             alpha = res.alpha.numpy()
             depths.append(np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0))
             ref_depths.append(frame.depth)

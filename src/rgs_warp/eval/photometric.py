@@ -216,5 +216,14 @@ def photometric_metrics(
         out["depth_l1_cm"] = None
         out["depth_l1_cm_na_reason"] = "no depth given (monocular run or no ground-truth depth)"
     else:
-        out["depth_l1_cm"] = float(np.mean([depth_l1_cm(d, r) for d, r in zip(depths_m, ref_depths_m, strict=True)]))
+        # frames where the map renders no depth over any measured pixel (a lost region) do not count
+        values = []
+        for d, r in zip(depths_m, ref_depths_m, strict=True):
+            try:
+                values.append(depth_l1_cm(d, r))
+            except ValueError:
+                continue
+        out["depth_l1_cm"] = float(np.mean(values)) if values else None
+        if not values:
+            out["depth_l1_cm_na_reason"] = "no scored frame has a pixel with both a rendered and a measured depth"
     return out
