@@ -394,11 +394,13 @@ class SLAM:
         dev = self.device
         if self._fill_frame is None:
             self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, dev)
+            self._fill_alpha = wp.empty((self.camera.height, self.camera.width), dtype=wp.float32, device=dev)
         rgb, depth = self.tracker.frame
         self._fill_frame.add(len(self.poses), T, rgb, depth, exposure)
         alpha = self.renderer.forward(self.map, self.camera, T).alpha
         if len(self._pending):
-            alpha = wp.clone(alpha)  # the renderer's buffers are reused by the next render
+            wp.copy(self._fill_alpha, alpha)  # the renderer's buffers are reused by the next render
+            alpha = self._fill_alpha
             pending = self.renderer.forward(self._pending, self.camera, T).alpha
             wp.launch(km.union_alpha, dim=alpha.shape, inputs=[alpha, pending], outputs=[alpha], device=dev)
         return self._depth_seed(self._fill_frame, 0, alpha, target=self._pending)
