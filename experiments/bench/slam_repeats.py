@@ -1,0 +1,101 @@
+"""Run-to-run spread of the whole system: each case of ``slam.py`` several times, as concurrent
+processes on one GPU, one table of every run and of each case's spread.
+
+    python experiments/bench/slam_repeats.py --out DIR --repeats 4 --jobs 8 \
+        --case "kitchen:dataset=7scenes/redkitchen" --case "kitchen_loss15:dataset=7scenes/redkitchen,keyframes.max_loss_ratio=1.5"
+
+Repeat r of a case runs with ``seed=r`` (GPU atomics make even equal seeds differ: experiments/results/
+slam.md, 7-Scenes).  Concurrent runs share the GPU, so their frames per second are not the system's
+speed (use ``slam.py`` alone for that); ATE and PSNR are unaffected.  Writes DIR/repeats.json (every
+run's metrics) and DIR/runs.tar.gz (the small files of every run: metrics, per-frame log, config,
+trajectory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).with_name("slam.py")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default=os.environ.get("OUT", "bench_out"))
+    ap.add_argument("--case", action="append", required=True, help="name:override,override (repeatable)")
+    ap.add_argument("--common", default="", help="overrides applied to every case, comma separated")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--jobs", type=int, default=6, help="runs at once")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = []  # (case, repeat, name, overrides)
+    for case in args.case:
+        name, _, overrides = case.partition(":")
+        for r in range(args.repeats):
+            runs.append((name, r, f"{name}_r{r}", ",".join(o for o in (overrides, f"seed={r}") if o)))
+    pending, active, t0 = list(runs), {}, time.perf_counter()
+    while pending or active:
+        while pending and len(active) < args.jobs:
+            _, _, run_name, overrides = pending.pop(0)
+            cmd = [sys.executable, str(BENCH), "--out", str(out / run_name), "--case", f"{run_name}:{overrides}"]
+            if args.common:
+                cmd += ["--common", args.common]
+            log = (out / f"{run_name}.out").open("w")
+            active[run_name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log)
+        for run_name, (proc, log) in list(active.items()):
+            if proc.poll() is not None:
+                log.close()
+                del active[run_name]
+                print(f"[{time.perf_counter() - t0:6.0f} s] {run_name} exited {proc.returncode}", flush=True)
+        time.sleep(1.0)
+
+    results = {}
+    for case, r, run_name, overrides in runs:
+        f = out / run_name / "slam.json"
+        m = json.loads(f.read_text())["results"].get(run_name, {}) if f.is_file() else {"error": "no slam.json"}
+        results[run_name] = {"case": case, "repeat": r, "overrides": overrides, "metrics": m}
+    (out / "repeats.json").write_text(json.dumps(results, indent=2, default=str))
+
+    def ate(m):
+        return ((m.get("ate") or {}).get("all_frames") or {}).get("rmse_cm", float("nan"))
+
+    def ate_kf(m):
+        return ((m.get("ate") or {}).get("keyframes") or {}).get("rmse_cm", float("nan"))
+
+    print(f"{'run':<28} {'kf':>4} {'gaussians':>9} {'ATE cm':>7} {'kf ATE':>7} {'PSNR':>6}")
+    by_case: dict[str, list] = {}
+    for run_name, res in results.items():
+        m = res["metrics"]
+        if "error" in m:
+            print(f"{run_name:<28} {m['error']}")
+            continue
+        psnr = (m.get("photometric") or {}).get("psnr_db", float("nan"))
+        print(f"{run_name:<28} {m['keyframes']:>4} {m['gaussians']:>9} {ate(m):>7.2f} {ate_kf(m):>7.2f} {psnr:>6.2f}")
+        by_case.setdefault(res["case"], []).append((ate(m), psnr))
+    print(f"\n{'case':<24} {'runs':>4} {'ATE median':>10} {'ATE min':>8} {'ATE max':>8} {'PSNR mean':>9}")
+    for case, vals in by_case.items():
+        a = np.array([v[0] for v in vals])
+        p = np.array([v[1] for v in vals])
+        print(f"{case:<24} {len(a):>4} {np.median(a):>10.2f} {a.min():>8.2f} {a.max():>8.2f} {np.nanmean(p):>9.2f}")
+    with tarfile.open(out / "runs.tar.gz", "w:gz") as tar:
+        for _, _, run_name, _ in runs:
+            for p in sorted((out / run_name / "runs").rglob("*")):
+                small = p.name in ("trajectory_topview.png", "trajectory.txt", "config.yaml")
+                if p.is_file() and (p.suffix in (".md", ".json", ".jsonl") or small):
+                    tar.add(p, arcname=str(p.relative_to(out)))
+            if (out / f"{run_name}.out").is_file():
+                tar.add(out / f"{run_name}.out", arcname=f"{run_name}.out")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
