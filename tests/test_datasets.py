@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rgs_warp.datasets import DatasetError, ReplicaDataset, SevenScenesDataset, TUMDataset
+from rgs_warp.datasets.sevenscenes import reproject_depth
 from rgs_warp.datasets.base import downscale_depth
 from rgs_warp.datasets.replica import read_matrix_lines
 from rgs_warp.datasets.tum import TUM_CAMERAS, associate, read_tum_list
@@ -80,7 +81,7 @@ def test_replica_warp_detects_wrong_convention(replica_root):
 
 def test_sevenscenes_real(shared_data, tmp_path):
     root = shared_data / "7scenes-redkitchen"
-    ds = SevenScenesDataset(root)
+    ds = SevenScenesDataset(root, register_depth=False)
     assert len(ds) == 500
     assert (ds.camera.fx, ds.camera.cx, ds.camera.width) == (585.0, 320.0, 640)
     f = ds[10]
@@ -95,13 +96,82 @@ def test_sevenscenes_real(shared_data, tmp_path):
     for T in (ds[0].pose_gt, f.pose_gt):
         assert np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() < 1e-12
     write_tum_trajectory(tmp_path / "gt.txt", np.arange(2.0), np.stack([ds[0].pose_gt, f.pose_gt]))
-    sub = SevenScenesDataset(root, start=100, stride=20, max_frames=5, downscale=2)
+    sub = SevenScenesDataset(root, start=100, stride=20, max_frames=5, downscale=2, register_depth=False)
     assert len(sub) == 5 and sub[4].pose_gt is not None
     np.testing.assert_allclose(sub[4].pose_gt, np.loadtxt(root / "frame-000180.pose.txt"), atol=5e-4)
     assert sub[0].rgb.shape == (240, 320, 3) and sub[0].depth.shape == (240, 320)
     assert sub.camera.cx == pytest.approx(159.75)  # (320 + 0.5) / 2 - 0.5
     gt = sub.gt_poses()
     assert gt.shape == (5, 4, 4)
+
+
+def test_reproject_depth_plane_and_occlusion():
+    """reproject_depth against geometry worked out by hand: a fronto-parallel plane seen from a camera
+    shifted sideways and with another focal length, and a near patch in front of it."""
+    src = Camera(fx=100.0, fy=100.0, cx=39.5, cy=29.5, width=80, height=60)
+    dst = Camera(fx=80.0, fy=80.0, cx=40.0, cy=31.0, width=80, height=60)
+    offset = np.array([0.1, -0.05, 0.2])
+    depth = np.full((60, 80), 2.0, dtype=np.float32)
+    depth[25:35, 35:45] = 1.0  # a near patch
+    out = reproject_depth(depth, src, dst, offset)
+    # every target pixel whose ray meets the plane z = 2.2 (target coordinates) inside the source's view
+    # and outside the patch's shadow sees 2.2; the patch's points (z = 1.2) win over the plane behind them
+    v, u = np.mgrid[0:60, 0:80]
+
+    def source_pixel(z_target):  # where the target pixel's ray meets the depth z_target, in the source image
+        xs = (u - dst.cx) / dst.fx * z_target - offset[0]
+        ys = (v - dst.cy) / dst.fy * z_target - offset[1]
+        return src.fx * xs / (z_target - offset[2]) + src.cx, src.fy * ys / (z_target - offset[2]) + src.cy
+
+    un, vn = source_pixel(1.2)  # the patch's depth in target coordinates
+    near_ok = (un > 35.5) & (un < 43.5) & (vn > 25.5) & (vn < 33.5)
+    near_margin = (un > 33) & (un < 46) & (vn > 23) & (vn < 36)
+    uf, vf = source_pixel(2.2)  # the plane's
+    shadow = (uf > 33) & (uf < 46) & (vf > 23) & (vf < 36)  # plane hidden from the source by the patch
+    far_ok = (uf > 1) & (uf < 78) & (vf > 1) & (vf < 58) & ~shadow & ~near_margin
+    assert far_ok.sum() > 1500 and near_ok.sum() > 20
+    np.testing.assert_allclose(out[far_ok], 2.2, atol=1e-5)
+    np.testing.assert_allclose(out[near_ok], 1.2, atol=1e-5)
+    # the same camera and no offset give the image back
+    np.testing.assert_array_equal(reproject_depth(depth, src, src, np.zeros(3)), depth)
+
+
+def test_sevenscenes_registration(shared_data):
+    """The registered frames: the colour camera's calibration, ground truth moved to the colour camera
+    (a surface point seen through the raw depth and the file's pose lands where the registered frame
+    puts it), and depth discontinuities on colour edges (the measurement behind the calibration)."""
+    root = shared_data / "7scenes-redkitchen"
+    ds = SevenScenesDataset(root)
+    raw = SevenScenesDataset(root, register_depth=False)
+    assert (ds.camera.fx, ds.camera.cx, ds.camera.cy) == (526.0, 322.0, 238.0)
+    f, g = ds[120], raw[120]
+    np.testing.assert_allclose(f.pose_gt[:3, :3], g.pose_gt[:3, :3])
+    assert np.linalg.norm(f.pose_gt[:3, 3] - g.pose_gt[:3, 3]) == pytest.approx(0.03, abs=1e-9)
+    c, k = g.depth > 0, ds.camera
+    v, u = np.nonzero(c)
+    v, u = v[::97], u[::97]
+    z = g.depth[v, u].astype(np.float64)
+    pts = np.stack([(u - 320.0) / 585.0 * z, (v - 240.0) / 585.0 * z, z, np.ones_like(z)])
+    world = g.pose_gt @ pts
+    cam = np.linalg.inv(f.pose_gt) @ world
+    uc, vc = k.fx * cam[0] / cam[2] + k.cx, k.fy * cam[1] / cam[2] + k.cy
+    ui, vi = np.rint(uc).astype(int), np.rint(vc).astype(int)
+    seen = f.depth[vi, ui] > 0
+    assert seen.mean() > 0.97
+    close = np.abs(f.depth[vi, ui][seen] - cam[2][seen]) < 0.01 * cam[2][seen]
+    assert close.mean() > 0.97  # the rest lie behind a nearer surface at a discontinuity
+
+    def edge_gradient(frame):  # mean colour gradient magnitude on the near side of depth jumps > 10 %
+        grey = cv2.GaussianBlur(frame.rgb.mean(axis=-1).astype(np.float32), (5, 5), 1.0)
+        grad = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+        d = frame.depth
+        far = cv2.erode(np.where(d > 0, d, 100.0).astype(np.float32), np.ones((3, 3)))
+        edge = (d > 0) & (cv2.dilate(d, np.ones((3, 3))) > 1.1 * d) & (d <= far + 1e-6)
+        return grad[edge].mean()
+
+    registered = np.mean([edge_gradient(ds[i]) for i in (0, 200, 400)])
+    unregistered = np.mean([edge_gradient(raw[i]) for i in (0, 200, 400)])
+    assert registered > 1.6 * unregistered
 
 
 def test_prefetch_iteration_equals_indexing(shared_data):

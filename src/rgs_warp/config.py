@@ -43,6 +43,13 @@ class DatasetConfig:
     # (seeding.frame_fill_min_uncovered), whose depth would carry another pixel's colour and which
     # no mapping may correct (experiments/results/slam.md, run 19)
     depth_registered: bool = True
+    # 7-Scenes only: its colour and depth images come from two cameras.  register_depth reprojects each
+    # depth image into the colour camera (colour_intrinsics fx, fy, cx, cy; a depth-camera point plus
+    # depth_to_colour_m is the colour-camera point) and moves the ground-truth poses (the depth
+    # camera's) to the colour camera.  Measured: experiments/results/sevenscenes_calibration.md
+    register_depth: bool = True
+    colour_intrinsics: tuple[float, float, float, float] = (526.0, 526.0, 322.0, 238.0)
+    depth_to_colour_m: tuple[float, float, float] = (-0.03, 0.0, 0.0)
     # TUM only
     camera: str = "auto"  # fr1 | fr2 | fr3 | auto (from the folder name)
     max_dt: float = 0.08  # s, timestamp association tolerance

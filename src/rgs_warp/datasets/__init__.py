@@ -46,7 +46,13 @@ def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
     if d.type == "replica":
         return ReplicaDataset(cfg.dataset_path(), **common)
     if d.type == "7scenes":
-        return SevenScenesDataset(cfg.dataset_path(), **common)
+        return SevenScenesDataset(
+            cfg.dataset_path(),
+            register_depth=d.register_depth,
+            colour_intrinsics=d.colour_intrinsics,
+            depth_to_colour_m=d.depth_to_colour_m,
+            **common,
+        )
     if d.type == "tum":
         return TUMDataset(cfg.dataset_path(), camera=d.camera, max_dt=d.max_dt, undistort=d.undistort, **common)
     if d.type == "synthetic":

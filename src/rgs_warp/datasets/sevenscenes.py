@@ -1,5 +1,15 @@
 """Microsoft 7-Scenes: ``frame-XXXXXX.color.jpg``, ``.depth.png`` (uint16 mm, 0 and 65535 invalid),
-``.pose.txt`` (4x4 camera-to-world, from KinectFusion), optional ``camera-intrinsics.txt``."""
+``.pose.txt`` (4x4 camera-to-world, from KinectFusion), optional ``camera-intrinsics.txt``.
+
+The dataset's page gives one calibration (585, 585, 320, 240), the depth camera's, which KinectFusion
+used: the poses are the depth camera's.  The colour images come from the Kinect's other camera, with
+a wider field of view and an offset.  By default the loader therefore registers each depth image to
+the colour camera (reprojects it, nearest surface wins) and moves the ground-truth poses to the
+colour camera, so that frames are what the RGB-D pipeline assumes: colour and depth on one pinhole
+camera.  The colour calibration is ours, measured on the shared redkitchen frames by aligning depth
+discontinuities with colour edges (``experiments/sevenscenes_calibration.py``,
+``experiments/results/sevenscenes_calibration.md``); DSAC's public code uses the same colour focal
+length (525 px)."""
 
 from __future__ import annotations
 
@@ -10,8 +20,12 @@ import numpy as np
 from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
 from rgs_warp.types import Camera, Frame
 
-# The dataset's stated calibration (Kinect v1, 640x480); colour and depth are not exactly registered.
+# The dataset's stated calibration (Kinect v1, 640x480): the depth camera's.
 SEVENSCENES_CAMERA = Camera(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
+# The colour camera (fx, fy, cx, cy) and the depth-to-colour offset (a depth-camera point plus this is
+# the colour-camera point, metres), measured (experiments/results/sevenscenes_calibration.md).
+SEVENSCENES_COLOUR_INTRINSICS = (526.0, 526.0, 322.0, 238.0)
+SEVENSCENES_DEPTH_TO_COLOUR_M = (-0.03, 0.0, 0.0)
 KINECT_FPS = 30.0
 
 
@@ -27,7 +41,12 @@ class SevenScenesDataset(RGBDDataset):
         max_frames: int | None = None,
         downscale: int = 1,
         prefetch: int = 2,
+        register_depth: bool = True,
+        colour_intrinsics: tuple[float, float, float, float] = SEVENSCENES_COLOUR_INTRINSICS,
+        depth_to_colour_m: tuple[float, float, float] = SEVENSCENES_DEPTH_TO_COLOUR_M,
     ):
+        """``register_depth=False`` gives the files as they are: colour and depth both on the depth
+        camera's calibration (what earlier runs and most papers used), poses unchanged."""
         super().__init__(root, stride, start, max_frames, downscale, prefetch)
         pattern = re.compile(r"frame-(\d{6})\.color\.(jpg|png)$")
         colour = {}
@@ -39,7 +58,18 @@ class SevenScenesDataset(RGBDDataset):
             seqs = sorted(p.name for p in self.root.glob("seq-*") if p.is_dir())
             hint = f" It has sequence folders {seqs}: point the path at one of them." if seqs else ""
             raise DatasetError(f"{self.root}: no frame-XXXXXX.color.jpg files (expected layout: {self.layout}).{hint}")
-        self._native_camera = self._read_intrinsics()
+        self._depth_camera = self._read_intrinsics()
+        self._native_camera = self._depth_camera
+        self._offset = None
+        if register_depth:
+            if len(colour_intrinsics) != 4 or len(depth_to_colour_m) != 3:
+                raise ValueError(
+                    f"colour_intrinsics needs (fx, fy, cx, cy) and depth_to_colour_m (x, y, z); got "
+                    f"{colour_intrinsics} and {depth_to_colour_m}"
+                )
+            fx, fy, cx, cy = (float(v) for v in colour_intrinsics)
+            self._native_camera = Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=640, height=480)
+            self._offset = np.asarray(depth_to_colour_m, dtype=np.float64)
         self._items = [(colour[k], self._read_pose(colour[k])) for k in sorted(colour)]
         self._select()
 
@@ -75,8 +105,39 @@ class SevenScenesDataset(RGBDDataset):
         colour_path, pose = item
         depth = read_depth(self._sibling(colour_path, ".depth.png"), 1000.0)
         depth[depth >= 65.535] = 0.0  # 65535 marks missing depth in 7-Scenes
+        if self._offset is not None:
+            depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
-        return Frame(rgb=read_rgb(colour_path), depth=depth, pose_gt=pose.copy(), timestamp=idx / KINECT_FPS, index=idx)
+        return Frame(rgb=read_rgb(colour_path), depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
 
     def _gt_pose(self, item) -> np.ndarray:
-        return item[1].copy()
+        """The file's (depth-camera) pose, moved to the colour camera when depth is registered."""
+        if self._offset is None:
+            return item[1].copy()
+        colour_in_depth = np.eye(4)
+        colour_in_depth[:3, 3] = -self._offset  # the colour camera's centre in depth-camera coordinates
+        return item[1] @ colour_in_depth
+
+
+def reproject_depth(depth: np.ndarray, source: Camera, target: Camera, offset_m: np.ndarray) -> np.ndarray:
+    """Depth image of camera ``source`` (metres, 0 invalid) seen from camera ``target``, whose
+    coordinates are the source's plus ``offset_m`` (no rotation): every valid pixel's surface point
+    lands on the target pixel nearest its projection, and where several land the nearest surface
+    wins.  Target pixels no point lands on are 0 (occluded, outside the source's view, or between
+    samples)."""
+    v, u = np.nonzero(depth > 0.0)
+    z = depth[v, u].astype(np.float64)
+    x = (u - source.cx) / source.fx * z + offset_m[0]
+    y = (v - source.cy) / source.fy * z + offset_m[1]
+    z = z + offset_m[2]
+    front = z > 1e-6
+    x, y, z = x[front], y[front], z[front]
+    ut = np.rint(target.fx * x / z + target.cx).astype(np.int64)
+    vt = np.rint(target.fy * y / z + target.cy).astype(np.int64)
+    inside = (ut >= 0) & (ut < target.width) & (vt >= 0) & (vt < target.height)
+    pixel, z = vt[inside] * target.width + ut[inside], z[inside]
+    order = np.lexsort((z, pixel))  # by pixel, nearest first
+    first = np.r_[True, pixel[order][1:] != pixel[order][:-1]]
+    out = np.zeros(target.height * target.width, dtype=np.float32)
+    out[pixel[order][first]] = z[order][first]
+    return out.reshape(target.height, target.width)
