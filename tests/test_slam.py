@@ -226,8 +226,8 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         np.testing.assert_allclose(np.median(np.abs(Xc[:, 2] - d) / d), 0.0, atol=0.02)
     slam.finish()
     assert len(slam.map) == size + pending and len(slam._pending) == 0
-    # off, or depth not registered to colour (7-Scenes): nothing waits
-    for off in ("seeding.frame_fill_min_uncovered=-1", "dataset.depth_registered=false"):
+    # off: nothing waits
+    for off in ("seeding.frame_fill_min_uncovered=-1",):
         slam = SLAM(load_config([*base, "keyframes.iou_threshold=0.0", off]), camera, device=device)
         results = [slam.process(f.rgb, f.depth, f.timestamp) for f in frames]
         assert all(r.seeded == 0 for r in results[5:]) and len(slam._pending) == 0, off

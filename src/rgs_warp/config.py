@@ -38,11 +38,6 @@ class DatasetConfig:
     max_frames: int | None = None
     downscale: int = 1
     prefetch: int = 2
-    # depth pixels line up with colour pixels (Replica, TUM, the synthetic scenes); 7-Scenes' do not
-    # (separately calibrated Kinect cameras): there frames that are not keyframes give no seeds
-    # (seeding.frame_fill_min_uncovered), whose depth would carry another pixel's colour and which
-    # no mapping may correct (experiments/results/slam.md, run 19)
-    depth_registered: bool = True
     # 7-Scenes only: its colour and depth images come from two cameras.  register_depth reprojects each
     # depth image into the colour camera (colour_intrinsics fx, fy, cx, cy; a depth-camera point plus
     # depth_to_colour_m is the colour-camera point) and moves the ground-truth poses (the depth
@@ -115,9 +110,10 @@ class KeyframeConfig:
     buffer_size: int = 10  # §4.3: 8-12
     # not in the paper: also a keyframe when the frame's tracking loss exceeds this multiple of the
     # loss of the first frame tracked after the last keyframe (motion bounds still apply): the view
-    # went where the map is covered but poorly fitted, which the IoU does not see (7-Scenes runs
-    # went 80 frames without a keyframe before failing); 0 = off.  Not measured on the GPU yet.
-    max_loss_ratio: float = 0.0
+    # went where the map is covered but poorly fitted, which the IoU does not see.  7-Scenes: off,
+    # 3 of 3 runs fail (42 cm); 1.3: 4.1-4.3 cm in 5 of 5; 1.2: 4.4-4.9; office unchanged
+    # (experiments/results/slam.md, runs 20-23); 0 = off
+    max_loss_ratio: float = 1.3
 
 
 @dataclass

@@ -193,7 +193,7 @@ class SLAM:
             if init_phase:
                 is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end})"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
-        fill = self.cfg.seeding.frame_fill_min_uncovered if self.cfg.dataset.depth_registered else -1.0
+        fill = self.cfg.seeding.frame_fill_min_uncovered
         if not is_kf and use_depth and fill >= 0.0 and not tracking.lost and 1.0 - decision.coverage > fill:
             t1 = time.perf_counter()
             result.seeded = self._fill_frame_gaps(T, (tracking.gain, tracking.bias))
