@@ -119,3 +119,19 @@ def test_cli(tmp_path, capsys):
     # a full run is tests/test_slam.py; here: configuration errors and help
     assert main(["tracking.iter=3"]) == 2
     assert main(["--help"]) == 0 and "Configuration groups" in capsys.readouterr().out
+
+
+def test_group_file_settings_of_other_sections(tmp_path, monkeypatch):
+    """A dataset file's ``settings`` set other sections' keys (7-Scenes: tracking and keyframes for a
+    real Kinect); the command line still wins, and their keys are checked like any other."""
+    cfg = load_config(["dataset=7scenes/redkitchen"])
+    assert cfg.tracking.tau_grad == 0.0 and cfg.keyframes.max_loss_ratio == 1.3
+    assert load_config([]).tracking.tau_grad == 0.05 and load_config([]).keyframes.max_loss_ratio == 0.0
+    assert load_config(["dataset=7scenes/redkitchen", "tracking.tau_grad=0.02"]).tracking.tau_grad == 0.02
+    import rgs_warp.config as config_module
+
+    (tmp_path / "dataset" / "x").mkdir(parents=True)
+    (tmp_path / "dataset" / "x" / "bad.yaml").write_text("type: synthetic\nsettings:\n  tracking:\n    tau_gard: 0\n")
+    monkeypatch.setattr(config_module, "CONFIG_DIR", tmp_path)
+    with pytest.raises(ConfigError, match="tau_gard"):
+        config_module._apply_group(Config(), "dataset", "x/bad")

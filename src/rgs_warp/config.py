@@ -110,10 +110,10 @@ class KeyframeConfig:
     buffer_size: int = 10  # §4.3: 8-12
     # not in the paper: also a keyframe when the frame's tracking loss exceeds this multiple of the
     # loss of the first frame tracked after the last keyframe (motion bounds still apply): the view
-    # went where the map is covered but poorly fitted, which the IoU does not see.  7-Scenes: off,
-    # 3 of 3 runs fail (42 cm); 1.3: 4.1-4.3 cm in 5 of 5; 1.2: 4.4-4.9; office unchanged
-    # (experiments/results/slam.md, runs 20-23); 0 = off
-    max_loss_ratio: float = 1.3
+    # went where the map is covered but poorly fitted, which the IoU does not see; 0 = off.  On in the
+    # 7-Scenes config (1.3; off: 3 of 3 runs fail at 42 cm, 1.3: 4.1-4.3 cm in 5 of 5, 1.2: 4.4-4.9);
+    # off by default (office at 1.3: 0.47-0.51 cm, 32.9-33.2 dB against 0.42, 33.4; results/slam.md)
+    max_loss_ratio: float = 0.0
 
 
 @dataclass
@@ -466,6 +466,10 @@ def _apply_group(cfg: Config, group: str, option: str) -> None:
     if option not in options:
         raise ConfigError(f"unknown {group} {option!r}.{_suggest(option, options)} Valid: {', '.join(options)}")
     data = _load_yaml(CONFIG_DIR / group / f"{option}.yaml")
+    # a section's file may also set keys of other sections for what it describes (a dataset's real
+    # sensor wants other tracking settings): ``settings: {tracking: {tau_grad: 0.0}}``, applied after
+    # the section itself; command-line keys still win
+    settings = data.pop("settings", None)
     section = GROUPS[group]
     if section is None:
         _set_tree(cfg, data)
@@ -473,6 +477,8 @@ def _apply_group(cfg: Config, group: str, option: str) -> None:
         fresh = type(getattr(cfg, section))()  # a group option replaces the whole section
         setattr(cfg, section, fresh)
         _set_tree(fresh, data, section + ".")
+    if settings is not None:
+        _set_tree(cfg, settings)
 
 
 def load_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
