@@ -55,7 +55,10 @@ def search(data) -> dict:
     grid = itertools.product(range(480, 621, 10), range(300, 341, 5), range(220, 261, 5))
     _, f0, cx0, cy0 = max((score(data, f, cx, cy, 0.0), f, cx, cy) for f, cx, cy in grid)
     fine = itertools.product(
-        range(f0 - 8, f0 + 9, 2), np.round(np.arange(-0.05, 0.051, 0.005), 3), range(cx0 - 14, cx0 + 15, 2), range(cy0 - 6, cy0 + 7, 2)
+        range(f0 - 8, f0 + 9, 2),
+        np.round(np.arange(-0.05, 0.051, 0.005), 3),
+        range(cx0 - 14, cx0 + 15, 2),
+        range(cy0 - 6, cy0 + 7, 2),
     )
     s, f, tx, cx, cy = max((score(data, f, cx, cy, tx), f, tx, cx, cy) for f, tx, cx, cy in fine)
     return {
@@ -65,7 +68,9 @@ def search(data) -> dict:
         "tx_m": float(tx),
         "score": s,
         "score_depth_calibration": score(data, 585.0, 320.0, 240.0, 0.0),
-        "score_f525_no_offset": max(score(data, 525.0, cx, cy, 0.0) for cx in range(300, 341, 2) for cy in range(220, 261, 2)),
+        "score_f525_no_offset": max(
+            score(data, 525.0, cx, cy, 0.0) for cx in range(300, 341, 2) for cy in range(220, 261, 2)
+        ),
     }
 
 
@@ -76,13 +81,14 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     folder = Path(args.folder)
     results = {}
-    print(f"{'frames':<14} {'fx':>5} {'cx':>5} {'cy':>5} {'tx m':>6} {'score':>6} {'585 as given':>12} {'525 no offset':>13}")
+    head = f"{'frames':<14} {'fx':>5} {'cx':>5} {'cy':>5} {'tx m':>6} {'score':>6}"
+    print(f"{head} {'585 as given':>12} {'525 no offset':>13}")
     for first in (0, 8, 16):
         r = search(load(folder, range(first, 500, 25)))
         results[f"{first}::25"] = r
         print(
-            f"{first:>3}, {first + 25}, ..  {r['fx']:>5} {r['cx']:>5} {r['cy']:>5} {r['tx_m']:>6.3f} {r['score']:>6.3f} "
-            f"{r['score_depth_calibration']:>12.3f} {r['score_f525_no_offset']:>13.3f}"
+            f"{first:>3}, {first + 25}, ..  {r['fx']:>5} {r['cx']:>5} {r['cy']:>5} {r['tx_m']:>6.3f} "
+            f"{r['score']:>6.3f} {r['score_depth_calibration']:>12.3f} {r['score_f525_no_offset']:>13.3f}"
         )
     Path(args.out).write_text(json.dumps(results, indent=2))
     return 0

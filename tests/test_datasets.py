@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rgs_warp.datasets import DatasetError, ReplicaDataset, SevenScenesDataset, TUMDataset
-from rgs_warp.datasets.sevenscenes import reproject_depth
 from rgs_warp.datasets.base import downscale_depth
 from rgs_warp.datasets.replica import read_matrix_lines
+from rgs_warp.datasets.sevenscenes import reproject_depth
 from rgs_warp.datasets.tum import TUM_CAMERAS, associate, read_tum_list
 from rgs_warp.io.trajectory import write_tum_trajectory
 from rgs_warp.types import Camera

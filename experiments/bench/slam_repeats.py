@@ -2,7 +2,8 @@
 processes on one GPU, one table of every run and of each case's spread.
 
     python experiments/bench/slam_repeats.py --out DIR --repeats 4 --jobs 8 \
-        --case "kitchen:dataset=7scenes/redkitchen" --case "kitchen_loss15:dataset=7scenes/redkitchen,keyframes.max_loss_ratio=1.5"
+        --case "kitchen:dataset=7scenes/redkitchen" \
+        --case "kitchen_loss15:dataset=7scenes/redkitchen,keyframes.max_loss_ratio=1.5"
 
 Repeat r of a case runs with ``seed=r`` (GPU atomics make even equal seeds differ: experiments/results/
 slam.md, 7-Scenes).  Concurrent runs share the GPU, so their frames per second are not the system's

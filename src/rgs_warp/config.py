@@ -111,7 +111,7 @@ class KeyframeConfig:
     # not in the paper: also a keyframe when the frame's tracking loss exceeds this multiple of the
     # loss of the first frame tracked after the last keyframe (motion bounds still apply): the view
     # went where the map is covered but poorly fitted, which the IoU does not see; 0 = off.  On in the
-    # 7-Scenes config (1.3; off: 3 of 3 runs fail at 42 cm, 1.3: 4.1-4.3 cm in 5 of 5, 1.2: 4.4-4.9);
+    # 7-Scenes config (1.3; off: 3 of 3 runs fail at 42 cm, 1.3: 4.1-4.6 cm in 5 of 5, 1.2: 4.4-4.9);
     # off by default (office at 1.3: 0.47-0.51 cm, 32.9-33.2 dB against 0.42, 33.4; results/slam.md)
     max_loss_ratio: float = 0.0
 

@@ -17,15 +17,17 @@ import re
 
 import numpy as np
 
+from rgs_warp.config import DatasetConfig
 from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
 from rgs_warp.types import Camera, Frame
 
 # The dataset's stated calibration (Kinect v1, 640x480): the depth camera's.
 SEVENSCENES_CAMERA = Camera(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
 # The colour camera (fx, fy, cx, cy) and the depth-to-colour offset (a depth-camera point plus this is
-# the colour-camera point, metres), measured (experiments/results/sevenscenes_calibration.md).
-SEVENSCENES_COLOUR_INTRINSICS = (526.0, 526.0, 322.0, 238.0)
-SEVENSCENES_DEPTH_TO_COLOUR_M = (-0.03, 0.0, 0.0)
+# the colour-camera point, metres), measured (experiments/results/sevenscenes_calibration.md); the
+# numbers live in the config's defaults
+SEVENSCENES_COLOUR_INTRINSICS = DatasetConfig.colour_intrinsics
+SEVENSCENES_DEPTH_TO_COLOUR_M = DatasetConfig.depth_to_colour_m
 KINECT_FPS = 30.0
 
 
@@ -108,7 +110,9 @@ class SevenScenesDataset(RGBDDataset):
         if self._offset is not None:
             depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
-        return Frame(rgb=read_rgb(colour_path), depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
+        return Frame(
+            rgb=read_rgb(colour_path), depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx
+        )
 
     def _gt_pose(self, item) -> np.ndarray:
         """The file's (depth-camera) pose, moved to the colour camera when depth is registered."""
