@@ -129,19 +129,19 @@ def reproject_depth(depth: np.ndarray, source: Camera, target: Camera, offset_m:
     lands on the target pixel nearest its projection, and where several land the nearest surface
     wins.  Target pixels no point lands on are 0 (occluded, outside the source's view, or between
     samples)."""
-    v, u = np.nonzero(depth > 0.0)
-    z = depth[v, u].astype(np.float64)
-    x = (u - source.cx) / source.fx * z + offset_m[0]
-    y = (v - source.cy) / source.fy * z + offset_m[1]
-    z = z + offset_m[2]
-    front = z > 1e-6
-    x, y, z = x[front], y[front], z[front]
-    ut = np.rint(target.fx * x / z + target.cx).astype(np.int64)
-    vt = np.rint(target.fy * y / z + target.cy).astype(np.int64)
+    h, w = depth.shape
+    z = depth.astype(np.float32).ravel()
+    ray_x = (np.arange(w, dtype=np.float32) - source.cx) / source.fx  # per column / row, broadcast below
+    ray_y = (np.arange(h, dtype=np.float32) - source.cy) / source.fy
+    x = (ray_x[None, :] * depth + offset_m[0]).ravel().astype(np.float32)
+    y = (ray_y[:, None] * depth + offset_m[1]).ravel().astype(np.float32)
+    zt = z + np.float32(offset_m[2])
+    keep = (z > 0.0) & (zt > 1e-6)
+    x, y, zt = x[keep], y[keep], zt[keep]
+    ut = np.rint(target.fx * x / zt + target.cx).astype(np.int32)
+    vt = np.rint(target.fy * y / zt + target.cy).astype(np.int32)
     inside = (ut >= 0) & (ut < target.width) & (vt >= 0) & (vt < target.height)
-    pixel, z = vt[inside] * target.width + ut[inside], z[inside]
-    order = np.lexsort((z, pixel))  # by pixel, nearest first
-    first = np.r_[True, pixel[order][1:] != pixel[order][:-1]]
-    out = np.zeros(target.height * target.width, dtype=np.float32)
-    out[pixel[order][first]] = z[order][first]
+    out = np.full(target.height * target.width, np.inf, dtype=np.float32)
+    np.minimum.at(out, vt[inside] * target.width + ut[inside], zt[inside])  # the nearest surface wins
+    out[np.isinf(out)] = 0.0
     return out.reshape(target.height, target.width)
