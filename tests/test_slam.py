@@ -233,6 +233,77 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         assert all(r.seeded == 0 for r in results[5:]) and len(slam._pending) == 0, off
 
 
+def test_given_poses_and_tracking_start(device):
+    """``process(T_WC=...)``: no tracking, the frame is mapped at the given pose and mapping keeps it
+    (even with pose refinement on); ``process(T_init_WC=...)``: tracking starts there."""
+    from rgs_warp.geometry import invert_pose
+
+    n = 7
+    base = [*OVERRIDES, "mapping.init_iters=20", "mapping.iters=3", f"device={device}"]
+    cfg = load_config(
+        [*base, "mapping.pose_only_every=2", "keyframes.iou_threshold=0.99", "keyframes.min_translation_m=0"]
+    )
+    camera, frames = _frames(cfg, n)
+    slam = SLAM(cfg, camera, device=device)
+    results = [slam.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt) for f in frames]
+    assert all(r.tracking is None for r in results) and sum(r.keyframe for r in results) == n
+    for f, T in zip(frames, slam.trajectory()[1], strict=True):
+        np.testing.assert_array_equal(T, f.pose_gt)
+    for s_ in slam.keyframes.slots():
+        np.testing.assert_array_equal(slam.keyframes.poses[s_], frames[int(slam.keyframes.frame_ids[s_])].pose_gt)
+    assert len(slam.map) > 100
+    # the motion model goes on from the given poses
+    last, prev = frames[-1].pose_gt, frames[-2].pose_gt
+    np.testing.assert_allclose(slam.tracker.predict(), last @ invert_pose(prev) @ last, atol=1e-9)
+    nxt = _frames(load_config([*base, "dataset.max_frames=8"]), 8)[1][7]
+    # a start 0.3 m off with one small tracking step stays near that start, not the prediction
+    one = SLAM(load_config([*base, "tracking.iters=1", "tracking.lr=1e-5"]), camera, device=device)
+    for f in frames:
+        one.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt)
+    start = nxt.pose_gt.copy()
+    start[:3, 3] += [0.3, 0.0, 0.0]
+    T_start = one.track(nxt.rgb, nxt.depth, T_init_WC=start)
+    assert np.linalg.norm(T_start[:3, 3] - start[:3, 3]) < 0.01
+    with pytest.raises(ValueError, match="T_WC"):
+        one.process(nxt.rgb, nxt.depth, T_WC=np.eye(3))
+
+
+def test_extra_keyframes_join_the_mapping_window(device, monkeypatch):
+    """``mapping.extra_keyframes``: each keyframe's window gets that many older buffered keyframes,
+    drawn at random, oldest first; none during the initialization window."""
+    base = [*OVERRIDES, "mapping.init_iters=10", "mapping.iters=1", f"device={device}"]
+    cfg = load_config(
+        [
+            *base,
+            "mapping.window=2",
+            "mapping.extra_keyframes=2",
+            "keyframes.iou_threshold=0.99",
+            "keyframes.min_translation_m=0",
+        ]
+    )
+    camera, frames = _frames(cfg, 9)
+    slam = SLAM(cfg, camera, device=device)
+    windows = []
+    optimize = slam.mapper.optimize
+
+    def spy(kf, window, iters, **kw):
+        windows.append((list(kf.frame_ids[window]), list(kf.frame_ids[kf.slots()])))
+        return optimize(kf, window, iters, **kw)
+
+    monkeypatch.setattr(slam.mapper, "optimize", spy)
+    for f in frames:
+        slam.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt)
+    assert [w for w, _ in windows[:5]] == [list(range(k + 1)) for k in range(5)]
+    later = windows[5:]
+    assert len(later) == 4
+    drawn = set()
+    for window, buffered in later:
+        assert window[-2:] == buffered[-2:] and len(window) == 4
+        assert window[:2] == sorted(window[:2]) and set(window[:2]) <= set(buffered[:-2])
+        drawn.update(window[:2])
+    assert len(drawn) > 2  # not always the same two
+
+
 MONO = [
     "mode=mono",
     "dataset=synthetic/office0",

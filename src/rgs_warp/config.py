@@ -196,6 +196,9 @@ class MappingConfig:
     iters: int = 60  # K_m, per keyframe (Table 1)
     views_per_iter: int = 0  # keyframes rendered per iteration (gradients averaged): 0 = the whole window
     window: int = 5  # keyframes in the sliding window (Table 1)
+    # + this many older keyframes of the buffer (keyframes.buffer_size), drawn at random for each
+    # keyframe's mapping (the "plus random older keyframes if it helps"; being measured)
+    extra_keyframes: int = 0
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
     lr_color: float = 2e-3  # Table 1 (the DC colour)

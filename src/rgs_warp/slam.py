@@ -95,6 +95,8 @@ class SLAM:
         if cfg.keyframes.buffer_size < 2:
             n_kf = cfg.keyframes.buffer_size
             raise ValueError(f"keyframes.buffer_size must be >= 2 (triangulation needs pairs), got {n_kf}")
+        if cfg.mapping.extra_keyframes < 0:
+            raise ValueError(f"mapping.extra_keyframes must be >= 0, got {cfg.mapping.extra_keyframes}")
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
         # frame fill (seeding.frame_fill_min_uncovered): a tracked frame's images, and the seeds taken
         # from frames since the last keyframe, which join the map when the next keyframe is processed
@@ -127,6 +129,8 @@ class SLAM:
         self.poses: list[np.ndarray] = []  # camera-to-world of every tracked frame
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
+        self._given_poses: set[int] = set()  # frames whose pose the caller gave (process(T_WC=...))
+        self._rng = np.random.default_rng([cfg.seed, 1])  # mapping.extra_keyframes
         self.first_slot: int | None = None
         self._slot_of_frame: dict[int, int] = {}
         hg, wg = camera.height // depth_spacing, camera.width // depth_spacing
@@ -158,15 +162,38 @@ class SLAM:
         self.convergence: list[dict] = []
 
     # ---- per frame -----------------------------------------------------------------------------
-    def track(self, rgb, depth=None, timestamp: float | None = None) -> np.ndarray:
+    def track(
+        self,
+        rgb,
+        depth=None,
+        timestamp: float | None = None,
+        T_init_WC: np.ndarray | None = None,
+        T_WC: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Track one frame (``rgb`` HxWx3 float32 in [0, 1], ``depth`` HxW metres or None in mono
-        mode; NumPy arrays or ``wp.array``s on the SLAM's device) and return its camera-to-world pose."""
-        return self.process(rgb, depth, timestamp).T_WC
+        mode; NumPy arrays or ``wp.array``s on the SLAM's device) and return its camera-to-world pose.
 
-    def process(self, rgb, depth=None, timestamp: float | None = None) -> FrameResult:
-        """``track`` with the diagnostics of what happened to the frame."""
+        ``T_init_WC``: where tracking starts (e.g. from wheel odometry or an IMU); default the
+        constant-velocity prediction.  ``T_WC``: the frame's pose is known (motion capture, another
+        odometry): tracking is skipped and the frame goes to keyframe selection and mapping at that
+        pose (mapping with known poses).  Both are 4x4 camera-to-world, in the SLAM's world frame."""
+        return self.process(rgb, depth, timestamp, T_init_WC=T_init_WC, T_WC=T_WC).T_WC
+
+    def process(
+        self,
+        rgb,
+        depth=None,
+        timestamp: float | None = None,
+        T_init_WC: np.ndarray | None = None,
+        T_WC: np.ndarray | None = None,
+    ) -> FrameResult:
+        """``track`` with the diagnostics of what happened to the frame (``tracking`` is None when
+        the pose was given)."""
         if isinstance(rgb, Frame):
             rgb, depth, timestamp = rgb.rgb, rgb.depth, rgb.timestamp
+        for name, T_given in (("T_init_WC", T_init_WC), ("T_WC", T_WC)):
+            if T_given is not None and (np.shape(T_given) != (4, 4) or not np.all(np.isfinite(T_given))):
+                raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got {np.shape(T_given)}")
         t0 = time.perf_counter()
         i = len(self.poses)
         use_depth = self.mode == "rgbd"
@@ -175,32 +202,45 @@ class SLAM:
         if not use_depth:
             depth = None
         if self._bootstrap is not None:
+            if T_init_WC is not None or T_WC is not None:
+                raise ValueError("the monocular bootstrap finds its own poses: no T_init_WC / T_WC before it ends")
             return self._process_bootstrap(rgb, timestamp, t0)
         init_phase = i < self._init_window_end
         tracking = None
         if i == 0:
-            T = self.T_first.copy()
+            T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
             is_kf, reason = True, "first frame"
+            exposure, pose_ok = (1.0, 0.0), True
             self.selector.should_add(self._alpha_at(T), T)
+        elif T_WC is not None:
+            T = np.array(T_WC, dtype=np.float64)
+            self.tracker.load_frame(rgb, depth)  # the frame fill reads it
+            self.tracker.reset(T, self.poses[-1])  # the motion model goes on from the given poses
+            exposure, pose_ok = self.tracker.exposure(self.map, T), True
+            self._given_poses.add(i)  # mapping keeps them
+            decision = self.selector.should_add(self.tracker.alpha, T)
+            is_kf, reason = decision.is_keyframe, f"{decision.reason} (pose given)"
+            if init_phase:
+                is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}, pose given)"
         else:
             tr0 = time.perf_counter()
-            tracking = self.tracker.track(rgb, depth, self.map)
+            tracking = self.tracker.track(rgb, depth, self.map, T_init_WC)
             self.stats["tracking_s"] += time.perf_counter() - tr0
             T = tracking.T_WC
+            exposure, pose_ok = (tracking.gain, tracking.bias), not tracking.lost
             decision = self.selector.should_add(self.tracker.alpha, T, None if tracking.lost else tracking.loss)
             is_kf, reason = decision.is_keyframe, decision.reason
             if init_phase:
                 is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end})"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         fill = self.cfg.seeding.frame_fill_min_uncovered
-        if not is_kf and use_depth and fill >= 0.0 and not tracking.lost and 1.0 - decision.coverage > fill:
+        if not is_kf and use_depth and fill >= 0.0 and pose_ok and 1.0 - decision.coverage > fill:
             t1 = time.perf_counter()
-            result.seeded = self._fill_frame_gaps(T, (tracking.gain, tracking.bias))
+            result.seeded = self._fill_frame_gaps(T, exposure)
             self.stats["seeding_s"] += time.perf_counter() - t1
         if is_kf:
             self.selector.accept(T)
-            exposure = (1.0, 0.0) if tracking is None else (tracking.gain, tracking.bias)
             self._add_keyframe(i, T, rgb, depth, exposure, result)
             T = self.keyframes.poses[self._slot_of_frame[i]].copy()
             self.tracker.set_last_pose(T)
@@ -319,8 +359,13 @@ class SLAM:
         t0 = time.perf_counter()
         init = i < self._init_window_end
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
+        older = kf.slots()[: -len(window)]
+        if not init and cfg.mapping.extra_keyframes > 0 and older:
+            picked = self._rng.choice(len(older), min(cfg.mapping.extra_keyframes, len(older)), replace=False)
+            window = [older[j] for j in sorted(picked)] + window
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         fixed = [self.first_slot] if self.first_slot is not None and self.first_slot >= 0 else []
+        fixed += [s for s in window if int(kf.frame_ids[s]) in self._given_poses]
         psnr_every = cfg.eval.convergence_every if init else 0
         result.mapping = self.mapper.optimize(kf, window, iters, fixed=fixed, psnr_every=psnr_every)
         self.stats["mapping_s"] += time.perf_counter() - t0

@@ -180,13 +180,17 @@ class Tracker:
         T_init = self.predict() if T_init_WC is None else np.asarray(T_init_WC, dtype=np.float64)
         if T_init is None:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
-        self._load_frame(rgb, depth if use_depth else None)
+        self.load_frame(rgb, depth)
         self._begin(T_init)
         for k in range(cfg.iters):
             self._iteration(gmap, k, use_depth)
         return self._finish(T_init)
 
-    def _load_frame(self, rgb, depth) -> None:
+    def load_frame(self, rgb, depth) -> None:
+        """Stage a frame on the device without tracking it (``frame`` then returns it); ``track``
+        does this itself.  ``depth`` is ignored in "mono"."""
+        if self.mode != "rgbd":
+            depth = None
         cfg = self.cfg
         dev = self.device
         full = (self.camera.height, self.camera.width)
@@ -217,6 +221,38 @@ class Tracker:
             outputs=[self._w_grad],
             device=dev,
         )
+
+    def exposure(self, gmap: GaussianMap, T_WC: np.ndarray) -> tuple[float, float]:
+        """Eq. 3-4 brightness (gain, bias) of the frame last loaded (``load_frame``) against the map
+        rendered at ``T_WC``, in closed form, without moving the pose; ``alpha`` is then that render's."""
+        if self._frame is None:
+            raise RuntimeError("no frame loaded")
+        cfg, dev = self.cfg, self.device
+        self._T_WC_host.numpy()[0] = np.asarray(T_WC, dtype=np.float32)
+        wp.copy(self._T_WC, self._T_WC_host)
+        self._history.zero_()
+        res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
+        self._last_render = res
+        n_pixels = self._rgb.shape[0] * self._rgb.shape[1]
+        wp.launch_tiled(
+            tk.brightness_sums,
+            dim=[(n_pixels + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK],
+            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, 0],
+            outputs=[self._history],
+            block_dim=tk.REDUCE_BLOCK,
+            device=dev,
+        )
+        wp.launch(
+            tk.solve_brightness,
+            dim=1,
+            inputs=[BRIGHTNESS_MODELS[cfg.brightness], cfg.brightness_ridge, 0],
+            outputs=[self._history],
+            device=dev,
+        )
+        wp.copy(self._history_host, self._history)
+        wp.synchronize_device(dev)
+        row = self._history_host.numpy()[0]
+        return float(row[tk.H_GAIN]), float(row[tk.H_BIAS])
 
     def _stage(self, image, host: wp.array, dst: wp.array, shape: tuple[int, int], dtype, name: str) -> wp.array:
         """The frame image as a device array at the camera's resolution: a device array is checked and
