@@ -183,9 +183,6 @@ class SeedingConfig:
     # the triangulated seeds (plain walls have no matches); the first keyframe always is (mono: at
     # matching.scene_depth_m)
     depth_fill: bool = True
-    # monocular: later keyframes also get seeds where the map does not cover them, on a plane at the
-    # median depth of what it covers; mapping then moves them (being measured: slam.md)
-    mono_fill: bool = False
     depth_stride: int = 2  # px between depth seeds (experiments/results/slam.md: 4 -> 2 -> 1)
     # RGB-D: a tracked frame that is not a keyframe also gets measured-depth seeds where the map does
     # not cover it, when more than this fraction of its pixels is uncovered (new surface shows up

@@ -146,9 +146,6 @@ class SLAM:
         )
         self._depth_conf = wp.zeros(n_depth, dtype=wp.float32, **kw)
         self._mono_depth = wp.full((camera.height, camera.width), cfg.matching.scene_depth_m, dtype=wp.float32, **kw)
-        self._fill_plane = (  # seeding.mono_fill
-            wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw) if self.mode == "mono" else None
-        )
         self._zero_alpha = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
         self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
         # frames below this index are forced keyframes of the initialization window; a monocular
@@ -430,15 +427,6 @@ class SLAM:
         if first or (self.mode == "rgbd" and cfg.seeding.depth_fill):
             alpha = self._zero_alpha if first else self.renderer.forward(self.map, self.camera, T).alpha
             added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
-        elif self.mode == "mono" and cfg.seeding.mono_fill:
-            # where the map does not cover the keyframe: seeds on the plane at the median depth of what
-            # it covers (MonoGS seeds new monocular Gaussians near the median rendered depth)
-            res = self.renderer.forward(self.map, self.camera, T)
-            alpha = res.alpha.numpy()
-            covered = alpha >= cfg.seeding.covered_alpha
-            if covered.any() and not covered.all():
-                self._fill_plane.fill_(float(np.median(res.depth.numpy()[covered] / alpha[covered])))
-                added += self._depth_seed(kf, slot, res.alpha, self._fill_plane)
         return added
 
     def _fill_frame_gaps(self, T: np.ndarray, exposure) -> int:
