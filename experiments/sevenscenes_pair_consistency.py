@@ -70,6 +70,25 @@ def score(gi, gj, v, u, uj, vj, keep) -> float:
     return float(np.median(np.abs(gain * warped - ref)))
 
 
+def plot(rows: list[dict], gap: int, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    i = [r["i"] for r in rows]
+    fig, ax = plt.subplots(figsize=(9, 3.2))
+    ax.plot(i, [r["gt"] for r in rows], ".-", lw=0.8, ms=3, label="ground-truth relative motion")
+    ax.plot(i, [r["run"] for r in rows], ".-", lw=0.8, ms=3, label="the run's relative motion")
+    ax.set_xlabel(f"frame i (pair i, i + {gap})")
+    ax.set_ylabel("median |I_i - g I_j(warped)|")
+    ax.legend(loc="upper left", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("trajectory", help="a run's trajectory.txt (TUM)")
@@ -134,6 +153,7 @@ def main(argv=None) -> int:
     if args.out:
         record = {"trajectory": args.trajectory, "gap": args.gap, "table": table, "rows": rows}
         Path(args.out).write_text(json.dumps(record, indent=1))
+        plot(rows, args.gap, Path(args.out).with_suffix(".png"))
     return 0
 
 
