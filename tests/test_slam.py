@@ -233,7 +233,7 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         assert all(r.seeded == 0 for r in results[5:]) and len(slam._pending) == 0, off
 
 
-def test_given_poses_and_tracking_start(device):
+def test_given_poses_and_tracking_start(device, tmp_path):
     """``process(T_WC=...)``: no tracking, the frame is mapped at the given pose and mapping keeps it
     (even with pose refinement on); ``process(T_init_WC=...)``: tracking starts there."""
     from rgs_warp.geometry import invert_pose
@@ -252,6 +252,8 @@ def test_given_poses_and_tracking_start(device):
     for s_ in slam.keyframes.slots():
         np.testing.assert_array_equal(slam.keyframes.poses[s_], frames[int(slam.keyframes.frame_ids[s_])].pose_gt)
     assert len(slam.map) > 100
+    # a save / load keeps them given
+    assert SLAM.load(slam.save(tmp_path / "given"), device=device)._given_poses == set(range(n))
     # the motion model goes on from the given poses
     last, prev = frames[-1].pose_gt, frames[-2].pose_gt
     np.testing.assert_allclose(slam.tracker.predict(), last @ invert_pose(prev) @ last, atol=1e-9)

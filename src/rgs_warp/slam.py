@@ -209,6 +209,8 @@ class SLAM:
         tracking = None
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
+            if T_WC is not None:
+                self._given_poses.add(i)
             self.tracker.reset(T)
             is_kf, reason = True, "first frame"
             exposure, pose_ok = (1.0, 0.0), True
@@ -559,6 +561,7 @@ class SLAM:
             camera=np.array([self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy]),
             size=np.array([self.camera.width, self.camera.height]),
             first_pose=self.T_first,
+            given_poses=np.array(sorted(self._given_poses), dtype=np.int64),  # mapping keeps these
         )
         save_config(self.cfg, directory / "config.yaml")
         return directory
@@ -590,6 +593,8 @@ class SLAM:
             slot = slam.keyframes.add(frame_id, data["poses"][k], data["rgb"][k], depth, data["exposure"][k])
             slam._slot_of_frame[frame_id] = slot
         slam.first_slot = -1  # the gauge is the loaded map's
+        if "given_poses" in data:
+            slam._given_poses = {int(v) for v in data["given_poses"]}
         if "mapping_iters" in data:  # folders saved before it was recorded start the count afresh
             slam.mapper.total_iters = int(data["mapping_iters"])
         if slam.poses:
