@@ -109,6 +109,7 @@ class Tracker:
         self._d_color = wp.zeros(shape, dtype=wp.vec3, device=dev)
         self._d_depth = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._d_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
+        self._blocks = [(shape[0] * shape[1] + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK]  # per-pixel reductions
         self._history = wp.zeros((cfg.iters, tk.H_COLUMNS), dtype=wp.float64, device=dev)
         self._history_host = wp.zeros((cfg.iters, tk.H_COLUMNS), dtype=wp.float64, device="cpu", pinned=pinned)
         self._adam_m = wp.zeros(6, dtype=wp.float32, device=dev)
@@ -227,30 +228,12 @@ class Tracker:
         rendered at ``T_WC``, in closed form, without moving the pose; ``alpha`` is then that render's."""
         if self._frame is None:
             raise RuntimeError("no frame loaded")
-        cfg, dev = self.cfg, self.device
         self._T_WC_host.numpy()[0] = np.asarray(T_WC, dtype=np.float32)
         wp.copy(self._T_WC, self._T_WC_host)
         self._history.zero_()
-        res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
-        self._last_render = res
-        n_pixels = self._rgb.shape[0] * self._rgb.shape[1]
-        wp.launch_tiled(
-            tk.brightness_sums,
-            dim=[(n_pixels + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK],
-            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, 0],
-            outputs=[self._history],
-            block_dim=tk.REDUCE_BLOCK,
-            device=dev,
-        )
-        wp.launch(
-            tk.solve_brightness,
-            dim=1,
-            inputs=[BRIGHTNESS_MODELS[cfg.brightness], cfg.brightness_ridge, 0],
-            outputs=[self._history],
-            device=dev,
-        )
+        self._render_and_brightness(gmap, 0)
         wp.copy(self._history_host, self._history)
-        wp.synchronize_device(dev)
+        wp.synchronize_device(self.device)
         row = self._history_host.numpy()[0]
         return float(row[tk.H_GAIN]), float(row[tk.H_BIAS])
 
@@ -282,16 +265,14 @@ class Tracker:
         self._adam_v.zero_()
         self._history.zero_()
 
-    def _iteration(self, gmap: GaussianMap, k: int, use_depth: bool) -> None:
-        cfg = self.cfg
-        dev = self.device
+    def _render_and_brightness(self, gmap: GaussianMap, k: int):
+        """Render the map at the current pose and solve Eq. 3-4's (g, b) into history row ``k``."""
+        cfg, dev = self.cfg, self.device
         res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
         self._last_render = res
-        n_pixels = self._rgb.shape[0] * self._rgb.shape[1]
-        blocks = [(n_pixels + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK]
         wp.launch_tiled(
             tk.brightness_sums,
-            dim=blocks,
+            dim=self._blocks,
             inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, k],
             outputs=[self._history],
             block_dim=tk.REDUCE_BLOCK,
@@ -304,9 +285,15 @@ class Tracker:
             outputs=[self._history],
             device=dev,
         )
+        return res
+
+    def _iteration(self, gmap: GaussianMap, k: int, use_depth: bool) -> None:
+        cfg = self.cfg
+        dev = self.device
+        res = self._render_and_brightness(gmap, k)
         wp.launch_tiled(
             tk.tracking_loss,
-            dim=blocks,
+            dim=self._blocks,
             inputs=[self._rgb, self._depth, self._w_grad, res.color, res.depth, res.alpha]
             + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, k],
             outputs=[self._d_color, self._d_depth, self._d_alpha, self._history],
