@@ -233,6 +233,38 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         assert all(r.seeded == 0 for r in results[5:]) and len(slam._pending) == 0, off
 
 
+def test_own_data_without_ground_truth(tmp_path, device):
+    """A sequence of one's own in the TUM layout with cam_params.json and no groundtruth.txt runs end
+    to end with dataset.require_pose=false: trajectory, map and photometric metrics, ATE not scored
+    (and said why), a top view of the estimate alone; without the switch the error names it."""
+    from rgs_warp.datasets.base import DatasetError
+    from rgs_warp.datasets.synthetic import SyntheticConfig, write_sequence
+
+    data = tmp_path / "my_room"
+    # the synthetic office's first frames, as the default 100-frame path has them
+    write_sequence(SyntheticConfig(scene="office0", width=160, height=90), data, "tum", device=device, progress=False)
+    (data / "groundtruth.txt").unlink()
+    own = [
+        "dataset.type=tum",
+        "dataset.name=my_room",
+        f"dataset.path={data}",
+        "dataset.max_frames=8",
+        "mapping.init_iters=20",
+        "mapping.iters=3",
+        f"device={device}",
+        f"output_dir={tmp_path / 'runs'}",
+        "run_name=own",
+    ]
+    with pytest.raises(DatasetError, match="dataset.require_pose=false"):
+        run(load_config(own), progress=False)
+    run_dir, metrics = run(load_config([*own, "dataset.require_pose=false"]), progress=False)
+    assert metrics["ate"] is None and metrics["ate_na_reason"] == "no ground-truth poses"
+    assert metrics["frames"] == 8 and metrics["photometric"]["psnr_db"] > 15.0
+    _, poses = read_tum_trajectory(run_dir / "trajectory.txt")
+    assert len(poses) == 8 and np.linalg.norm(poses[-1][:3, 3] - poses[0][:3, 3]) > 0.01
+    assert (run_dir / "trajectory_topview.png").stat().st_size > 1000
+
+
 def test_given_poses_and_tracking_start(device, tmp_path):
     """``process(T_WC=...)``: no tracking, the frame is mapped at the given pose and mapping keeps it
     (even with pose refinement on); ``process(T_init_WC=...)``: tracking starts there."""

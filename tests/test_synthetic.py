@@ -11,6 +11,7 @@ import open3d as o3d
 import plyfile
 import pytest
 
+from rgs_warp.datasets.base import DatasetError
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig, SyntheticDataset, build_scene, write_sequence
 from rgs_warp.datasets.synthetic import dataset as synthetic_dataset
 from rgs_warp.datasets.synthetic.render import SceneRenderer
@@ -219,6 +220,26 @@ def test_tum_layout_parses_and_associates(tmp_path, device):
     assert len(ds) == 8 and (ds.camera.width, ds.camera.height, ds.camera.cx) == (96, 54, cfg.cx or 47.5)
     np.testing.assert_allclose(ds[4].depth, depth.astype(np.float32) / 5000.0)
     np.testing.assert_allclose(ds[4].pose_gt, T, atol=1e-9)
+
+    # Your own data: no groundtruth.txt, depth in millimetres (cam_params.json "scale": 1000), and for
+    # monocular no depth at all.
+    (tmp_path / "groundtruth.txt").unlink()
+    with pytest.raises(DatasetError, match="require_pose=false"):
+        TUMDataset(tmp_path, max_dt=0.02)
+    for _, (name,) in zip(t_depth, depth_rows, strict=True):
+        raw = cv2.imread(str(tmp_path / name), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(tmp_path / name), np.round(raw.astype(np.float64) / 5.0).astype(np.uint16))
+    params = json.loads((tmp_path / "cam_params.json").read_text())
+    params["camera"]["scale"] = 1000.0
+    (tmp_path / "cam_params.json").write_text(json.dumps(params))
+    own = TUMDataset(tmp_path, max_dt=0.02, require_pose=False)
+    assert len(own) == 8 and own[4].pose_gt is None
+    np.testing.assert_allclose(own[4].depth, depth.astype(np.float32) / 5000.0, atol=0.6e-3)
+    (tmp_path / "depth.txt").unlink()
+    mono = TUMDataset(tmp_path, max_dt=0.02, require_pose=False, require_depth=False)
+    assert len(mono) == 8 and mono[4].depth is None
+    with pytest.raises(DatasetError, match="depth.txt"):
+        TUMDataset(tmp_path, max_dt=0.02, require_pose=False)
 
 
 def test_images_have_texture_and_textureless_regions(room):

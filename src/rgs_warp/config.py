@@ -48,6 +48,9 @@ class DatasetConfig:
     # TUM only
     camera: str = "auto"  # fr1 | fr2 | fr3 | auto (from the folder name)
     max_dt: float = 0.08  # s, timestamp association tolerance
+    # false: a sequence without groundtruth.txt (your own data: README, "Your own data"); frames
+    # without a pose are kept and the ATE is not scored
+    require_pose: bool = True
     undistort: bool = True
     # synthetic only
     width: int = 240

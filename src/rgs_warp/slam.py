@@ -794,6 +794,8 @@ def evaluate_run(cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wal
     else:
         metrics["ate"] = None
         metrics["ate_na_reason"] = "no ground-truth poses" if n >= 3 else "fewer than 3 frames"
+        if n >= 2:
+            plot_trajectory_topview(est, None, run_dir / "trajectory_topview.png", title=metrics["dataset"])
     # photometric metrics: every eval.every-th frame, keyframes excluded (§3), rendered at the estimate
     idx = eval_frame_indices(n, slam.keyframe_indices, cfg.eval.every)
     renders, refs, depths, ref_depths = [], [], [], []

@@ -54,7 +54,15 @@ def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
             **common,
         )
     if d.type == "tum":
-        return TUMDataset(cfg.dataset_path(), camera=d.camera, max_dt=d.max_dt, undistort=d.undistort, **common)
+        return TUMDataset(
+            cfg.dataset_path(),
+            camera=d.camera,
+            max_dt=d.max_dt,
+            undistort=d.undistort,
+            require_depth=cfg.mode == "rgbd",
+            require_pose=d.require_pose,
+            **common,
+        )
     if d.type == "synthetic":
         return SyntheticDataset(
             d.name,

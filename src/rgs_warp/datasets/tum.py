@@ -29,7 +29,9 @@ def read_tum_list(path: Path, n_values: int) -> tuple[np.ndarray, list[list[str]
     try:
         lines = path.read_text().splitlines()
     except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found (TUM layout needs rgb.txt, depth.txt, groundtruth.txt)") from None
+        raise DatasetError(
+            f"{path}: file not found (TUM layout: rgb.txt, depth.txt, groundtruth.txt; README, 'Your own data')"
+        ) from None
     stamps, rows = [], []
     for lineno, line in enumerate(lines, 1):
         if not line.strip() or line.lstrip().startswith("#"):
@@ -74,7 +76,8 @@ def camera_for_sequence(root: Path) -> Camera:
     if m is None:
         raise DatasetError(
             f"{root}: cannot tell the TUM camera (fr1/fr2/fr3) from the folder name; set dataset.camera "
-            f"or put a cam_params.json ({{'camera': {{'w', 'h', 'fx', 'fy', 'cx', 'cy'}}}}) in the folder"
+            f"or put a cam_params.json ({{'camera': {{'w', 'h', 'fx', 'fy', 'cx', 'cy', 'scale'}}}}, scale = raw "
+            f"depth units per metre) in the folder"
         )
     return TUM_CAMERAS[f"fr{m.group(1)}"]
 
@@ -98,8 +101,9 @@ class TUMDataset(RGBDDataset):
         require_pose: bool = True,
     ):
         super().__init__(root, stride, start, max_frames, downscale, prefetch)
+        self.depth_scale = TUM_DEPTH_SCALE  # raw units per metre
         if camera == "auto" and (self.root / "cam_params.json").is_file():
-            cam = read_cam_params(self.root / "cam_params.json")[0]
+            cam, self.depth_scale = read_cam_params(self.root / "cam_params.json", TUM_DEPTH_SCALE)
         elif camera == "auto":
             cam = camera_for_sequence(self.root)
         elif camera in TUM_CAMERAS:
@@ -117,7 +121,10 @@ class TUMDataset(RGBDDataset):
         self._native_camera = cam
 
         t_rgb, rgb_rows = read_tum_list(self.root / "rgb.txt", 1)
-        t_dep, dep_rows = read_tum_list(self.root / "depth.txt", 1)
+        if require_depth or (self.root / "depth.txt").is_file():
+            t_dep, dep_rows = read_tum_list(self.root / "depth.txt", 1)
+        else:  # monocular without depth images
+            t_dep, dep_rows = np.zeros(0), []
         gt_path = self.root / "groundtruth.txt"
         if gt_path.is_file():
             t_gt, gt_rows = read_tum_list(gt_path, 7)
@@ -158,7 +165,7 @@ class TUMDataset(RGBDDataset):
     def _load_full(self, item) -> Frame:
         t, rgb_path, depth_path, pose = item
         rgb = read_rgb(rgb_path)
-        depth = read_depth(depth_path, TUM_DEPTH_SCALE) if depth_path is not None else None
+        depth = read_depth(depth_path, self.depth_scale) if depth_path is not None else None
         cam = self._native_camera
         if rgb.shape[:2] != (cam.height, cam.width):
             raise DatasetError(

@@ -136,7 +136,7 @@ def _view_basis(gt_m: np.ndarray, est_m: np.ndarray, up: np.ndarray | None) -> t
 
 def plot_trajectory_topview(
     est: np.ndarray,
-    gt: np.ndarray,
+    gt: np.ndarray | None,
     path: str | Path,
     title: str = "",
     align: Alignment = "none",
@@ -145,18 +145,22 @@ def plot_trajectory_topview(
     """Top view of estimated (green) and ground-truth (red) camera positions, saved as PNG.
 
     ``est``/``gt``: (N, 4, 4) camera-to-world poses or (N, 3) positions in metres (registered
-    row by row when aligning). ``align`` ("se3"/"sim3") first aligns the estimate onto
-    the ground truth as the ATE does; ``up`` (world gravity-up vector) selects the horizontal plane,
-    otherwise the two axes of largest extent are shown. Circles mark the start, squares the end.
+    row by row when aligning); ``gt`` None: the estimate alone (a sequence without ground truth).
+    ``align`` ("se3"/"sim3") first aligns the estimate onto the ground truth as the ATE does; ``up``
+    (world gravity-up vector) selects the horizontal plane, otherwise the two axes of largest extent
+    are shown. Circles mark the start, squares the end.
     """
-    est_m, gt_m = _positions_m(est), _positions_m(gt)
-    if align != "none":
+    est_m = _positions_m(est)
+    gt_m = est_m[:0] if gt is None else _positions_m(gt)
+    if align != "none" and gt is not None:
         R, t_m, s = umeyama_alignment(est_m, gt_m, with_scale=align == "sim3")
         est_m = s * est_m @ R.T + t_m
     basis, labels = _view_basis(gt_m, est_m, up)
     gt_2d, est_2d = gt_m @ basis.T, est_m @ basis.T
     fig, ax = plt.subplots(figsize=(6, 6), dpi=150)
     for xy, colour, name in ((gt_2d, "red", "ground truth"), (est_2d, "green", "estimate")):
+        if not len(xy):
+            continue
         ax.plot(xy[:, 0], xy[:, 1], color=colour, linewidth=1.2, label=name)
         ax.plot(*xy[0], "o", color=colour, markeredgecolor="black", markersize=7)
         ax.plot(*xy[-1], "s", color=colour, markeredgecolor="black", markersize=7)
