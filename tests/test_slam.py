@@ -300,6 +300,8 @@ def test_given_poses_and_tracking_start(device, tmp_path):
     assert np.linalg.norm(T_start[:3, 3] - start[:3, 3]) < 0.01
     with pytest.raises(ValueError, match="T_WC"):
         one.process(nxt.rgb, nxt.depth, T_WC=np.eye(3))
+    with pytest.raises(ValueError, match="not both"):
+        one.process(nxt.rgb, nxt.depth, T_init_WC=start, T_WC=start)
 
 
 def test_extra_keyframes_join_the_mapping_window(device, monkeypatch):

@@ -176,7 +176,8 @@ class SLAM:
         ``T_init_WC``: where tracking starts (e.g. from wheel odometry or an IMU); default the
         constant-velocity prediction.  ``T_WC``: the frame's pose is known (motion capture, another
         odometry): tracking is skipped and the frame goes to keyframe selection and mapping at that
-        pose (mapping with known poses).  Both are 4x4 camera-to-world, in the SLAM's world frame."""
+        pose (mapping with known poses).  Both are 4x4 camera-to-world, in the SLAM's world frame.  The
+        first frame is not tracked: its pose is ``T_WC`` if given, else ``T_first_WC``."""
         return self.process(rgb, depth, timestamp, T_init_WC=T_init_WC, T_WC=T_WC).T_WC
 
     def process(
@@ -191,6 +192,8 @@ class SLAM:
         the pose was given)."""
         if isinstance(rgb, Frame):
             rgb, depth, timestamp = rgb.rgb, rgb.depth, rgb.timestamp
+        if T_init_WC is not None and T_WC is not None:
+            raise ValueError("give T_init_WC (where tracking starts) or T_WC (the known pose), not both")
         for name, T_given in (("T_init_WC", T_init_WC), ("T_WC", T_WC)):
             if T_given is not None and (np.shape(T_given) != (4, 4) or not np.all(np.isfinite(T_given))):
                 raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got {np.shape(T_given)}")
