@@ -374,6 +374,50 @@ def test_mask_covered_points(device):
     np.testing.assert_array_equal(valid.numpy(), ref)
 
 
+def test_map_depth_ratio_and_scale_points_about(device):
+    rng = np.random.default_rng(21)
+    H, W, n = 12, 16, 300
+    fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
+    T_WC = se3_exp(np.array([0.1, -0.2, 0.3, 0.2, -0.1, 0.3]))
+    uv = np.stack([rng.uniform(-2, W + 1, n), rng.uniform(-2, H + 1, n)], axis=1)
+    z = rng.uniform(1.0, 3.0, n)
+    z[:10] = -z[:10]  # behind the camera
+    P = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
+    X = P @ T_WC[:3, :3].T + T_WC[:3, 3]
+    alpha = rng.uniform(0.2, 1.0, (H, W)).astype(np.float32)
+    d_map = rng.uniform(1.0, 3.0, (H, W))
+    rendered_depth = (alpha * d_map).astype(np.float32)
+    valid0 = (rng.uniform(size=n) < 0.8).astype(np.int32)
+    pu = np.clip(np.round(uv[:, 0]).astype(int), 0, W - 1)
+    pv = np.clip(np.round(uv[:, 1]).astype(int), 0, H - 1)
+    min_alpha = 0.5
+    ratio = wp.empty(n, dtype=wp.float32, device=device)
+    X_wp = wp.array(X, dtype=wp.vec3d, device=device)
+    valid = wp.array(valid0, dtype=wp.int32, device=device)
+    wp.launch(
+        km.map_depth_ratio,
+        dim=n,
+        inputs=[wp.array(uv, dtype=wp.vec2d, device=device), wp.array(alpha, device=device)]
+        + [wp.array(rendered_depth, device=device), X_wp, valid, wp.mat44d(invert_pose(T_WC)), min_alpha],
+        outputs=[ratio],
+        device=device,
+    )
+    a = alpha[pv, pu].astype(np.float64)
+    use = (valid0 == 1) & (a >= min_alpha) & (z > 0)
+    ref = np.where(use, rendered_depth[pv, pu] / a / np.where(z > 0, z, 1.0), 0.0)
+    assert use.sum() > 50 and (~use).sum() > 50
+    np.testing.assert_allclose(ratio.numpy(), ref, rtol=1e-5)
+    # the points move along their rays from the camera centre: same pixel, depth times s
+    s = 1.37
+    C = T_WC[:3, 3]
+    wp.launch(km.scale_points_about, dim=n, inputs=[wp.vec3d(*C), wp.float64(s), valid], outputs=[X_wp], device=device)
+    moved = X_wp.numpy()
+    ref_X = np.where(valid0[:, None] == 1, C + s * (X - C), X)
+    np.testing.assert_allclose(moved, ref_X, rtol=1e-12, atol=1e-12)
+    P_moved = (moved - T_WC[:3, 3]) @ T_WC[:3, :3]
+    np.testing.assert_allclose(P_moved[valid0 == 1, 2], s * z[valid0 == 1], rtol=1e-12)
+
+
 def test_reject_depth_inconsistent_points(device):
     rng = np.random.default_rng(19)
     H, W, n = 12, 16, 300

@@ -67,6 +67,9 @@ class FrameResult:
     seeded: int = 0  # Gaussians added by seeding (a keyframe's, or a frame fill's: seeding.frame_fill_min_uncovered)
     pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0
+    # monocular keyframe: the map's depth over its triangulated points' where the map covers them
+    # (median), before seeding.mono_scale_to_map applies it; None where too few points overlap
+    seed_depth_ratio: float | None = None
     mapping: MappingResult | None = None
     seconds: float = 0.0
     tracking_seconds: float = 0.0
@@ -319,7 +322,7 @@ class SLAM:
                 f"monocular bootstrap with frame 0 ({len(boot.points)} points)",
             )
         else:
-            result.seeded = self._seed(slot0)  # the first keyframe's plane at matching.scene_depth_m
+            result.seeded, _ = self._seed(slot0)  # the first keyframe's plane at matching.scene_depth_m
             window, retrack = [slot0], range(1, i + 1)
             result.keyframe_reason = f"monocular bootstrap gave up after {i} frames: plane at frame 0"
         self.stats["seeding_s"] += time.perf_counter() - tb
@@ -359,7 +362,9 @@ class SLAM:
         # and new regions get depth seeds only (no matching)
         t0 = time.perf_counter()
         self._join_pending()
-        result.seeded = self._seed(slot, matches=cfg.method == "rgs" or len(self.keyframe_indices) == 1)
+        result.seeded, result.seed_depth_ratio = self._seed(
+            slot, matches=cfg.method == "rgs" or len(self.keyframe_indices) == 1
+        )
         self.stats["seeding_s"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         init = i < self._init_window_end
@@ -396,14 +401,16 @@ class SLAM:
             self.convergence.append({"iteration": it, "frame": i, "phase": phase, "psnr_db": psnr_db, "gaussians": n})
 
     # ---- seeding -------------------------------------------------------------------------------
-    def _seed(self, slot: int, matches: bool = True) -> int:
+    def _seed(self, slot: int, matches: bool = True) -> tuple[int, float | None]:
         """Dense initialization at keyframe ``slot``: (``matches``) matches with its neighbours,
         triangulated, seeded where the map does not explain the keyframe yet; then (RGB-D,
         ``seeding.depth_fill``, or the very first keyframe) measured-depth seeds where the map still
-        does not cover it."""
+        does not cover it.  Returns the number of seeds and (monocular) the map's depth over the
+        triangulated points' (``FrameResult.seed_depth_ratio``)."""
         cfg, kf, dev = self.cfg, self.keyframes, self.device
-        added = 0
+        added, ratio = 0, None
         T = kf.poses[slot]
+        T_CW = wp.mat44d(invert_pose(T))
         neighbours = self.matcher.select_neighbours(slot, kf) if matches and len(kf) >= 2 else []
         if neighbours:
             m = self.matcher.match(slot, kf, neighbours, use_depth=self.mode == "rgbd")
@@ -412,17 +419,18 @@ class SLAM:
                 wp.launch(
                     km.reject_depth_inconsistent_points,
                     dim=pts.X.shape[0],
-                    inputs=[m.ref_uv, kf.depth[slot], pts.X, wp.mat44d(invert_pose(T))]
-                    + [cfg.seeding.depth_consistency_tol],
+                    inputs=[m.ref_uv, kf.depth[slot], pts.X, T_CW, cfg.seeding.depth_consistency_tol],
                     outputs=[pts.valid],
                     device=dev,
                 )
             if len(self.map):
                 res = self.renderer.forward(self.map, self.camera, T)
+                if self.mode == "mono":
+                    ratio = self._scale_to_map(pts, m.ref_uv, res, T)
                 wp.launch(
                     km.mask_covered_points,
                     dim=pts.X.shape[0],
-                    inputs=[m.ref_uv, res.alpha, res.depth, pts.X, wp.mat44d(invert_pose(T))]
+                    inputs=[m.ref_uv, res.alpha, res.depth, pts.X, T_CW]
                     + [cfg.seeding.covered_alpha, cfg.seeding.covered_depth_tol],
                     outputs=[pts.valid],
                     device=dev,
@@ -432,7 +440,34 @@ class SLAM:
         if first or (self.mode == "rgbd" and cfg.seeding.depth_fill):
             alpha = self._zero_alpha if first else self.renderer.forward(self.map, self.camera, T).alpha
             added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
-        return added
+        return added, ratio
+
+    def _scale_to_map(self, pts, ref_uv: wp.array, res, T: np.ndarray) -> float | None:
+        """Monocular: the median of the map's depth over the triangulated points' where the map covers
+        them (``res``: the map rendered at keyframe pose ``T``); with ``seeding.mono_scale_to_map``
+        the points move along their rays from the keyframe's centre by that factor.  None (and
+        nothing moves) with fewer than ``seeding.mono_scale_min_points`` such points."""
+        cfg = self.cfg.seeding
+        n = pts.X.shape[0]
+        ratio = wp.empty(n, dtype=wp.float32, device=self.device)
+        wp.launch(
+            km.map_depth_ratio,
+            dim=n,
+            inputs=[ref_uv, res.alpha, res.depth, pts.X, pts.valid, wp.mat44d(invert_pose(T)), cfg.covered_alpha],
+            outputs=[ratio],
+            device=self.device,
+        )
+        r = ratio.numpy()
+        r = r[r > 0.0]
+        if len(r) < cfg.mono_scale_min_points:
+            return None
+        s = float(np.median(r))
+        if cfg.mono_scale_to_map:
+            C = wp.vec3d(*(float(c) for c in T[:3, 3]))
+            wp.launch(
+                km.scale_points_about, dim=n, inputs=[C, wp.float64(s), pts.valid], outputs=[pts.X], device=self.device
+            )
+        return s
 
     def _fill_frame_gaps(self, T: np.ndarray, exposure) -> int:
         """Measured-depth seeds from the frame just tracked (not a keyframe) where neither the map
@@ -700,6 +735,8 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
                 frame_losses.append(result.tracking.loss)
             if result.keyframe:
                 entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
+                if result.seed_depth_ratio is not None:
+                    entry["seed_depth_ratio"] = round(result.seed_depth_ratio, 4)
                 if result.mapping is not None and result.mapping.iters:
                     entry["mapping_l1"] = result.mapping.final_l1
                 if cfg.method == "baseline" and result.mapping is not None:

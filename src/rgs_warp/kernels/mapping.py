@@ -338,6 +338,48 @@ def mask_covered_points(
 
 
 @wp.kernel
+def map_depth_ratio(
+    # in: reference-view pixels of the triangulated points and the map's render at the reference
+    ref_uv: wp.array(dtype=wp.vec2d),
+    alpha: wp.array2d(dtype=wp.float32),
+    rendered_depth: wp.array2d(dtype=wp.float32),
+    X: wp.array(dtype=wp.vec3d),
+    valid: wp.array(dtype=wp.int32),
+    T_CW: wp.mat44d,
+    min_alpha: float,
+    # out: the map's depth over the point's (alpha-normalised, reference view); 0 where the map does
+    # not cover the point's pixel or the point is invalid or behind the camera
+    ratio: wp.array(dtype=wp.float32),
+):
+    # Monocular: the scale of a keyframe's triangulated points against the map it extends.
+    i = wp.tid()
+    ratio[i] = 0.0
+    if valid[i] == 0:
+        return
+    u = reference_pixel(ref_uv[i][0], alpha.shape[1])
+    v = reference_pixel(ref_uv[i][1], alpha.shape[0])
+    a = alpha[v, u]
+    z = camera_depth(X[i], T_CW)
+    if a < min_alpha or z <= 0.0:
+        return
+    ratio[i] = rendered_depth[v, u] / a / z
+
+
+@wp.kernel
+def scale_points_about(
+    # in: the centre (a camera's position) and the factor
+    C: wp.vec3d,
+    s: wp.float64,
+    valid: wp.array(dtype=wp.int32),
+    # in/out: the points, moved along their rays from C to s times their distance
+    X: wp.array(dtype=wp.vec3d),
+):
+    i = wp.tid()
+    if valid[i] != 0:
+        X[i] = C + s * (X[i] - C)
+
+
+@wp.kernel
 def reject_depth_inconsistent_points(
     # in: reference-view pixels of the triangulated points and the reference keyframe's measured depth
     ref_uv: wp.array(dtype=wp.vec2d),
