@@ -374,7 +374,7 @@ def test_mask_covered_points(device):
     np.testing.assert_array_equal(valid.numpy(), ref)
 
 
-def test_map_depth_ratio_and_scale_points_about(device):
+def test_map_depth_ratio(device):
     rng = np.random.default_rng(21)
     H, W, n = 12, 16, 300
     fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
@@ -407,15 +407,6 @@ def test_map_depth_ratio_and_scale_points_about(device):
     ref = np.where(use, rendered_depth[pv, pu] / a / np.where(z > 0, z, 1.0), 0.0)
     assert use.sum() > 50 and (~use).sum() > 50
     np.testing.assert_allclose(ratio.numpy(), ref, rtol=1e-5)
-    # the points move along their rays from the camera centre: same pixel, depth times s
-    s = 1.37
-    C = T_WC[:3, 3]
-    wp.launch(km.scale_points_about, dim=n, inputs=[wp.vec3d(*C), wp.float64(s), valid], outputs=[X_wp], device=device)
-    moved = X_wp.numpy()
-    ref_X = np.where(valid0[:, None] == 1, C + s * (X - C), X)
-    np.testing.assert_allclose(moved, ref_X, rtol=1e-12, atol=1e-12)
-    P_moved = (moved - T_WC[:3, 3]) @ T_WC[:3, :3]
-    np.testing.assert_allclose(P_moved[valid0 == 1, 2], s * z[valid0 == 1], rtol=1e-12)
 
 
 def test_reject_depth_inconsistent_points(device):

@@ -192,11 +192,11 @@ class SeedingConfig:
     # between keyframes; seen by no keyframe it would stay a hole); negative = off
     frame_fill_min_uncovered: float = 0.002
     depth_max_rel_jump: float = 0.05  # skip depth seeds on discontinuities (second difference / depth)
-    # monocular: a keyframe's triangulated points are moved along their rays to the scale of the map
-    # where it covers them (the median of the map's depth over theirs, from at least
-    # mono_scale_min_points points): the map grown after the bootstrap keeps the bootstrap's scale
-    mono_scale_to_map: bool = False
-    mono_scale_min_points: int = 200
+    # monocular: each keyframe's triangulated depths against the map's where it covers them
+    # (FrameResult.seed_depth_ratio, in the run's log) from at least this many points.  Moving the
+    # seeds to that scale did not help: the ratio stays at 0.96-1.04 until tracking is lost
+    # (experiments/results/slam.md, runs 30-31)
+    depth_ratio_min_points: int = 200
 
 
 @dataclass

@@ -68,7 +68,7 @@ class FrameResult:
     pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0
     # monocular keyframe: the map's depth over its triangulated points' where the map covers them
-    # (median), before seeding.mono_scale_to_map applies it; None where too few points overlap
+    # (median; 1 = the new surface has the map's scale); None where too few points overlap
     seed_depth_ratio: float | None = None
     mapping: MappingResult | None = None
     seconds: float = 0.0
@@ -426,7 +426,7 @@ class SLAM:
             if len(self.map):
                 res = self.renderer.forward(self.map, self.camera, T)
                 if self.mode == "mono":
-                    ratio = self._scale_to_map(pts, m.ref_uv, res, T)
+                    ratio = self._seed_depth_ratio(pts, m.ref_uv, res, T)
                 wp.launch(
                     km.mask_covered_points,
                     dim=pts.X.shape[0],
@@ -442,32 +442,23 @@ class SLAM:
             added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
         return added, ratio
 
-    def _scale_to_map(self, pts, ref_uv: wp.array, res, T: np.ndarray) -> float | None:
+    def _seed_depth_ratio(self, pts, ref_uv: wp.array, res, T: np.ndarray) -> float | None:
         """Monocular: the median of the map's depth over the triangulated points' where the map covers
-        them (``res``: the map rendered at keyframe pose ``T``); with ``seeding.mono_scale_to_map``
-        the points move along their rays from the keyframe's centre by that factor.  None (and
-        nothing moves) with fewer than ``seeding.mono_scale_min_points`` such points."""
-        cfg = self.cfg.seeding
+        them (``res``: the map rendered at keyframe pose ``T``); None with fewer than
+        ``seeding.depth_ratio_min_points`` such points."""
         n = pts.X.shape[0]
         ratio = wp.empty(n, dtype=wp.float32, device=self.device)
         wp.launch(
             km.map_depth_ratio,
             dim=n,
-            inputs=[ref_uv, res.alpha, res.depth, pts.X, pts.valid, wp.mat44d(invert_pose(T)), cfg.covered_alpha],
+            inputs=[ref_uv, res.alpha, res.depth, pts.X, pts.valid, wp.mat44d(invert_pose(T))]
+            + [self.cfg.seeding.covered_alpha],
             outputs=[ratio],
             device=self.device,
         )
         r = ratio.numpy()
         r = r[r > 0.0]
-        if len(r) < cfg.mono_scale_min_points:
-            return None
-        s = float(np.median(r))
-        if cfg.mono_scale_to_map:
-            C = wp.vec3d(*(float(c) for c in T[:3, 3]))
-            wp.launch(
-                km.scale_points_about, dim=n, inputs=[C, wp.float64(s), pts.valid], outputs=[pts.X], device=self.device
-            )
-        return s
+        return float(np.median(r)) if len(r) >= self.cfg.seeding.depth_ratio_min_points else None
 
     def _fill_frame_gaps(self, T: np.ndarray, exposure) -> int:
         """Measured-depth seeds from the frame just tracked (not a keyframe) where neither the map

@@ -366,20 +366,6 @@ def map_depth_ratio(
 
 
 @wp.kernel
-def scale_points_about(
-    # in: the centre (a camera's position) and the factor
-    C: wp.vec3d,
-    s: wp.float64,
-    valid: wp.array(dtype=wp.int32),
-    # in/out: the points, moved along their rays from C to s times their distance
-    X: wp.array(dtype=wp.vec3d),
-):
-    i = wp.tid()
-    if valid[i] != 0:
-        X[i] = C + s * (X[i] - C)
-
-
-@wp.kernel
 def reject_depth_inconsistent_points(
     # in: reference-view pixels of the triangulated points and the reference keyframe's measured depth
     ref_uv: wp.array(dtype=wp.vec2d),
