@@ -178,7 +178,8 @@ def main(argv=None) -> int:
                     "residual_aligned": float(np.median([r["residual_aligned"] for r in sel])),
                 }
             )
-    print(f"{args.dataset} {' '.join(args.overrides)}: {len(rows)} pairs (i, i + {args.gap}), {time.perf_counter() - t0:.0f} s")
+    took = time.perf_counter() - t0
+    print(f"{args.dataset} {' '.join(args.overrides)}: {len(rows)} pairs (i, i + {args.gap}), {took:.0f} s")
     print("| frames | pairs | true step cm | aligned along truth / truth | angle deg | residual truth | aligned |")
     print("|---|---|---|---|---|---|---|")
     for r in table:
