@@ -33,26 +33,11 @@ from scipy.spatial.transform import Rotation
 
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
-
-STRETCH = 100
+from sevenscenes_pair_consistency import bilinear, by_stretch  # experiments/, next to this script
 
 
 def grey(rgb: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32), (0, 0), sigma)
-
-
-def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    h, w = img.shape
-    x = np.clip(x, 0, w - 1.001)
-    y = np.clip(y, 0, h - 1.001)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    fx, fy = x - x0, y - y0
-    return (
-        img[y0, x0] * (1 - fx) * (1 - fy)
-        + img[y0, x0 + 1] * fx * (1 - fy)
-        + img[y0 + 1, x0] * (1 - fx) * fy
-        + img[y0 + 1, x0 + 1] * fx * fy
-    )
 
 
 def pose(params: np.ndarray, T0: np.ndarray) -> np.ndarray:
@@ -68,21 +53,17 @@ def align(gi, gj, X: np.ndarray, ref: np.ndarray, K: np.ndarray, T0: np.ndarray)
     returns it, the median residual at T0 and at the optimum (same pixels)."""
     h, w = gj.shape
 
-    def project(T):
+    def project(T, X):
         Y = X @ T[:3, :3].T + T[:3, 3]
         z = np.maximum(Y[:, 2], 1e-3)
         return K[0, 0] * Y[:, 0] / z + K[0, 2], K[1, 1] * Y[:, 1] / z + K[1, 2]
 
-    u0, v0 = project(T0)
+    u0, v0 = project(T0, X)
     inside = (u0 >= 2) & (u0 < w - 3) & (v0 >= 2) & (v0 < h - 3)
     Xs, refs = X[inside], ref[inside]
 
-    def residual(p, X=Xs, ref=refs):
-        T = pose(p, T0)
-        Y = X @ T[:3, :3].T + T[:3, 3]
-        z = np.maximum(Y[:, 2], 1e-3)
-        u, v = K[0, 0] * Y[:, 0] / z + K[0, 2], K[1, 1] * Y[:, 1] / z + K[1, 2]
-        return p[6] * bilinear(gj, u, v) - ref
+    def residual(p):
+        return p[6] * bilinear(gj, *project(pose(p, T0), Xs)) - refs
 
     g0 = float(np.median(refs) / max(np.median(bilinear(gj, u0[inside], v0[inside])), 1e-6))
     p0 = np.array([0, 0, 0, 0, 0, 0, g0], dtype=np.float64)
@@ -163,21 +144,18 @@ def main(argv=None) -> int:
                 "residual_aligned": r_opt,
             }
         )
-    table = []
-    for a in range(0, len(ds), STRETCH):
-        sel = [r for r in rows if a <= r["i"] < a + STRETCH]
-        if sel:
-            table.append(
-                {
-                    "frames": f"{a}-{min(a + STRETCH, len(ds)) - 1}",
-                    "pairs": len(sel),
-                    "along_ratio_median": float(np.median([r["along_ratio"] for r in sel])),
-                    "angle_deg_median": float(np.median([r["angle_deg"] for r in sel])),
-                    "gt_cm_median": float(np.median([r["gt_cm"] for r in sel])),
-                    "residual_gt": float(np.median([r["residual_gt"] for r in sel])),
-                    "residual_aligned": float(np.median([r["residual_aligned"] for r in sel])),
-                }
-            )
+    table = [
+        {
+            "frames": frames,
+            "pairs": len(sel),
+            "along_ratio_median": float(np.median([r["along_ratio"] for r in sel])),
+            "angle_deg_median": float(np.median([r["angle_deg"] for r in sel])),
+            "gt_cm_median": float(np.median([r["gt_cm"] for r in sel])),
+            "residual_gt": float(np.median([r["residual_gt"] for r in sel])),
+            "residual_aligned": float(np.median([r["residual_aligned"] for r in sel])),
+        }
+        for frames, sel in by_stretch(rows, len(ds))
+    ]
     took = time.perf_counter() - t0
     print(f"{args.dataset} {' '.join(args.overrides)}: {len(rows)} pairs (i, i + {args.gap}), {took:.0f} s")
     print("| frames | pairs | true step cm | aligned along truth / truth | angle deg | residual truth | aligned |")

@@ -55,17 +55,34 @@ def sample_coords(depth: np.ndarray, K: np.ndarray, T_ji: np.ndarray):
     return v, u, uj, vj, ok
 
 
-def score(gi, gj, v, u, uj, vj, keep) -> float:
-    ref = gi[v[keep], u[keep]]
-    x, y = uj[keep], vj[keep]
+def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """img sampled at (x, y) (pixel centres at integers), bilinear; coordinates clamped into the image."""
+    h, w = img.shape
+    x = np.clip(x, 0, w - 1.001)
+    y = np.clip(y, 0, h - 1.001)
     x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
     fx, fy = x - x0, y - y0
-    warped = (
-        gj[y0, x0] * (1 - fx) * (1 - fy)
-        + gj[y0, x0 + 1] * fx * (1 - fy)
-        + gj[y0 + 1, x0] * (1 - fx) * fy
-        + gj[y0 + 1, x0 + 1] * fx * fy
+    return (
+        img[y0, x0] * (1 - fx) * (1 - fy)
+        + img[y0, x0 + 1] * fx * (1 - fy)
+        + img[y0 + 1, x0] * (1 - fx) * fy
+        + img[y0 + 1, x0 + 1] * fx * fy
     )
+
+
+def by_stretch(rows: list[dict], n: int) -> list[tuple[str, list[dict]]]:
+    """The rows (pairs keyed by their first frame "i") of each STRETCH-frame piece of n frames."""
+    out = []
+    for a in range(0, n, STRETCH):
+        sel = [r for r in rows if a <= r["i"] < a + STRETCH]
+        if sel:
+            out.append((f"{a}-{min(a + STRETCH, n) - 1}", sel))
+    return out
+
+
+def score(gi, gj, v, u, uj, vj, keep) -> float:
+    ref = gi[v[keep], u[keep]]
+    warped = bilinear(gj, uj[keep], vj[keep])
     gain = np.median(ref) / max(np.median(warped), 1e-6)
     return float(np.median(np.abs(gain * warped - ref)))
 
@@ -132,19 +149,16 @@ def main(argv=None) -> int:
             continue
         s = {k: score(gi, gj, *c[:4], keep) for k, c in coords.items()}
         rows.append({"i": i, "gt": s["gt"], "run": s["run"]})
-    table = []
-    for a in range(0, n, STRETCH):
-        sel = [r for r in rows if a <= r["i"] < a + STRETCH]
-        if sel:
-            table.append(
-                {
-                    "frames": f"{a}-{min(a + STRETCH, n) - 1}",
-                    "pairs": len(sel),
-                    "gt": float(np.median([r["gt"] for r in sel])),
-                    "run": float(np.median([r["run"] for r in sel])),
-                    "run_better": float(np.mean([r["run"] < r["gt"] for r in sel])),
-                }
-            )
+    table = [
+        {
+            "frames": frames,
+            "pairs": len(sel),
+            "gt": float(np.median([r["gt"] for r in sel])),
+            "run": float(np.median([r["run"] for r in sel])),
+            "run_better": float(np.mean([r["run"] < r["gt"] for r in sel])),
+        }
+        for frames, sel in by_stretch(rows, n)
+    ]
     print(f"median |I_i - g I_(i+{args.gap})(warped)| (grey 0-1): relative motion of the ground truth vs the run")
     print("| frames | pairs | ground truth | run | run better in |")
     print("|---|---|---|---|---|")

@@ -401,6 +401,7 @@ def test_mono_seed_depth_ratio(device):
     from types import SimpleNamespace
 
     from helpers_maps import map_from_rgbd
+    from rgs_warp.geometry import invert_pose
 
     rgbd = load_config([*OVERRIDES, "dataset.max_frames=1", f"device={device}"])
     camera, (frame,) = _frames(rgbd, 1)
@@ -423,8 +424,9 @@ def test_mono_seed_depth_ratio(device):
         X=wp.array(X, dtype=wp.vec3d, device=device), valid=wp.array(valid, dtype=wp.int32, device=device)
     )
     uv = wp.array(np.stack([u, v], axis=1).astype(np.float64), dtype=wp.vec2d, device=device)
+    T_CW = wp.mat44d(invert_pose(T))
     assert valid.sum() > cfg.seeding.depth_ratio_min_points
-    assert slam._seed_depth_ratio(pts, uv, res, T) == pytest.approx(1.25, rel=0.02)
+    assert slam._seed_depth_ratio(pts, uv, res, T_CW) == pytest.approx(1.25, rel=0.02)
     # too few points where the map covers them: no ratio
     pts.valid = wp.array(np.where(np.arange(len(z)) < 50, valid, 0).astype(np.int32), device=device)
-    assert slam._seed_depth_ratio(pts, uv, res, T) is None
+    assert slam._seed_depth_ratio(pts, uv, res, T_CW) is None

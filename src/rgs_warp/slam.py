@@ -426,7 +426,7 @@ class SLAM:
             if len(self.map):
                 res = self.renderer.forward(self.map, self.camera, T)
                 if self.mode == "mono":
-                    ratio = self._seed_depth_ratio(pts, m.ref_uv, res, T)
+                    ratio = self._seed_depth_ratio(pts, m.ref_uv, res, T_CW)
                 wp.launch(
                     km.mask_covered_points,
                     dim=pts.X.shape[0],
@@ -442,17 +442,16 @@ class SLAM:
             added += self._depth_seed(kf, slot, alpha, None if self.mode == "rgbd" else self._mono_depth)
         return added, ratio
 
-    def _seed_depth_ratio(self, pts, ref_uv: wp.array, res, T: np.ndarray) -> float | None:
+    def _seed_depth_ratio(self, pts, ref_uv: wp.array, res, T_CW: wp.mat44d) -> float | None:
         """Monocular: the median of the map's depth over the triangulated points' where the map covers
-        them (``res``: the map rendered at keyframe pose ``T``); None with fewer than
+        them (``res``: the map rendered at the keyframe, world-to-camera ``T_CW``); None with fewer than
         ``seeding.depth_ratio_min_points`` such points."""
         n = pts.X.shape[0]
         ratio = wp.empty(n, dtype=wp.float32, device=self.device)
         wp.launch(
             km.map_depth_ratio,
             dim=n,
-            inputs=[ref_uv, res.alpha, res.depth, pts.X, pts.valid, wp.mat44d(invert_pose(T))]
-            + [self.cfg.seeding.covered_alpha],
+            inputs=[ref_uv, res.alpha, res.depth, pts.X, pts.valid, T_CW, self.cfg.seeding.covered_alpha],
             outputs=[ratio],
             device=self.device,
         )
