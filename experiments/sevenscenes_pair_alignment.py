@@ -11,7 +11,8 @@ and the calibration that registers the depth to the colour camera.
 
 Per 100-frame stretch: the median of |t_aligned| / |t_truth| (1 = the images agree with the length of
 the ground truth's motion; 0.88 = as short as our runs) and of the angle between the two directions.
-With ``--out F.json`` also F.png (per pair: the angle and the length ratio).  Run with the dataset
+With ``--out F.json`` also F.png (per pair: the angle and the length ratio); each row of F.json keeps
+the aligned relative pose (``T_aligned``), which ``sevenscenes_image_odometry.py`` chains.  Run with the dataset
 overrides of a calibration, e.g.
 
     python experiments/sevenscenes_pair_alignment.py --out F.json
@@ -34,6 +35,14 @@ from scipy.spatial.transform import Rotation
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
 from sevenscenes_pair_consistency import bilinear, by_stretch  # experiments/, next to this script
+
+
+def base_overrides(dataset: str) -> list[str]:
+    """The config of ``--dataset``: the shared 7-Scenes sequence, or the synthetic control."""
+    if dataset == "7scenes":
+        shared = Path(__file__).resolve().parents[2] / "shared/data"
+        return ["dataset=7scenes/redkitchen", f"data_root={shared}", "dataset.path=7scenes-redkitchen"]
+    return ["dataset=synthetic/office0", "dataset.width=320", "dataset.height=180"]
 
 
 def grey(rgb: np.ndarray, sigma: float) -> np.ndarray:
@@ -106,13 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sigma", type=float, default=1.5, help="Gaussian blur of the grey images (px)")
     ap.add_argument("--out", default="")
     args = ap.parse_args(argv)
-    shared = Path(__file__).resolve().parents[2] / "shared/data"
-    base = (
-        ["dataset=7scenes/redkitchen", f"data_root={shared}", "dataset.path=7scenes-redkitchen"]
-        if args.dataset == "7scenes"
-        else ["dataset=synthetic/office0", "dataset.width=320", "dataset.height=180"]
-    )
-    cfg = load_config([*base, *args.overrides])
+    cfg = load_config([*base_overrides(args.dataset), *args.overrides])
     ds = open_dataset(cfg)
     cam = ds.camera
     K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
@@ -140,6 +143,7 @@ def main(argv=None) -> int:
                 "aligned_cm": 100 * float(np.linalg.norm(t_opt)),
                 "along_ratio": float(t_opt @ t_gt) / n_gt**2,
                 "angle_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
+                "T_aligned": T_opt.tolist(),  # frame i's camera -> frame i + gap's
                 "residual_gt": r_gt,
                 "residual_aligned": r_opt,
             }
