@@ -93,7 +93,8 @@ def main(argv=None) -> int:
     gt = np.array([ds[k].pose_gt for k in range(len(ds))])
     pairs = {r["i"]: np.array(r["T_aligned"]) for r in record["rows"]}
     odometry = chain(pairs, gt, gap)
-    runs = {(Path(p).parent.name if Path(p).stem == "trajectory" else Path(p).stem): read_tum(Path(p)) for p in args.runs}
+    paths = [Path(p) for p in args.runs]
+    runs = {(p.parent.name if p.stem == "trajectory" else p.stem): read_tum(p) for p in paths}
     for name, T in runs.items():
         if len(T) != len(gt):
             raise SystemExit(f"{name}: {len(T)} poses, the dataset has {len(gt)}")
@@ -127,7 +128,8 @@ def main(argv=None) -> int:
 
     calib = " ".join(record["overrides"]) or ("our calibration" if record["dataset"] == "7scenes" else "")
     print(f"{record['dataset']} {calib}: relative motions (i, i + {gap}) against the images' (median per stretch)")
-    print("| frames | truth: direction / rotation deg | " + " | ".join(f"{n}: direction / rotation" for n in runs) + " |")
+    heads = ["truth: direction / rotation deg"] + [f"{n}: direction / rotation" for n in runs]
+    print("| frames | " + " | ".join(heads) + " |")
     print("|---" * (2 + len(runs)) + "|")
     for line in table:
         cells = [f"{line[k]['direction_deg']:.1f} / {line[k]['rotation_deg']:.2f}" for k in ["truth", *runs]]
