@@ -56,6 +56,10 @@ def test_small_run_end_to_end(finished_run):
     assert metrics["ate"]["keyframes"]["rmse_cm"] < 4.0, metrics["ate"]
     assert psnr > 15.0, metrics["photometric"]
     assert 3 <= metrics["keyframes"] < 20
+    # every frame after the first is tracked, none lost; the report says so
+    tracking = metrics["tracking"]
+    assert tracking["tracked_frames"] == 19 and tracking["lost_frames"] == 0 and tracking["first_lost_frame"] is None
+    assert "never lost" in (run_dir / "metrics.md").read_text()
 
 
 @pytest.mark.slow
@@ -180,6 +184,20 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     assert "Replica/office0 does not exist" in err and "obtain it from" in err
     assert main(["mode=mono", "tracking.brightness=linear"]) == 2
     assert "tracking.brightness" in capsys.readouterr().err
+
+
+def test_cli_warns_when_tracking_is_lost(tmp_path, capsys, device):
+    """A map can never cover more than the whole view: with that demanded, every tracked frame is
+    lost; the progress log, the report and the command's last line say where and why."""
+    argv = [*OVERRIDES, "dataset.max_frames=4", "mapping.init_iters=8", "tracking.min_valid_ratio=1.01"]
+    assert main([*argv, f"device={device}", f"output_dir={tmp_path}", "run_name=lost"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: tracking was lost in 3 of 3 tracked frames, first at frame 1 (map covers" in err
+    entries = [json.loads(line) for line in (tmp_path / "lost" / "log.jsonl").read_text().splitlines()]
+    assert "lost" not in entries[0] and all(e["lost"] and "map covers" in e["lost_reason"] for e in entries[1:])
+    tracking = json.loads((tmp_path / "lost" / "metrics.json").read_text())["tracking"]
+    assert tracking["lost_frames"] == 3 and tracking["first_lost_frame"] == 1
+    assert tracking["first_lost_reason"] == entries[1]["lost_reason"]
 
 
 def test_slam_rejects_missing_depth_in_rgbd_mode(device):

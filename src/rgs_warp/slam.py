@@ -705,7 +705,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
     (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(ds), indent=2))
     first = ds[0]
     slam = SLAM(cfg, ds.camera, device=device, T_first_WC=first.pose_gt)
-    gt_poses, frame_losses = [], []
+    gt_poses, frame_losses, lost = [], [], []  # lost: (frame, reason) of each frame whose tracking was lost
     t_start = time.perf_counter()
     bar = tqdm(total=len(ds), desc=f"{cfg.dataset.type}/{cfg.dataset.name}", unit="frame", disable=not progress)
     log = (run_dir / "log.jsonl").open("w", encoding="utf-8")
@@ -723,6 +723,9 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
             if result.tracking is not None:
                 entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
                 frame_losses.append(result.tracking.loss)
+                if result.tracking.lost:
+                    entry["lost_reason"] = result.tracking.reason
+                    lost.append((result.index, result.tracking.reason))
             if result.keyframe:
                 entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
                 if result.seed_depth_ratio is not None:
@@ -740,6 +743,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
                 kf=len(slam.keyframe_indices),
                 gaussians=len(slam.map),
                 loss=f"{frame_losses[-1]:.4f}" if frame_losses else "-",
+                lost=len(lost),
             )
             bar.update(1)
     finally:
@@ -749,8 +753,20 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
         slam.save(run_dir)
         write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
     wall = time.perf_counter() - t_start
-    metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall)
+    metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall, tracking_section(len(frame_losses), lost))
     return run_dir, metrics
+
+
+def tracking_section(tracked: int, lost: list[tuple[int, str]]) -> dict:
+    """The report's ``tracking`` section: how many of the ``tracked`` frames were lost (``lost``: frame
+    index and the tracker's reason of each) and the first of them."""
+    section: dict = {"tracked_frames": tracked, "lost_frames": len(lost)}
+    if lost:
+        section["first_lost_frame"], section["first_lost_reason"] = lost[0]
+    else:
+        section["first_lost_frame"] = section["first_lost_reason"] = None
+        section["first_lost_frame_na_reason"] = section["first_lost_reason_na_reason"] = "never lost"
+    return section
 
 
 def write_convergence(run_dir: Path, points: list[dict], title: str) -> None:
@@ -781,8 +797,11 @@ def write_convergence(run_dir: Path, points: list[dict], title: str) -> None:
     plt.close(fig)
 
 
-def evaluate_run(cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wall_s: float) -> dict:
-    """Metrics of a finished run (supplement §3) written with ``write_report``."""
+def evaluate_run(
+    cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wall_s: float, tracking: dict | None = None
+) -> dict:
+    """Metrics of a finished run (supplement §3) written with ``write_report``; ``tracking``: the
+    section of ``tracking_section``."""
     from rgs_warp.eval import (
         LPIPS,
         ate_keyframes_and_all,
@@ -813,6 +832,8 @@ def evaluate_run(cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wal
     if metrics["tracking_fps"] is None:
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
+    if tracking is not None:
+        metrics["tracking"] = tracking
     has_gt = all(p is not None for p in gt_poses) and n >= 3
     if has_gt:
         gt = np.array(gt_poses)
@@ -919,6 +940,14 @@ def main(argv: list[str] | None = None) -> int:
     if photo:
         print(f"PSNR      {photo['psnr_db']:.2f} dB, SSIM {photo['ssim']:.3f}")
     print(f"report    {run_dir / 'metrics.md'}")
+    tracking = metrics.get("tracking") or {}
+    if tracking.get("lost_frames"):
+        print(
+            f"warning: tracking was lost in {tracking['lost_frames']} of {tracking['tracked_frames']} tracked frames, "
+            f"first at frame {tracking['first_lost_frame']} ({tracking['first_lost_reason']}); poses from there on "
+            f"are unreliable (each frame's entry in {run_dir / 'log.jsonl'} says why)",
+            file=sys.stderr,
+        )
     return 0
 
 
