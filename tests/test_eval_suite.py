@@ -53,6 +53,7 @@ def fake_runner(cfg, run_dir: Path, progress: bool = True):
         "peak_memory_mib": None,
         "peak_memory_mib_na_reason": "measured on CUDA devices only",
         "gaussians": 1000 + cfg.seed,
+        "tracking": {"tracked_frames": 20, "lost_frames": 0 if cfg.method == "rgs" else cfg.seed + 1},
         "ate": {
             "keyframes": {"rmse_cm": x["ate"]},
             "all_frames": {"rmse_cm": x["ate"] + 0.2},
@@ -135,6 +136,10 @@ def test_bold_goes_to_best_per_column(result):
     # equal numbers (SSIM 0.9 for both): both bold
     ssim = t["Rendering", "synthetic", "SSIM ↑", "rgs"] + t["Rendering", "synthetic", "SSIM ↑", "baseline"]
     assert all(c.startswith("**0.900") for c in ssim)
+    # lost frames: fewer is better (rgs 0, the baseline 1, 2, 3 over the seeds)
+    lost = "Lost frames ↓"
+    rgs, base = t["Tracking", "synthetic", lost, "rgs"], t["Tracking", "synthetic", lost, "baseline"]
+    assert all(c.startswith("**0.0") for c in rgs) and base == ["2.0 ± 1.0", "2.0 ± 1.0", "2.0"]  # room0, office0, Avg.
     # the Gaussian count has no better direction
     assert not any("**" in c for c in t["Speed and memory", "synthetic", "Gaussians", "rgs"])
 

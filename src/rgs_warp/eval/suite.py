@@ -75,6 +75,9 @@ METRICS = (
     # the supplement's ATE is on keyframes (§3); all frames is what a user of the trajectory sees
     Metric("ate_keyframes_rmse_cm", ("ate", "keyframes", "rmse_cm"), "ATE RMSE keyframes (cm)", "Tracking", True, 2),
     Metric("ate_all_rmse_cm", ("ate", "all_frames", "rmse_cm"), "ATE RMSE all frames (cm)", "Tracking", True, 2),
+    # frames whose tracking was lost (the map covered too little of the view, or the residual was too
+    # high): a low ATE over a run that lost frames is luck, not tracking
+    Metric("lost_frames", ("tracking", "lost_frames"), "Lost frames", "Tracking", True, 1),
     Metric("psnr_db", ("photometric", "psnr_db"), "PSNR (dB)", "Rendering", False, 2),
     Metric("ssim", ("photometric", "ssim"), "SSIM", "Rendering", False, 3),
     Metric("lpips", ("photometric", "lpips"), "LPIPS", "Rendering", True, 3),
