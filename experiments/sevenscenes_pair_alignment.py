@@ -143,7 +143,7 @@ def main(argv=None) -> int:
                 "aligned_cm": 100 * float(np.linalg.norm(t_opt)),
                 "along_ratio": float(t_opt @ t_gt) / n_gt**2,
                 "angle_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
-                "T_aligned": T_opt.tolist(),  # frame i's camera -> frame i + gap's
+                "T_aligned": np.round(T_opt, 9).tolist(),  # frame i's camera -> frame i + gap's
                 "residual_gt": r_gt,
                 "residual_aligned": r_opt,
             }
@@ -170,8 +170,9 @@ def main(argv=None) -> int:
             f"{r['angle_deg_median']:.1f} | {r['residual_gt']:.4f} | {r['residual_aligned']:.4f} |"
         )
     if args.out:
-        record = {"dataset": args.dataset, "overrides": args.overrides, "gap": args.gap, "table": table, "rows": rows}
-        Path(args.out).write_text(json.dumps(record, indent=1))
+        head = {"dataset": args.dataset, "overrides": args.overrides, "gap": args.gap, "table": table}
+        body = ",\n".join(json.dumps(r) for r in rows)  # one pair a line
+        Path(args.out).write_text(json.dumps(head, indent=1)[:-2] + ',\n "rows": [\n' + body + "\n ]\n}\n")
         plot(rows, args.gap, f"{args.dataset} {' '.join(args.overrides)}", Path(args.out).with_suffix(".png"))
     return 0
 
