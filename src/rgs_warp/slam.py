@@ -708,7 +708,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
     gt_poses, frame_losses, lost = [], [], []  # lost: (frame, reason) of each frame whose tracking was lost
     t_start = time.perf_counter()
     bar = tqdm(total=len(ds), desc=f"{cfg.dataset.type}/{cfg.dataset.name}", unit="frame", disable=not progress)
-    log = (run_dir / "log.jsonl").open("w", encoding="utf-8")
+    log = (run_dir / "log.jsonl").open("w", encoding="utf-8", buffering=1)  # a line per frame, readable while it runs
     try:
         for frame in ds:
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
