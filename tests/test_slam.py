@@ -200,6 +200,32 @@ def test_cli_warns_when_tracking_is_lost(tmp_path, capsys, device):
     assert tracking["first_lost_reason"] == entries[1]["lost_reason"]
 
 
+def test_cli_saves_what_it_tracked_when_terminated(tmp_path, device):
+    """SIGTERM (a job scheduler's stop) in the middle of a run: the command leaves through the run's
+    cleanup, so the log read so far, the trajectory of the frames tracked and the map are on disk."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    argv = [*OVERRIDES, "dataset.max_frames=40", "mapping.init_iters=8", f"device={device}"]
+    argv += [f"output_dir={tmp_path}", "run_name=stopped"]
+    proc = subprocess.Popen([sys.executable, "-m", "rgs_warp.slam", *argv], env=os.environ.copy())
+    log = tmp_path / "stopped" / "log.jsonl"
+    deadline = time.monotonic() + 600
+    # the log is written a line per frame as the run goes: wait for 8 frames
+    while not (log.is_file() and len(log.read_text().splitlines()) >= 8):
+        assert proc.poll() is None and time.monotonic() < deadline, "the run ended or stalled before frame 8"
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=300) == 128 + signal.SIGTERM
+    n = len(log.read_text().splitlines())
+    assert 8 <= n < 40
+    _, poses = read_tum_trajectory(tmp_path / "stopped" / "trajectory.txt")
+    assert len(poses) == n and len(load_ply(tmp_path / "stopped" / "map.ply")) > 0
+
+
 def test_slam_rejects_missing_depth_in_rgbd_mode(device):
     cfg = load_config([*OVERRIDES, f"device={device}"])
     from rgs_warp.types import Camera

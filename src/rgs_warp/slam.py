@@ -16,6 +16,7 @@ leaves the first view).  Everything else is shared.
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -952,4 +953,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    # a job scheduler stops a run with SIGTERM: leave through the run's `finally`, which saves what was
+    # tracked (as Ctrl-C does), with the shell's exit status for it
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     sys.exit(main())
