@@ -35,12 +35,9 @@ import numpy as np
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
 from rgs_warp.eval.ate import ate
+from rgs_warp.geometry import rotation_angle_deg
 from sevenscenes_pair_alignment import base_overrides  # experiments/, next to this script
 from sevenscenes_pair_consistency import by_stretch, read_tum
-
-
-def rotation_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -65,7 +62,7 @@ def plot(curves: dict[str, np.ndarray], gt: np.ndarray, path: Path) -> None:
 
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
     for name, T in curves.items():
-        a0.plot([rotation_deg(T[k, :3, :3].T @ gt[k, :3, :3]) for k in range(len(gt))], lw=0.9, label=name)
+        a0.plot([rotation_angle_deg(T[k, :3, :3].T @ gt[k, :3, :3]) for k in range(len(gt))], lw=0.9, label=name)
         a1.plot(100 * np.linalg.norm(T[:, :3, 3] - gt[:, :3, 3], axis=1), lw=0.9, label=name)
     a0.set_ylabel("orientation vs truth (deg)")
     a1.set_ylabel("position vs truth (cm)")
@@ -107,7 +104,7 @@ def main(argv=None) -> int:
         for key, rel in [("truth", truth)] + [(n, np.linalg.inv(T[i + gap]) @ T[i]) for n, T in runs.items()]:
             entry = {
                 "direction_deg": angle_deg(rel[:3, 3], images[:3, 3]),
-                "rotation_deg": rotation_deg(rel[:3, :3].T @ images[:3, :3]),
+                "rotation_deg": rotation_angle_deg(rel[:3, :3].T @ images[:3, :3]),
             }
             if key == "truth":
                 row["truth"] = entry
