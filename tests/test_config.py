@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from rgs_warp.config import Config, ConfigError, config_from_dict, group_options, help_text, load_config, save_config
-from rgs_warp.slam import main
+from rgs_warp.run import main
 
 
 def test_defaults_and_overrides():

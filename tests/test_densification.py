@@ -1,7 +1,7 @@
 """Densifier (3DGS adaptive density control) against NumPy references: gradient statistics from the
 renderer's screen-space gradients, clone / split / prune flags / opacity reset, the rows it appends and
 flags, the schedule, and an end-to-end run where the map grows where the residual is.  The bookkeeping
-of the optimiser state around it (Mapper.sync / Mapper.remove) is tested in test_mapping.py."""
+of the optimiser state around it (map columns) is tested in test_mapping.py."""
 
 from types import SimpleNamespace
 
@@ -12,7 +12,7 @@ import warp as wp
 from helpers_render import BACKGROUND, CAMERA, T_WC, to_map
 from reference_render import random_scene
 from rgs_warp.densification import Densifier
-from rgs_warp.kernels.projection import vec10
+from rgs_warp.kernels.math import vec10
 from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
 
@@ -43,13 +43,12 @@ def _map(rng, log_scales, opacity_logits, device, means=None, capacity=None):
 
 
 def _step(densifier, iteration, gmap, scene_extent):
-    """``densifier.step`` followed by the removal its caller owes (Mapper.remove, less the optimiser
-    state): the flagged rows leave the map and the statistics."""
-    out = densifier.step(iteration, gmap, scene_extent)
+    """``densifier.step`` followed by the removal its caller owes (as the Mapper does): the flagged rows
+    leave the map, and with it its statistics columns."""
+    out = densifier.step(iteration, scene_extent)
     total = len(gmap)
     if out.remove is not None:
         assert out.remove.shape[0] == total
-        densifier.remove(out.remove)
         gmap.remove(out.remove)
     return {
         "cloned": out.cloned,
@@ -73,7 +72,7 @@ def _feed(densifier, gmap, grad_ndc, visible, loss_share=1.0):
         radii=wp.array(radii, dtype=wp.vec2i, device=gmap.device),
         image_shape=(H, W),
     )
-    densifier.accumulate(fake, gmap, loss_share)
+    densifier.accumulate(fake, loss_share)
 
 
 def test_accumulate_matches_numpy_from_renderer(device):
@@ -81,7 +80,7 @@ def test_accumulate_matches_numpy_from_renderer(device):
     scene = random_scene(rng, 300, T_WC)
     gmap = to_map(scene, device)
     renderer = Renderer(device)
-    densifier = Densifier()
+    densifier = Densifier(gmap)
     expected_sum = np.zeros(len(gmap))
     expected_count = np.zeros(len(gmap), np.int64)
     for k in range(2):
@@ -90,7 +89,7 @@ def test_accumulate_matches_numpy_from_renderer(device):
         renderer.forward(gmap, CAMERA, pose, BACKGROUND)
         d_color = rng.standard_normal((CAMERA.height, CAMERA.width, 3)).astype(np.float32)
         renderer.backward(wp.array(d_color, dtype=wp.vec3, device=device))
-        densifier.accumulate(renderer, gmap)
+        densifier.accumulate(renderer)
         g = renderer.grad2d.numpy()[: len(gmap)].astype(np.float64)
         seen = renderer.radii.numpy()[: len(gmap), 0] > 0
         norm = np.hypot(g[:, 0] * CAMERA.width / 2, g[:, 1] * CAMERA.height / 2)
@@ -107,7 +106,7 @@ def test_loss_share_counts_each_view_with_its_whole_loss(device):
     rng = np.random.default_rng(10)
     gmap = _map(rng, np.full((5, 3), -3.0), np.zeros(5), device)
     grads = rng.uniform(1e-4, 1e-3, 5)
-    densifier = Densifier()
+    densifier = Densifier(gmap)
     _feed(densifier, gmap, grads / 4, np.ones(5, bool), loss_share=0.25)
     np.testing.assert_allclose(densifier.grad_norm_sum.numpy()[:5], grads, rtol=1e-5)
 
@@ -121,7 +120,7 @@ def test_clone_split_and_untouched(device):
     log_s = np.array([small, large, small, large, large, small])
     gmap = _map(rng, log_s, np.full(6, 2.0), device)
     before = gmap.to_numpy()
-    densifier = Densifier()
+    densifier = Densifier(gmap)
     grads = np.array([1e-3, 5e-4, 1e-4, 1.95e-4, 1.0, 2.05e-4])
     _feed(densifier, gmap, grads, np.array([1, 1, 1, 1, 0, 1], bool))
     _feed(densifier, gmap, grads, np.array([1, 1, 1, 1, 0, 1], bool))
@@ -166,7 +165,7 @@ def test_split_children_follow_the_parent_gaussian(device):
     n = 150
     gmap = _map(rng, np.tile(np.log([0.2, 0.05, 0.01]), (n, 1)), np.full(n, 1.0), device)
     before = gmap.to_numpy()
-    densifier = Densifier(seed=3)
+    densifier = Densifier(gmap, seed=3)
     _feed(densifier, gmap, np.full(n, 1e-3), np.ones(n, bool))
     out = _step(densifier, 700, gmap, 1.0)
     assert out["split"] == n and out["cloned"] == 0 and len(gmap) == 2 * n
@@ -181,7 +180,7 @@ def test_split_children_follow_the_parent_gaussian(device):
     assert np.abs(z).max() < 5.0
     # deterministic given the seed
     gmap2 = GaussianMap.from_numpy(*(before[key] for key in FIELD_KEYS), device=device)
-    densifier2 = Densifier(seed=3)
+    densifier2 = Densifier(gmap2, seed=3)
     _feed(densifier2, gmap2, np.full(n, 1e-3), np.ones(n, bool))
     _step(densifier2, 700, gmap2, 1.0)
     np.testing.assert_array_equal(gmap2.to_numpy()["means"], after["means"])
@@ -196,7 +195,7 @@ def test_prune_low_opacity_and_oversized(device):
     for iteration, expected_left in ((600, [1, 2]), (3100, [1])):
         gmap = _map(rng, log_s, logits, device)
         before = gmap.to_numpy()
-        densifier = Densifier()
+        densifier = Densifier(gmap)
         _feed(densifier, gmap, np.array([0.0, 0.0, 0.0, 1e-3]), np.ones(4, bool))
         out = _step(densifier, iteration, gmap, 2.0)
         assert out["cloned"] == 1 and out["pruned"] == 5 - len(expected_left)
@@ -209,7 +208,7 @@ def test_opacity_reset_of_the_seen_gaussians(device, value):
     logit = np.log(value / (1 - value))
     logits = np.array([4.0, 0.0, logit + 0.01, logit - 0.01, -8.0, 3.0], np.float32)
     gmap = _map(rng, np.full((6, 3), np.log(0.01)), logits, device)
-    densifier = Densifier(start=0, interval=100, opacity_reset_interval=250, opacity_reset_value=value)
+    densifier = Densifier(gmap, start=0, interval=100, opacity_reset_interval=250, opacity_reset_value=value)
     _feed(densifier, gmap, np.zeros(6), np.array([1, 1, 1, 1, 1, 0], bool))  # the last one unseen
     out = _step(densifier, 750, gmap, 1.0)  # not a densification step: nothing pruned
     assert out == {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": True}
@@ -220,11 +219,12 @@ def test_opacity_reset_of_the_seen_gaussians(device, value):
     assert after[5] == logits[5]  # not seen since the statistics restarted: outside the window
 
 
-def test_reset_value_must_stay_above_the_culling():
+def test_reset_value_must_stay_above_the_culling(device):
     # a reset to 0.01 with culling at 0.05 would remove every Gaussian at the next densification step
+    gmap = GaussianMap(8, sh_degree=1, device=device)
     with pytest.raises(ValueError, match="opacity_reset_value"):
-        Densifier(opacity_reset_value=0.01, cull_opacity=0.05)
-    Densifier(opacity_reset_value=0.01, cull_opacity=0.05, opacity_reset_interval=0)  # never reset: fine
+        Densifier(gmap, opacity_reset_value=0.01, cull_opacity=0.05)
+    Densifier(gmap, opacity_reset_value=0.01, cull_opacity=0.05, opacity_reset_interval=0)  # never reset: fine
 
 
 def test_step_appends_rows_and_flags_parents_and_culled(device):
@@ -235,9 +235,9 @@ def test_step_appends_rows_and_flags_parents_and_culled(device):
     gmap = _map(rng, log_s, logits, device, capacity=n)  # full: densification must grow it
     before = gmap.to_numpy()
     high = rng.random(n) < 0.6
-    densifier = Densifier()
+    densifier = Densifier(gmap)
     _feed(densifier, gmap, np.where(high, 1e-3, 0.0), np.ones(n, bool))
-    out = densifier.step(800, gmap, 1.0)
+    out = densifier.step(800, 1.0)
     small = log_s[:, 0] < np.log(0.01)
     cloned, split = np.flatnonzero(high & small), np.flatnonzero(high & ~small)
     assert (out.cloned, out.split, out.opacity_reset) == (len(cloned), len(split), False)
@@ -266,7 +266,7 @@ def test_schedule(device, iteration, densified, reset):
     n = 8
     gmap = _map(rng, np.full((n, 3), np.log(0.005)), np.full(n, 2.0), device)
     before = gmap.to_numpy()
-    densifier = Densifier(start=5, stop=30, interval=5, opacity_reset_interval=20)
+    densifier = Densifier(gmap, start=5, stop=30, interval=5, opacity_reset_interval=20)
     _feed(densifier, gmap, np.full(n, 1e-3), np.ones(n, bool))
     out = _step(densifier, iteration, gmap, 1.0)
     assert (out["cloned"] == n) == densified and out["split"] == 0
@@ -278,19 +278,22 @@ def test_schedule(device, iteration, densified, reset):
         assert densifier.visible_count.numpy()[:n].tolist() == [1] * n  # statistics kept for later
 
 
-def test_remove_compacts_statistics(device):
+def test_statistics_compact_and_grow_with_the_map(device):
     rng = np.random.default_rng(8)
     n = 10
     gmap = _map(rng, np.full((n, 3), -3.0), np.zeros(n), device)
-    densifier = Densifier()
+    densifier = Densifier(gmap)
     grads = rng.uniform(1e-4, 1e-3, n)
     _feed(densifier, gmap, grads, np.ones(n, bool))
     mask = rng.random(n) < 0.4
-    densifier.remove(mask)
     gmap.remove(mask)
-    kept = densifier.grad_norm_sum.numpy()
-    np.testing.assert_allclose(kept[: len(gmap)], grads[~mask], rtol=1e-5)
-    assert not kept[len(gmap) :].any() and not densifier.visible_count.numpy()[len(gmap) :].any()
+    kept = len(gmap)
+    np.testing.assert_allclose(densifier.grad_norm_sum.numpy()[:kept], grads[~mask], rtol=1e-5)
+    np.testing.assert_array_equal(densifier.visible_count.numpy()[:kept], 1)
+    extra = _map(rng, np.full((3, 3), -3.0), np.zeros(3), device).to_numpy()
+    gmap.append(*(extra[key] for key in FIELD_KEYS))  # appended rows start with zero statistics
+    assert not densifier.grad_norm_sum.numpy()[kept : kept + 3].any()
+    assert not densifier.visible_count.numpy()[kept : kept + 3].any()
 
 
 def _plane_map(rng, device):
@@ -325,7 +328,7 @@ def test_map_grows_where_the_residual_is(device):
     yy, xx = np.mgrid[0:H, 0:W]
     checker = ((xx // 2 + yy // 2) % 2).astype(np.float32)
     target[:, :24] = checker[:, :24, None] * np.array([0.9, 0.2, 0.1], np.float32)
-    densifier = Densifier(start=2, stop=20, interval=4, opacity_reset_interval=0)
+    densifier = Densifier(gmap, start=2, stop=20, interval=4, opacity_reset_interval=0)
 
     def run(iterations):
         for it in iterations:
@@ -333,7 +336,7 @@ def test_map_grows_where_the_residual_is(device):
             # L1 averaged over pixels and channels, as in 3DGS (the scale the threshold assumes)
             d = np.sign(res.color.numpy() - target) / (3 * W * H)
             renderer.backward(wp.array(d.astype(np.float32), dtype=wp.vec3, device=device))
-            densifier.accumulate(renderer, gmap)
+            densifier.accumulate(renderer)
             out = _step(densifier, it, gmap, 1.0)
         return out, gmap.to_numpy()
 

@@ -1,12 +1,12 @@
-"""Maintenance pass (supplement §4.5): pruning reasons, duplicate merging and row compaction, each
-checked against an independent NumPy reference."""
+"""Maintenance pass (supplement §4.5): pruning reasons and duplicate merging, each checked against an
+independent NumPy reference, and the Maintainer stage that removes both from the map."""
 
 import numpy as np
-import pytest
 import warp as wp
 
+from rgs_warp.config import MappingConfig
 from rgs_warp.geometry import invert_pose, matrix_to_quat
-from rgs_warp.maintenance import MergeScratch, PruneStats, compact_rows, merge_duplicates, prune_mask
+from rgs_warp.maintenance import Maintainer, MergeScratch, PruneStats, merge_duplicates, prune_mask
 from rgs_warp.types import Camera, GaussianMap
 
 SH_C0 = 0.28209479177387814
@@ -378,26 +378,24 @@ def test_merge_property_random_clusters(device):
     np.testing.assert_array_equal(fields["means"][untouched], np.array([g["mean"] for g in gs], np.float32)[untouched])
 
 
-# ---- compaction ------------------------------------------------------------------------------------
+# ---- the Maintainer stage --------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(
-    ("dtype", "shape"), [(wp.int32, (13,)), (wp.float32, (13,)), (wp.vec3, (13,)), (wp.vec3, (13, 4))]
-)
-def test_compact_rows_matches_boolean_indexing(device, dtype, shape):
-    rng = np.random.default_rng(5)
-    n = 10  # live rows; the array holds 13
-    values = rng.normal(size=shape + ((3,) if dtype == wp.vec3 else ())) * 100
-    values = values.astype(np.int32 if dtype == wp.int32 else np.float32)
-    remove = rng.random(n) < 0.4
-    remove[[0, n - 1]] = [True, False]
-    arr = wp.array(values, dtype=dtype, device=device)
-    compact_rows(arr, wp.array(remove.astype(np.int32), dtype=wp.int32, device=device))
-    out = arr.numpy()
-    kept = values[:n][~remove]
-    np.testing.assert_array_equal(out[: len(kept)], kept)
-    np.testing.assert_array_equal(out[len(kept) : n], 0)
-    np.testing.assert_array_equal(out[n:], values[n:])
-    arr = wp.array(values, dtype=dtype, device=device)
-    compact_rows(arr, remove)  # NumPy bool mask
-    np.testing.assert_array_equal(arr.numpy()[: len(kept)], kept)
+def test_maintainer_prunes_merges_and_compacts_every_column(device):
+    # rows: 0 and 3 a duplicate pair (merged into 0), 1 transparent (pruned), 2 kept, 4 hidden behind
+    # surfaces by the mapper's statistics (seen in 5 renders, contributing in none: pruned)
+    a = _gaussian(300.0, 200.0, 2.0, opacity=0.6)
+    dup = _gaussian(300.1, 200.0, 2.004, opacity=0.7)
+    gs = [a, _gaussian(100.0, 100.0, 2.0, opacity=0.02), _gaussian(500.0, 300.0, 3.0), dup, _gaussian(50.0, 400.0, 2.5)]
+    gmap = _merge_map(gs, device)
+    gmap.add_column("obs_count", wp.int32).assign(np.array([3, 3, 3, 3, 5], np.int32))
+    gmap.add_column("vis_count", wp.float32).assign(np.array([3, 3, 3, 3, 0], np.float32))
+    tag = gmap.add_column("tag", wp.float32)  # any other column of the map follows the removal
+    tag.assign(np.arange(5, dtype=np.float32))
+    pruned, merged = Maintainer(MappingConfig(), CAM, device).maintain(gmap, T_WC)
+    assert (pruned, merged) == (2, 1) and len(gmap) == 2
+    np.testing.assert_array_equal(gmap.column("tag").numpy()[:2], [0.0, 2.0])
+    np.testing.assert_array_equal(gmap.column("obs_count").numpy()[:2], [3, 3])
+    _assert_merged(gmap.to_numpy(), 0, _merged_reference(a, dup))
+    np.testing.assert_allclose(gmap.to_numpy()["means"][1], gs[2]["mean"], atol=1e-6)
+    assert Maintainer(MappingConfig(), CAM, device).maintain(GaussianMap(4, 1, device), T_WC) == (0, 0)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from rgs_warp.optim import FIELDS, MapAdam, MapLearningRates, cosine_factor
+from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
 from rgs_warp.render import GaussianGrads
 from rgs_warp.types import GaussianMap
 
@@ -26,7 +26,7 @@ def _map(rng, n, device, capacity=None):
 def _grads(rng, gmap, scale):
     g = GaussianGrads.of_map_grads(GaussianMap(gmap.capacity, gmap.sh_degree, gmap.device, requires_grad=True))
     values = {}
-    for name in FIELDS:
+    for name in GaussianMap.PARAMETERS:
         arr = getattr(g, name)
         v = (scale * rng.standard_normal(arr.numpy().shape)).astype(np.float32)
         values[name] = v
@@ -70,36 +70,40 @@ def test_adam_matches_numpy(device, grad_scale, sh_rest):
         factors.append(f)
     expected = _numpy_adam(start, seq, lrs, 40, 1.0, factors=factors)
     got = gmap.to_numpy()
-    for k in FIELDS:
+    for k in GaussianMap.PARAMETERS:
         np.testing.assert_allclose(got[k], expected[k], rtol=1e-5, atol=1e-6, err_msg=k)
-    norm = np.sqrt(sum((seq[-1][k][:40].astype(np.float64) ** 2).sum() for k in FIELDS))
+    norm = np.sqrt(sum((seq[-1][k][:40].astype(np.float64) ** 2).sum() for k in GaussianMap.PARAMETERS))
     assert opt.clip.numpy()[1] == pytest.approx(norm, rel=1e-4)
 
 
 def test_moments_follow_growth_and_removal(device):
+    # the moments are columns of the map: they grow with it, start at zero for appended rows and
+    # compact with the map's removal, in the rows' order
     rng = np.random.default_rng(1)
     gmap = _map(rng, 6, device, capacity=8)
     opt = MapAdam(gmap, MapLearningRates())
     g, _ = _grads(rng, gmap, 0.1)
     opt.step(g)
-    m_before = opt._m["means"].numpy().reshape(-1, 3)[:6].copy()
+    m_means, v_sh = opt.moments("means")[0], opt.moments("sh")[1]
+    m_before = m_means.numpy().reshape(-1, 3)[:6].copy()
+    v_sh_before = v_sh.numpy().reshape(-1, 27)[:6].copy()
+    assert np.abs(m_before).min() > 0 and np.abs(v_sh_before).min() > 0
     extra = _map(rng, 5, device).to_numpy()
     gmap.append(extra["means"], extra["rotations"], extra["log_scales"], extra["opacity_logits"], extra["sh"])
-    opt.sync()
-    assert gmap.capacity == 16 and opt._m["sh"].shape[0] == 16 * 27
-    np.testing.assert_array_equal(opt._m["means"].numpy().reshape(-1, 3)[:6], m_before)
+    m_means, v_sh = opt.moments("means")[0], opt.moments("sh")[1]
+    assert gmap.capacity == 16 and v_sh.shape[0] == 16 * 27
+    np.testing.assert_array_equal(m_means.numpy().reshape(-1, 3)[:6], m_before)
+    assert not m_means.numpy().reshape(-1, 3)[6:11].any() and not v_sh.numpy().reshape(-1, 27)[6:11].any()
     mask = np.zeros(11, bool)
     mask[[1, 4]] = True
     gmap.remove(mask)
-    opt.remove(mask)
-    np.testing.assert_array_equal(opt._m["means"].numpy().reshape(-1, 3)[:4], m_before[[0, 2, 3, 5]])
-    opt.reset_rows(0, 1)
-    assert not opt._v["sh"].numpy()[:27].any() and opt._v["sh"].numpy()[27:54].any()
-    assert opt._m["opacity_logits"].numpy()[:4].any()
+    np.testing.assert_array_equal(opt.moments("means")[0].numpy().reshape(-1, 3)[:4], m_before[[0, 2, 3, 5]])
+    np.testing.assert_array_equal(opt.moments("sh")[1].numpy().reshape(-1, 27)[:4], v_sh_before[[0, 2, 3, 5]])
+    assert opt.moments("opacity_logits")[0].numpy()[:4].any()
     opt.reset_field("opacity_logits")
-    assert not opt._m["opacity_logits"].numpy().any() and not opt._v["opacity_logits"].numpy().any()
-    assert opt._v["sh"].numpy()[27:54].any()  # other fields untouched
-    with pytest.raises(ValueError, match="unknown map field"):
+    assert not opt.moments("opacity_logits")[0].numpy().any() and not opt.moments("opacity_logits")[1].numpy().any()
+    assert opt.moments("sh")[1].numpy()[:27].any()  # other fields untouched
+    with pytest.raises(ValueError, match="unknown map parameter"):
         opt.reset_field("colour")
 
 

@@ -26,3 +26,20 @@ def test_cpu_render_correct_without_manual_warp_config(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 0 and "ok" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+
+
+def test_public_api_imports_without_hidden_ties(tmp_path):
+    # the README's entry points come from the package itself, and importing the SLAM does not pull in
+    # the evaluation (the run module ties the two; the SLAM is usable without it)
+    code = textwrap.dedent(
+        """
+        import sys
+        import rgs_warp
+        from rgs_warp import SLAM, Camera, Config, Frame, load_config, open_dataset
+        assert rgs_warp.SLAM is SLAM and callable(load_config) and callable(open_dataset)
+        assert "rgs_warp.eval" not in sys.modules and "rgs_warp.run" not in sys.modules, sorted(sys.modules)
+        print("ok")
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]

@@ -1,6 +1,6 @@
 """Poisson-disk subsampling (world space) and blue-noise thinning (image space) against brute force:
 separation, coverage, confidence preference, and equality with the sequential greedy set.  The
-Seeder's per-seed initialisation (plane frame, Eq. 13 scales, median colour, Eq. 14 opacity) against
+PointSeeder's per-seed initialisation (plane frame, Eq. 13 scales, median colour, Eq. 14 opacity) against
 NumPy, and end to end on a synthetic scene (depth error, PSNR of the seeded map)."""
 
 import numpy as np
@@ -11,17 +11,19 @@ from scipy.spatial import cKDTree
 from rgs_warp.config import SeedingConfig, TriangulationConfig
 from rgs_warp.datasets.synthetic import SyntheticDataset
 from rgs_warp.eval.photometric import psnr
-from rgs_warp.geometry import quat_to_matrix
+from rgs_warp.geometry import invert_pose, quat_to_matrix, se3_exp
+from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.render import Renderer
-from rgs_warp.seeding import CONFIDENCE_LEVELS, Seeder, compact_mask, poisson_disk_subsample, thin_blue_noise
+from rgs_warp.sampling import CONFIDENCE_LEVELS, compact_mask, poisson_disk_subsample, thin_blue_noise
+from rgs_warp.seeding import PointSeeder
 from rgs_warp.triangulation import TriangulatedPoints, Triangulator, projection_matrices
 from rgs_warp.types import Camera, GaussianMap
 
 
 def priority(confidence, index, levels=CONFIDENCE_LEVELS):
-    """kernels/poisson.py's dart priority in NumPy: confidence level, then lowbias32 of the index."""
+    """kernels/sampling.py's dart priority in NumPy: confidence level, then lowbias32 of the index."""
     x = np.asarray(index).astype(np.uint64)
     m = np.uint64(0xFFFFFFFF)
     x ^= x >> np.uint64(16)
@@ -161,7 +163,7 @@ def test_compact_mask(device):
     np.testing.assert_array_equal(idx.numpy()[:c], np.flatnonzero(mask))
 
 
-# ---- Seeder ------------------------------------------------------------------------------------
+# ---- PointSeeder ------------------------------------------------------------------------------------
 
 
 def synthetic_seeding(
@@ -216,7 +218,7 @@ def synthetic_seeding(
     keyframes = KeyframeBuffer(4, cam.width, cam.height, device)
     views = zip(ids, frames, exposure, strict=True)
     slots = [keyframes.add(i, f.pose_gt, f.rgb, f.depth, exposure=e) for i, f, e in views]
-    seeder = Seeder(cfg or SeedingConfig(), cam, device)
+    seeder = PointSeeder(cfg or SeedingConfig(), cam, device)
     gmap = GaussianMap(1024, sh_degree=2, device=device)
     added = seeder.seed(points, wp.array(aggregated, device=device), keyframes, slots, gmap)
     return {
@@ -278,7 +280,7 @@ def seed_points(points, confidence, poses, device, cfg=None, images=None, exposu
     for v, T in enumerate(poses):
         rgb = np.zeros((CAM.height, CAM.width, 3), np.float32) if images is None else images[v]
         keyframes.add(v, T, rgb, exposure=(1.0, 0.0) if exposure is None else exposure[v])
-    seeder = Seeder(cfg or SeedingConfig(), CAM, device)
+    seeder = PointSeeder(cfg or SeedingConfig(), CAM, device)
     gmap = GaussianMap(16, sh_degree=2, device=device)
     gmap.sh.fill_(wp.vec3(7.0, 7.0, 7.0))
     added = seeder.seed(
@@ -482,3 +484,133 @@ def test_seeder_end_to_end_on_synthetic_room(device):
     print(f"PSNR seeded pixels {psnr_seeded:.2f} dB, whole image {psnr(image, ref.rgb):.2f} dB")
     assert alpha[seeded].mean() > 0.95
     assert psnr_seeded > 32.0
+
+
+# ---- seeds ------------------------------------------------------------------------------------------
+def test_depth_points_backprojects_the_cell_centres(device):
+    rng = np.random.default_rng(17)
+    H, W, stride = 22, 26, 4
+    fx, fy, cx, cy = 20.0, 21.0, 12.5, 10.5
+    v, u = np.mgrid[0:H, 0:W]
+    depth = 2.0 + 0.01 * u + 0.02 * v + 0.0005 * u**2  # smooth: second differences ~0.016 m
+    depth[:, 13:] += 1.0  # a step edge between the cells at u = 10 and u = 14
+    depth[6, 18] = 0.0  # an invalid cell centre
+    depth[10, 22] = 0.0  # a border cell without depth, the right neighbour of the cell (10, 18)
+    depth = depth.astype(np.float32)
+    alpha = rng.uniform(0, 0.3, (H, W)).astype(np.float32)
+    alpha[14, 6] = 0.9  # covered by the map already
+    T_WC = se3_exp(np.array([0.3, -0.2, 0.1, 0.2, -0.1, 0.3]))
+    hg, wg = H // stride, W // stride
+    out = [wp.zeros(hg * wg, dtype=t, device=device) for t in (wp.vec3d, wp.float64, wp.float64, wp.int32, wp.int32)]
+    max_rel_jump, max_alpha = 0.05, 0.5
+    wp.launch(
+        ks.depth_points,
+        dim=(hg, wg),
+        inputs=[wp.array(depth, device=device), fx, fy, cx, cy, wp.mat44d(T_WC), stride, max_rel_jump, 0.7, 90.0]
+        + [wp.array(alpha, device=device), max_alpha],
+        outputs=out,
+        device=device,
+    )
+    X, residual, parallax, support, valid = (a.numpy() for a in out)
+
+    gy, gx = np.mgrid[0:hg, 0:wg]
+    uc, vc = (gx * stride + stride // 2).ravel(), (gy * stride + stride // 2).ravel()
+    z = depth[vc, uc].astype(np.float64)
+    ok = (z > 0) & (alpha[vc, uc] < max_alpha)
+    inner = (uc >= stride) & (uc + stride < W) & (vc >= stride) & (vc + stride < H)
+    for i in np.flatnonzero(ok & inner):
+        nb = [depth[vc[i], uc[i] - stride], depth[vc[i], uc[i] + stride]]
+        nb += [depth[vc[i] - stride, uc[i]], depth[vc[i] + stride, uc[i]]]
+        ok[i] = min(nb) > 0 and max(abs(nb[0] + nb[1] - 2 * z[i]), abs(nb[2] + nb[3] - 2 * z[i])) < max_rel_jump * z[i]
+    P = np.stack([(uc - cx) / fx * z, (vc - cy) / fy * z, z], axis=1)
+    np.testing.assert_allclose(X, P @ T_WC[:3, :3].T + T_WC[:3, 3], atol=1e-6)
+    np.testing.assert_array_equal(valid, ok.astype(np.int32))
+    cell = {(int(a), int(b)): bool(o) for a, b, o in zip(vc, uc, ok, strict=True)}
+    assert not cell[(6, 10)] and not cell[(6, 14)] and cell[(6, 6)]  # the step edge; a smooth interior cell
+    assert not cell[(6, 18)] and not cell[(10, 22)] and not cell[(14, 6)]  # no depth; covered
+    assert not cell[(10, 18)] and cell[(14, 18)]  # a neighbour without depth
+    assert cell[(2, 2)] and cell[(18, 22)]  # border cells skip the discontinuity test
+    assert np.all(residual == np.float32(0.7)) and np.all(parallax == 90.0) and np.all(support == 1)
+
+
+def test_mask_covered_points(device):
+    rng = np.random.default_rng(18)
+    H, W, n = 12, 16, 300
+    fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
+    T_WC = se3_exp(np.array([0.2, 0.1, -0.3, 0.1, 0.2, -0.1]))
+    uv = np.stack([rng.uniform(-2, W + 1, n), rng.uniform(-2, H + 1, n)], axis=1)  # some off the image
+    z = rng.uniform(1.0, 3.0, n)
+    P = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
+    X = P @ T_WC[:3, :3].T + T_WC[:3, 3]
+    alpha = rng.uniform(0.3, 1.0, (H, W)).astype(np.float32)
+    d_map = rng.uniform(1.0, 3.0, (H, W))
+    valid0 = (rng.uniform(size=n) < 0.8).astype(np.int32)
+    # pixel of each point as the kernel takes it: rounded, clamped into the image
+    pu = np.clip(np.round(uv[:, 0]).astype(int), 0, W - 1)
+    pv = np.clip(np.round(uv[:, 1]).astype(int), 0, H - 1)
+    near = rng.uniform(size=n) < 0.5
+    d_map[pv[near], pu[near]] = z[near] * (1 + rng.uniform(-0.03, 0.03, near.sum()))  # the map agrees
+    rendered_depth = (alpha * d_map).astype(np.float32)
+    max_alpha, tol = 0.6, 0.05
+    valid = wp.array(valid0, dtype=wp.int32, device=device)
+    wp.launch(
+        ks.mask_covered_points,
+        dim=n,
+        inputs=[wp.array(uv, dtype=wp.vec2d, device=device), wp.array(alpha, device=device)]
+        + [wp.array(rendered_depth, device=device), wp.array(X, dtype=wp.vec3d, device=device)]
+        + [wp.mat44d(invert_pose(T_WC)), max_alpha, tol],
+        outputs=[valid],
+        device=device,
+    )
+    a = alpha[pv, pu].astype(np.float64)
+    covered = (a >= max_alpha) & (np.abs(rendered_depth[pv, pu] / a - z) <= tol * z)
+    ref = np.where(covered, 0, valid0)
+    assert (valid0 & covered).sum() > 20 and (valid0 & ~covered).sum() > 20
+    np.testing.assert_array_equal(valid.numpy(), ref)
+
+
+def test_reject_depth_inconsistent_points(device):
+    rng = np.random.default_rng(19)
+    H, W, n = 12, 16, 300
+    fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
+    T_WC = se3_exp(np.array([-0.1, 0.2, 0.3, -0.2, 0.1, 0.1]))
+    uv = np.stack([rng.uniform(-2, W + 1, n), rng.uniform(-2, H + 1, n)], axis=1)  # some off the image
+    z = rng.uniform(1.0, 3.0, n)
+    P = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
+    X = P @ T_WC[:3, :3].T + T_WC[:3, 3]
+    measured = rng.uniform(1.0, 3.0, (H, W)).astype(np.float32)
+    measured[rng.uniform(size=(H, W)) < 0.15] = 0.0  # no measurement there
+    pu = np.clip(np.round(uv[:, 0]).astype(int), 0, W - 1)
+    pv = np.clip(np.round(uv[:, 1]).astype(int), 0, H - 1)
+    agree = rng.uniform(size=n) < 0.5
+    has = measured[pv, pu] > 0
+    measured[pv[agree & has], pu[agree & has]] = (z * (1 + rng.uniform(-0.03, 0.03, n)))[agree & has]
+    valid0 = (rng.uniform(size=n) < 0.8).astype(np.int32)
+    tol = 0.05
+    valid = wp.array(valid0, dtype=wp.int32, device=device)
+    wp.launch(
+        ks.reject_depth_inconsistent_points,
+        dim=n,
+        inputs=[wp.array(uv, dtype=wp.vec2d, device=device), wp.array(measured, device=device)]
+        + [wp.array(X, dtype=wp.vec3d, device=device), wp.mat44d(invert_pose(T_WC)), tol],
+        outputs=[valid],
+        device=device,
+    )
+    d = measured[pv, pu].astype(np.float64)
+    inconsistent = (d > 0) & (np.abs(z - d) > tol * d)
+    ref = np.where(inconsistent, 0, valid0)
+    assert (valid0 & inconsistent).sum() > 20 and (valid0 & ~inconsistent & (d > 0)).sum() > 20
+    assert (valid0 & (d == 0)).sum() > 5  # points without a measurement are kept
+    np.testing.assert_array_equal(valid.numpy(), ref)
+
+
+def test_union_alpha(device):
+    rng = np.random.default_rng(23)
+    a, b = rng.uniform(0, 1, (2, 7, 9)).astype(np.float32)
+    out = wp.zeros((7, 9), dtype=wp.float32, device=device)
+    aw, bw = wp.array(a, device=device), wp.array(b, device=device)
+    wp.launch(ks.union_alpha, dim=(7, 9), inputs=[aw, bw], outputs=[out], device=device)
+    # compositing the two layers in either order leaves transmittance (1 - a)(1 - b)
+    np.testing.assert_allclose(out.numpy(), 1.0 - (1.0 - a) * (1.0 - b), atol=1e-6)
+    wp.launch(ks.union_alpha, dim=(7, 9), inputs=[aw, bw], outputs=[aw], device=device)  # in place
+    np.testing.assert_allclose(aw.numpy(), out.numpy(), atol=0)

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import warp as wp
 
+from rgs_warp import SLAM
 from rgs_warp.config import load_config
 from rgs_warp.io.ply import load_ply
 from rgs_warp.io.trajectory import read_tum_trajectory
-from rgs_warp.slam import SLAM, main, run
+from rgs_warp.run import main, run
 
 # CPU-sized: 160x90, 20 frames, short initialization and mapping (the GPU numbers use the defaults)
 OVERRIDES = [
@@ -253,7 +254,7 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         sizes.append(len(slam.map))
     after_init = results[5:]
     assert not any(r.keyframe or r.tracking.lost for r in after_init)
-    pending = len(slam._pending)
+    pending = len(slam.seeder.pending)
     assert pending == sum(r.seeded for r in after_init) > 20  # the camera pans into new surface
     size = sizes[4]
     assert sizes[5:] == [size] * (n - 5)  # the map itself did not change
@@ -261,7 +262,7 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
     # into it (those of earlier frames may be hidden there)
     last = after_init[-1]
     if last.seeded:
-        X = slam._pending.means.numpy()[pending - last.seeded : pending]
+        X = slam.seeder.pending.means.numpy()[pending - last.seeded : pending]
         T_CW = invert_pose(last.T_WC)
         Xc = X @ T_CW[:3, :3].T + T_CW[:3, 3]
         u = np.round(camera.fx * Xc[:, 0] / Xc[:, 2] + camera.cx).astype(int)
@@ -269,12 +270,12 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         d = frames[n - 1].depth[np.clip(v, 0, camera.height - 1), np.clip(u, 0, camera.width - 1)]
         np.testing.assert_allclose(np.median(np.abs(Xc[:, 2] - d) / d), 0.0, atol=0.02)
     slam.finish()
-    assert len(slam.map) == size + pending and len(slam._pending) == 0
+    assert len(slam.map) == size + pending and len(slam.seeder.pending) == 0
     # off: nothing waits
     for off in ("seeding.frame_fill_min_uncovered=-1",):
         slam = SLAM(load_config([*base, "keyframes.iou_threshold=0.0", off]), camera, device=device)
         results = [slam.process(f.rgb, f.depth, f.timestamp) for f in frames]
-        assert all(r.seeded == 0 for r in results[5:]) and len(slam._pending) == 0, off
+        assert all(r.seeded == 0 for r in results[5:]) and len(slam.seeder.pending) == 0, off
 
 
 def test_own_data_without_ground_truth(tmp_path, device):
@@ -310,15 +311,13 @@ def test_own_data_without_ground_truth(tmp_path, device):
 
 
 def test_given_poses_and_tracking_start(device, tmp_path):
-    """``process(T_WC=...)``: no tracking, the frame is mapped at the given pose and mapping keeps it
-    (even with pose refinement on); ``process(T_init_WC=...)``: tracking starts there."""
+    """``process(T_WC=...)``: no tracking, the frame is mapped at the given pose and mapping keeps it;
+    ``process(T_init_WC=...)``: tracking starts there."""
     from rgs_warp.geometry import invert_pose
 
     n = 7
     base = [*OVERRIDES, "mapping.init_iters=20", "mapping.iters=3", f"device={device}"]
-    cfg = load_config(
-        [*base, "mapping.pose_only_every=2", "keyframes.iou_threshold=0.99", "keyframes.min_translation_m=0"]
-    )
+    cfg = load_config([*base, "keyframes.iou_threshold=0.99", "keyframes.min_translation_m=0"])
     camera, frames = _frames(cfg, n)
     slam = SLAM(cfg, camera, device=device)
     results = [slam.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt) for f in frames]
@@ -328,8 +327,9 @@ def test_given_poses_and_tracking_start(device, tmp_path):
     for s_ in slam.keyframes.slots():
         np.testing.assert_array_equal(slam.keyframes.poses[s_], frames[int(slam.keyframes.frame_ids[s_])].pose_gt)
     assert len(slam.map) > 100
-    # a save / load keeps them given
-    assert SLAM.load(slam.save(tmp_path / "given"), device=device)._given_poses == set(range(n))
+    # a save / load keeps them
+    loaded = SLAM.load(slam.save(tmp_path / "given"), device=device)
+    np.testing.assert_allclose(loaded.trajectory()[1], [f.pose_gt for f in frames], atol=1e-9)
     # the motion model goes on from the given poses
     last, prev = frames[-1].pose_gt, frames[-2].pose_gt
     np.testing.assert_allclose(slam.tracker.predict(), last @ invert_pose(prev) @ last, atol=1e-9)
@@ -346,42 +346,6 @@ def test_given_poses_and_tracking_start(device, tmp_path):
         one.process(nxt.rgb, nxt.depth, T_WC=np.eye(3))
     with pytest.raises(ValueError, match="not both"):
         one.process(nxt.rgb, nxt.depth, T_init_WC=start, T_WC=start)
-
-
-def test_extra_keyframes_join_the_mapping_window(device, monkeypatch):
-    """``mapping.extra_keyframes``: each keyframe's window gets that many older buffered keyframes,
-    drawn at random, oldest first; none during the initialization window."""
-    base = [*OVERRIDES, "mapping.init_iters=10", "mapping.iters=1", f"device={device}"]
-    cfg = load_config(
-        [
-            *base,
-            "mapping.window=2",
-            "mapping.extra_keyframes=2",
-            "keyframes.iou_threshold=0.99",
-            "keyframes.min_translation_m=0",
-        ]
-    )
-    camera, frames = _frames(cfg, 9)
-    slam = SLAM(cfg, camera, device=device)
-    windows = []
-    optimize = slam.mapper.optimize
-
-    def spy(kf, window, iters, **kw):
-        windows.append((list(kf.frame_ids[window]), list(kf.frame_ids[kf.slots()])))
-        return optimize(kf, window, iters, **kw)
-
-    monkeypatch.setattr(slam.mapper, "optimize", spy)
-    for f in frames:
-        slam.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt)
-    assert [w for w, _ in windows[:5]] == [list(range(k + 1)) for k in range(5)]
-    later = windows[5:]
-    assert len(later) == 4
-    drawn = set()
-    for window, buffered in later:
-        assert window[-2:] == buffered[-2:] and len(window) == 4
-        assert window[:2] == sorted(window[:2]) and set(window[:2]) <= set(buffered[:-2])
-        drawn.update(window[:2])
-    assert len(drawn) > 2  # not always the same two
 
 
 MONO = [
@@ -437,40 +401,3 @@ def test_mono_bootstrap_falls_back_to_a_plane(device):
     assert "gave up after 2 frames" in results[2].keyframe_reason
     assert slam.keyframe_indices == [0] and len(slam.map) > 100 and results[2].tracking is not None
     assert len(slam.trajectory()[1]) == 3
-
-
-def test_mono_seed_depth_ratio(device):
-    """A monocular keyframe's triangulated points at 0.8 of the map's depth: the ratio is measured
-    where the map covers them (1.25); with too few such points there is none."""
-    from types import SimpleNamespace
-
-    from helpers_maps import map_from_rgbd
-    from rgs_warp.geometry import invert_pose
-
-    rgbd = load_config([*OVERRIDES, "dataset.max_frames=1", f"device={device}"])
-    camera, (frame,) = _frames(rgbd, 1)
-    cfg = load_config([*MONO, f"device={device}"])
-    slam = SLAM(cfg, camera, device=device, T_first_WC=frame.pose_gt)
-    T = frame.pose_gt
-    gmap = map_from_rgbd([(frame.rgb, frame.depth, T)], camera, stride=2, device=device)
-    res = slam.renderer.forward(gmap, camera, T)
-    # points on the true surface of every 3rd pixel of the left half (the map covers it), at 0.8 of it
-    rng = np.random.default_rng(3)
-    v, u = np.mgrid[2 : camera.height - 2 : 3, 2 : camera.width // 2 : 3]
-    u, v = u.ravel(), v.ravel()
-    z = frame.depth[v, u].astype(np.float64)
-    keep = z > 0
-    u, v, z = u[keep], v[keep], z[keep]
-    P = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], axis=1)
-    X = (0.8 * P) @ T[:3, :3].T + T[:3, 3]
-    valid = (rng.uniform(size=len(z)) < 0.9).astype(np.int32)
-    pts = SimpleNamespace(
-        X=wp.array(X, dtype=wp.vec3d, device=device), valid=wp.array(valid, dtype=wp.int32, device=device)
-    )
-    uv = wp.array(np.stack([u, v], axis=1).astype(np.float64), dtype=wp.vec2d, device=device)
-    T_CW = wp.mat44d(invert_pose(T))
-    assert valid.sum() > cfg.seeding.depth_ratio_min_points
-    assert slam._seed_depth_ratio(pts, uv, res, T_CW) == pytest.approx(1.25, rel=0.02)
-    # too few points where the map covers them: no ratio
-    pts.valid = wp.array(np.where(np.arange(len(z)) < 50, valid, 0).astype(np.int32), device=device)
-    assert slam._seed_depth_ratio(pts, uv, res, T_CW) is None

@@ -2,7 +2,8 @@
 Hydra-style command-line overrides (``group=option`` selects a YAML file of a group,
 ``a.b=value`` sets a key).
 
-Numbers without a comment are the supplement's Table 1 / §4 values (see docs/config.md).
+Numbers without a comment are the supplement's Table 1 / §4 values; the others say where they were
+measured (``experiments/results/``) or decided (``docs/decisions.md``).
 """
 
 from __future__ import annotations
@@ -65,15 +66,13 @@ class DatasetConfig:
 @dataclass
 class RenderConfig:
     sh_degree: int = 2
-    tile_size: int = 16
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
 class TrackingConfig:
     iters: int = 30  # §4.2: 30-60 Adam steps a frame
-    lr: float = 5e-3  # §4.2: centre (mean) of the cosine schedule
-    lr_amplitude: float = 1.0  # lr_k = lr (1 + a cos(pi k / iters)): 2 lr down to ~0 (experiments/results/tracking.md)
+    lr: float = 5e-3  # §4.2: mean of the cosine schedule lr_k = lr (1 + cos(pi k / iters)), 2 lr down to ~0
     adam_beta1: float = 0.7  # Table 1 has 0.9 (mapping); 30 tracking steps converge with 0.7 (measured)
     adam_beta2: float = 0.999  # Table 1
     adam_eps: float = 1e-8  # PyTorch's default; far below the twist gradients (~1e-5 .. 1e-2)
@@ -94,13 +93,9 @@ class TrackingConfig:
     # the gain, and the mapper feeds the bias back: kernels/tracking.py brightness_sums); 0: Eq. 7's
     # w_alpha weights instead
     brightness_min_alpha: float = 0.98
-    brightness_ridge: float = 1e-3  # pull of (g, b) towards (1, 0), relative to the Eq. 4 weight sum
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
-    # converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps
-    # its sign, the pose is still travelling; ~0.25 = it flips around the minimum) averages below this
-    converged_consistency: float = 0.4
     depth_edge_spread: float = 0.05  # downscaling: block depth invalid above this relative spread
 
 
@@ -192,22 +187,12 @@ class SeedingConfig:
     # between keyframes; seen by no keyframe it would stay a hole); negative = off
     frame_fill_min_uncovered: float = 0.002
     depth_max_rel_jump: float = 0.05  # skip depth seeds on discontinuities (second difference / depth)
-    # monocular: each keyframe's triangulated depths against the map's where it covers them
-    # (FrameResult.seed_depth_ratio, in the run's log) from at least this many points.  Moving the
-    # seeds to that scale did not help: the ratio stays at 0.96-1.04 until tracking is lost
-    # (experiments/results/slam.md, runs 30-31)
-    depth_ratio_min_points: int = 200
 
 
 @dataclass
 class MappingConfig:
     iters: int = 60  # K_m, per keyframe (Table 1)
-    views_per_iter: int = 0  # keyframes rendered per iteration (gradients averaged): 0 = the whole window
     window: int = 5  # keyframes in the sliding window (Table 1)
-    # + this many older keyframes of the buffer (keyframes.buffer_size), drawn at random for each
-    # keyframe's mapping.  Off by measurement (slam.md runs 26-29): 2 gave the office +0.5 dB at the
-    # same ATE, 7-Scenes 4.9-12.9 cm against 4.1-4.8
-    extra_keyframes: int = 0
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
     lr_color: float = 2e-3  # Table 1 (the DC colour)
@@ -225,10 +210,6 @@ class MappingConfig:
     grad_clip: float = 1.0  # Table 1: global gradient-norm clipping
     depth_weight: float = 1.0  # RGB-D: depth L1 (per metre) against the colour L1 (per channel)
     robust_scale: float = 0.25  # Cauchy scale of the per-pixel weights (mean |residual| per channel); <= 0: off
-    # every n-th iteration updates the window's keyframe poses only (§4.5); 0: off, the default by
-    # measurement (experiments/results/slam.md: the pose steps moved keyframes away from the truth)
-    pose_only_every: int = 0
-    pose_lr: float = 1e-3  # Adam on the keyframe twist (rad, m)
     # regularizer (§4.5, coefficients fixed for all sequences)
     reg_elongation: float = 1e-2  # weight of relu(log(s_max / s_mid) - log(max_anisotropy))^2
     max_anisotropy: float = 10.0
@@ -560,3 +541,12 @@ def help_text() -> str:
 
     walk(Config(), "")
     return "\n".join(lines)
+
+
+def resolve_device(name: str) -> str:
+    """``device=auto``: ``cuda:0`` when Warp sees a GPU, else ``cpu``; any other name as given."""
+    import warp as wp
+
+    if name != "auto":
+        return name
+    return "cuda:0" if wp.is_cuda_available() else "cpu"

@@ -7,10 +7,9 @@ schedule the Gaussians above a threshold are cloned (small ones, under-reconstru
 two (large ones, over-reconstruction), transparent and oversized ones are pruned, and every few
 thousand iterations the opacities are lowered so that the optimisation can drop unneeded Gaussians.
 
-The Densifier changes the map and its own statistics only: it appends rows (as a Seeder does) and
-returns the rows to remove, so that the owner of the optimiser state (``Mapper``, which calls it
-inside its iterations) grows and compacts the Adam moments and the per-Gaussian statistics with the
-map in one place (``Mapper.sync`` / ``Mapper.remove``).
+The Densifier appends rows (as a Seeder does) and returns the rows to remove; its statistics are
+columns of the map, so they grow and compact with it, as the optimiser's moments do (the ``Mapper``,
+which calls it inside its iterations, removes the flagged rows with ``GaussianMap.remove``).
 """
 
 from __future__ import annotations
@@ -28,7 +27,6 @@ from rgs_warp.kernels.densify import (
     flag_pruned,
     write_densified,
 )
-from rgs_warp.kernels.map_ops import scatter_kept
 from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
 
@@ -92,14 +90,14 @@ class Densifier:
     * ``seed=0``: seeds the split children's sampling (``wp.rand_init(seed', gaussian)``, with seed'
       derived from ``seed`` and the iteration), so runs are deterministic.
 
-    Statistics are rows of ``grad_norm_sum`` (float32, running sum of gradient norms) and
-    ``visible_count`` (int32), the map's capacity long, rows at and beyond the map's count zero.
-    ``sync(gmap)`` follows the map's growth; every removal of map rows must be mirrored with
-    ``remove(mask)``, as for ``MapAdam`` (``Mapper.remove`` does both).
+    Statistics are map columns ``densify.grad_norm_sum`` (float32, running sum of gradient norms)
+    and ``densify.visible_count`` (int32), zero for new rows; ``densify.new_rows``, ``.offsets`` and
+    ``.remove`` are its scratch.
     """
 
     def __init__(
         self,
+        gmap: GaussianMap,
         *,
         grad_threshold: float = 2e-4,
         interval: int = 100,
@@ -131,36 +129,24 @@ class Densifier:
         self.cull_opacity = cull_opacity
         self.prune_scale_fraction = prune_scale_fraction
         self.seed = seed
-        self._capacity = 0
-        self._device = None
+        self.gmap = gmap
+        gmap.add_column("densify.grad_norm_sum", wp.float32)
+        gmap.add_column("densify.visible_count", wp.int32)
+        for name in ("new_rows", "offsets", "remove"):  # per-row actions, their offsets, removal flags
+            gmap.add_column(f"densify.{name}", wp.int32, scratch=True)
+        self._counts = wp.zeros(2, dtype=wp.int32, device=gmap.device)
 
-    # ---- buffers -----------------------------------------------------------------------------
-    def sync(self, gmap: GaussianMap) -> None:
-        """Statistics and scratch of the map's capacity, existing statistics kept (rows appended
-        since start at zero)."""
-        capacity = gmap.capacity
-        if capacity == self._capacity and gmap.device == self._device:
-            return
-        kw = {"device": gmap.device}
-        old = (self.grad_norm_sum, self.visible_count) if self._capacity and gmap.device == self._device else None
-        self.grad_norm_sum = wp.zeros(capacity, dtype=wp.float32, **kw)
-        self.visible_count = wp.zeros(capacity, dtype=wp.int32, **kw)
-        if old is not None:
-            keep = min(old[0].shape[0], capacity)
-            wp.copy(self.grad_norm_sum, old[0], count=keep)
-            wp.copy(self.visible_count, old[1], count=keep)
-        # compaction target (swapped with the statistics), per-row actions, offsets, removal flags
-        self._spare_sum = wp.zeros(capacity, dtype=wp.float32, **kw)
-        self._spare_count = wp.zeros(capacity, dtype=wp.int32, **kw)
-        self._new_rows = wp.zeros(capacity, dtype=wp.int32, **kw)
-        self._offsets = wp.zeros(capacity, dtype=wp.int32, **kw)
-        self._remove = wp.zeros(capacity, dtype=wp.int32, **kw)
-        self._counts = wp.zeros(2, dtype=wp.int32, **kw)
-        self._capacity, self._device = capacity, gmap.device
+    @property
+    def grad_norm_sum(self) -> wp.array:
+        return self.gmap.column("densify.grad_norm_sum")
+
+    @property
+    def visible_count(self) -> wp.array:
+        return self.gmap.column("densify.visible_count")
 
     # ---- statistics --------------------------------------------------------------------------
-    def accumulate(self, renderer: Renderer, gmap: GaussianMap, loss_share: float = 1.0) -> None:
-        """Add the latest full ``renderer.backward`` of ``gmap`` to the statistics (launches only).
+    def accumulate(self, renderer: Renderer, loss_share: float = 1.0) -> None:
+        """Add the latest full ``renderer.backward`` of the map to the statistics (launches only).
 
         3DGS thresholds the gradient w.r.t. the projected mean in NDC, where u = ((ndc_x + 1) W - 1) / 2
         (v alike with H), so dL/d ndc_x = dL/du * W / 2 and dL/d ndc_y = dL/dv * H / 2; the renderer's
@@ -171,12 +157,12 @@ class Densifier:
         of its own whole loss, as in 3DGS's one-view iterations.
         Gaussians count as seen where their radius is positive (3DGS's visibility filter).
         """
+        gmap = self.gmap
         n = len(gmap)
         if n == 0:
             return
         if renderer.grad2d.shape[0] < n or renderer.image_shape is None:
             raise ValueError("the renderer's latest backward is not of this map")
-        self.sync(gmap)
         height, width = renderer.image_shape
         wp.launch(
             accumulate_grad_stats,
@@ -186,48 +172,27 @@ class Densifier:
             device=gmap.device,
         )
 
-    def remove(self, mask) -> None:
-        """Compact the statistics as ``GaussianMap.remove(mask)`` compacts the map (same mask: length
-        the map's count before removal, nonzero = remove)."""
-        if self._capacity == 0:
-            return
-        dev = self._device
-        if not isinstance(mask, wp.array):
-            mask = wp.array(np.asarray(mask).astype(np.int32), dtype=wp.int32, device=dev)
-        n = mask.shape[0]
-        if n == 0:
-            return
-        removed_before = self._offsets[:n]
-        wp.utils.array_scan(mask, removed_before, inclusive=False)
-        self._spare_sum.zero_()
-        self._spare_count.zero_()
-        for src, dst in ((self.grad_norm_sum, self._spare_sum), (self.visible_count, self._spare_count)):
-            wp.launch(scatter_kept, dim=n, inputs=[src, mask, removed_before, dst], device=dev)
-        self.grad_norm_sum, self._spare_sum = self._spare_sum, self.grad_norm_sum
-        self.visible_count, self._spare_count = self._spare_count, self.visible_count
-
     def reset_stats(self) -> None:
         """Restart the statistics of every Gaussian (done after each densification step)."""
-        if self._capacity:
-            self.grad_norm_sum.zero_()
-            self.visible_count.zero_()
+        self.grad_norm_sum.zero_()
+        self.visible_count.zero_()
 
     # ---- schedule ----------------------------------------------------------------------------
-    def step(self, iteration: int, gmap: GaussianMap, scene_extent: float) -> DensifyStep:
+    def step(self, iteration: int, scene_extent: float) -> DensifyStep:
         """Reset opacities, densify and flag Gaussians for pruning when ``iteration`` calls for it
         (see the class).
 
         ``scene_extent``: the scene's size in metres (the unit of ``percent_dense`` and
-        ``prune_scale_fraction``).  Clones and split children are appended to ``gmap`` (the caller's
-        optimiser state must follow, as after a Seeder: ``Mapper.sync``); the split parents and the
+        ``prune_scale_fraction``).  Clones and split children are appended to the map (their optimiser
+        state and statistics come from the column fills, as after a Seeder); the split parents and the
         culled Gaussians come back in ``DensifyStep.remove`` for the caller to remove.  The reset
         comes first, so that the statistics it reads are those of the rows before densification.
         A densification step reads one count back to the host; other iterations cost nothing.
         """
+        gmap = self.gmap
         result = DensifyStep()
         if not self.start < iteration < self.stop or len(gmap) == 0:
             return result
-        self.sync(gmap)
         if self.opacity_reset_interval > 0 and iteration % self.opacity_reset_interval == 0:
             wp.launch(
                 clamp_opacity_logits,
@@ -250,10 +215,10 @@ class Densifier:
             dim=n,
             inputs=[self.grad_norm_sum, self.visible_count, gmap.log_scales]
             + [float(self.grad_threshold), float(self.percent_dense * scene_extent)],
-            outputs=[self._new_rows, self._counts],
+            outputs=[gmap.column("densify.new_rows"), self._counts],
             device=dev,
         )
-        new_rows, offsets = self._new_rows, self._offsets
+        new_rows, offsets = gmap.column("densify.new_rows"), gmap.column("densify.offsets")
         wp.utils.array_scan(new_rows[:n], offsets[:n], inclusive=False)
         result.cloned, result.split = (int(c) for c in self._counts.numpy())
         added = result.cloned + 2 * result.split
@@ -268,7 +233,6 @@ class Densifier:
                 device=dev,
             )
             gmap.count = n + added  # the rows n .. n + added were just written on the device
-            self.sync(gmap)  # removal flags for the grown map; new_rows keeps the arrays of before
         total = n + added
         # 3DGS prunes oversized Gaussians only once the first opacity reset is behind.
         prune_big = self.prune_scale_fraction > 0.0 and iteration > self.opacity_reset_interval > 0
@@ -277,9 +241,9 @@ class Densifier:
             dim=total,
             inputs=[new_rows, n, gmap.opacity_logits, gmap.log_scales, _logit(self.cull_opacity)]
             + [float(self.prune_scale_fraction * scene_extent) if prune_big else 0.0],
-            outputs=[self._remove],
+            outputs=[gmap.column("densify.remove")],
             device=dev,
         )
-        result.remove = self._remove[:total]
+        result.remove = gmap.column("densify.remove")[:total]
         # 3DGS restarts the statistics of every Gaussian after densifying.
         self.reset_stats()

@@ -3,8 +3,9 @@ free of the extremely large or transparent splats that destabilise optimisation.
 
 Both passes only compute removal masks (int32, 1 = remove, length ``len(gmap)``); the caller ORs
 them (``merge_duplicates(..., exclude=prune)`` does it in one go) and applies the result with
-``gmap.remove(mask)``, ``MapAdam.remove(mask)`` and ``compact_rows`` on its own per-Gaussian
-statistics.  Merging does rewrite the survivors' parameters in place.
+``gmap.remove(mask)``, which compacts every column of the map (optimiser moments and statistics
+included); the ``Maintainer`` stage does all three.  Merging rewrites the survivors' parameters in
+place.
 
 Host synchronisation: no read-back.  Counts come back as small device arrays (``PruneStats.read`` and
 ``int(n_merged.numpy()[0])`` read them, one synchronisation each, when the caller logs); the caller
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from rgs_warp.config import MappingConfig
 from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels.maintenance import (
     PRUNE_STATS,
@@ -26,8 +28,7 @@ from rgs_warp.kernels.maintenance import (
     merge_pairs,
     prune_flags,
 )
-from rgs_warp.kernels.map_ops import scatter_kept, scatter_kept_rows
-from rgs_warp.kernels.projection import CameraParams
+from rgs_warp.kernels.math import CameraParams
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 
@@ -232,24 +233,44 @@ def merge_duplicates(
     return out, scratch.n_merged
 
 
-def compact_rows(array: wp.array, mask) -> None:
-    """Compact the first ``len(mask)`` rows of a per-Gaussian array in place, as ``GaussianMap.remove``
-    compacts the map: rows whose mask entry (bool NumPy or int32 ``wp.array``, nonzero = remove) is
-    set are dropped, the survivors keep their order, and the freed rows up to ``len(mask)`` are zeroed
-    (so statistics of Gaussians appended later start at 0).  1D arrays of any dtype, or 2D arrays
-    (rows of the first axis).  No host read-back."""
-    device = array.device
-    if not isinstance(mask, wp.array):
-        mask = wp.array(np.asarray(mask).astype(np.int32), dtype=wp.int32, device=device)
-    n = mask.shape[0]
-    if n == 0:
-        return
-    removed_before = wp.empty(n, dtype=wp.int32, device=device)
-    wp.utils.array_scan(mask, removed_before, inclusive=False)
-    rows = array[:n]
-    tmp = wp.zeros_like(rows)
-    if array.ndim == 2:
-        wp.launch(scatter_kept_rows, dim=rows.shape, inputs=[rows, mask, removed_before, tmp], device=device)
-    else:
-        wp.launch(scatter_kept, dim=n, inputs=[rows, mask, removed_before, tmp], device=device)
-    wp.copy(rows, tmp)
+class Maintainer:
+    """The maintenance stage after each keyframe's mapping (§4.5): prune the Gaussians that violate
+    the bounds of ``prune_mask`` (reading the mapper's statistics columns ``obs_count`` and
+    ``vis_count`` of the map when it has them), then merge near-duplicates seen from the keyframe among
+    the survivors, and remove both from the map (its every column compacts with it).  The masks
+    combine on the device; one read of the two counts."""
+
+    def __init__(self, cfg: MappingConfig, camera: Camera, device=None):
+        self.cfg, self.camera = cfg, camera
+        self.device = wp.get_device(device)
+        self._scratch = MergeScratch(self.device)
+
+    def maintain(self, gmap: GaussianMap, T_WC: np.ndarray) -> tuple[int, int]:
+        """Prune and merge (seen from camera-to-world ``T_WC``); returns (pruned, merged)."""
+        cfg = self.cfg
+        if len(gmap) == 0:
+            return 0, 0
+        statistics = gmap.has_column("obs_count") and gmap.has_column("vis_count")
+        prune, prune_stats = prune_mask(
+            gmap,
+            gmap.column("obs_count") if statistics else None,
+            gmap.column("vis_count") if statistics else None,
+            opacity_min=cfg.opacity_cull,
+            max_scale_m=cfg.max_scale_m,
+            min_obs=cfg.min_obs,
+            min_visibility_ratio=cfg.min_visibility_ratio,
+        )
+        remove, n_merged = merge_duplicates(
+            gmap,
+            self.camera,
+            T_WC,
+            max_footprint_px=cfg.merge_footprint_px,
+            max_color_diff=cfg.merge_color_diff,
+            exclude=prune,
+            scratch=self._scratch,
+        )
+        pruned = PruneStats.read(prune_stats).total
+        merged = int(n_merged.numpy()[0])
+        if pruned + merged:
+            gmap.remove(remove)
+        return pruned, merged

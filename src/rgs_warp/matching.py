@@ -7,7 +7,7 @@ narrow band around the depth reprojection when r has depth there, the segment be
 r.  Eq. 11 scores the match from its similarity (Eq. 10), its forward-backward consistency and its
 distance to the epipolar line; Eq. 12 maps the score to a confidence.  The confidences are averaged
 over the neighbours (the aggregated confidence), the grid is thinned with blue noise in image space
-(``seeding.thin_blue_noise``) and the dropped pixels get confidence 0.
+(``sampling.thin_blue_noise``) and the dropped pixels get confidence 0.
 
 Everything inside ``match`` is kernel launches on buffers sized by the feature grid (no host read
 back), so ``DenseMatcher -> Triangulator -> Seeder`` can run as one pass or one CUDA graph.
@@ -32,7 +32,7 @@ from rgs_warp.kernels.matching import (
     score_matches,
 )
 from rgs_warp.keyframes import KeyframeBuffer
-from rgs_warp.seeding import thin_blue_noise
+from rgs_warp.sampling import thin_blue_noise
 from rgs_warp.triangulation import projection_matrices
 from rgs_warp.types import Camera
 

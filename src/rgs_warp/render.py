@@ -27,19 +27,15 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.geometry import invert_pose
+from rgs_warp.kernels.math import FRUSTUM_MARGIN, TILE_SIZE, CameraParams, vec10, vec32
 from rgs_warp.kernels.projection import (
-    FRUSTUM_MARGIN,
     PROJECT_BLOCK,
-    TILE_SIZE,
-    CameraParams,
     emit_intersections,
     invert_rigid,
     pad_intersection_keys,
     project_gaussians,
     project_gaussians_backward,
     tile_ranges_from_keys,
-    vec10,
-    vec32,
 )
 from rgs_warp.kernels.rasterize import (
     rasterize_pixels,

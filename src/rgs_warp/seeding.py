@@ -1,188 +1,32 @@
-"""Seeding (supplement §4.4-4.5): blue-noise thinning of matches in image space, Poisson-disk
-subsampling of triangulated seeds in world space, and the ``Seeder`` stage that turns the
-Triangulator's points into Gaussians (Eq. 13-14).
-
-Thinning and Poisson-disk subsampling are rounds of prioritised dart throwing
-(``kernels/poisson.py`` explains the scheme and its guarantees) looping on a device counter of
-undecided points: on CUDA the loop is a CUDA graph conditional while-node (``loop_until_zero``), so
-the rounds run without a host round trip.
+"""Seeding (supplement §4.5): the ``Seeder`` stage puts new Gaussians where a keyframe (or a tracked
+frame) shows surface the map lacks; ``PointSeeder`` turns points (triangulated, or back-projected
+measured depth) into Gaussians (Eq. 13-14), Poisson-disk subsampled in world space
+(``rgs_warp.sampling``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
+import numpy as np
 import warp as wp
 
 from rgs_warp.config import SeedingConfig
 from rgs_warp.geometry import invert_pose
-from rgs_warp.kernels.poisson import poisson_accept, poisson_init, poisson_reject, scatter_kept
+from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.seeding import MAX_VIEWS, SeedParams, seed_footprint, seed_gaussians
-from rgs_warp.kernels.thinning import thinning_accept, thinning_init, thinning_reject
 from rgs_warp.keyframes import KeyframeBuffer
+from rgs_warp.matching import Matches
+from rgs_warp.render import Renderer
+from rgs_warp.sampling import compact_mask, poisson_disk_subsample
 from rgs_warp.triangulation import TriangulatedPoints
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
-
-# Confidence levels of the dart priority: finer levels follow the confidence more closely but allow
-# longer chains of rounds (a chain climbs at most one level per round); 32 levels resolve Eq. 12's
-# confidence to 0.03, below the spread of its inputs.
-CONFIDENCE_LEVELS = 32
-
-
-def loop_until_zero(condition: wp.array, body) -> None:
-    """Run ``body()`` while ``condition[0] != 0`` (the body updates it) without a host round trip
-    on CUDA: the loop is captured as a CUDA graph with a conditional while-node and launched once.
-    ``wp.capture_while`` alone reads the condition back to the host before every round when no
-    capture is active.  Inside an enclosing capture, or where the driver lacks conditional nodes
-    (CUDA < 12.4), the loop is recorded / run as ``wp.capture_while`` does; on the CPU the condition
-    is read from host memory at no cost."""
-    device = condition.device
-    if device.is_cuda and not device.is_capturing and wp.is_conditional_graph_supported():
-        with wp.ScopedCapture(device=device) as capture:
-            wp.capture_while(condition, body)
-        wp.capture_launch(capture.graph)
-    else:
-        wp.capture_while(condition, body)
-
-
-def poisson_disk_subsample(
-    points: wp.array,
-    radius: wp.array,
-    confidence: wp.array,
-    candidate: wp.array | None = None,
-    cell_size: float | None = None,
-    grid: wp.HashGrid | None = None,
-    keep_out: wp.array | None = None,
-    counters: wp.array | None = None,
-    radius_max: wp.array | None = None,
-    levels: int = CONFIDENCE_LEVELS,
-) -> wp.array:
-    """Poisson-disk subset of world points, higher confidence winning conflicts.
-
-    points: (N,) ``wp.vec3``; radius: (N,) float32 per-point disk radius (e.g. the pixel footprint
-    ``k * depth / focal``); confidence: (N,) float32 in [0, 1]; candidate: optional (N,) int32,
-    0 excludes a point.  Two points conflict when closer than the larger of their radii.
-    Returns keep (N,) int32, 1 for kept points: no kept pair conflicts, every candidate lies within
-    max(its radius, the kept point's radius) of a kept point.
-
-    ``cell_size`` sets the hash grid's cells (performance only; default: the largest radius, read
-    back once).  ``grid`` (a ``wp.HashGrid``), ``keep_out``, ``counters`` ((2,) int32) and
-    ``radius_max`` ((1,) float32) let a stage reuse its buffers; ``counters[1]`` holds the number
-    of rounds afterwards.
-    """
-    device = points.device
-    n = points.shape[0]
-    if keep_out is None:
-        keep_out = wp.empty(n, dtype=wp.int32, device=device)
-    if n == 0:
-        return keep_out
-    if counters is None:
-        counters = wp.zeros(2, dtype=wp.int32, device=device)
-    if radius_max is None:
-        radius_max = wp.zeros(1, dtype=wp.float32, device=device)
-    if candidate is None:
-        candidate = wp.ones(n, dtype=wp.int32, device=device)
-    if grid is None:
-        grid = wp.HashGrid(128, 128, 128, device=device)
-    radius_max.zero_()
-    wp.launch(poisson_init, dim=n, inputs=[radius, candidate], outputs=[keep_out, radius_max], device=device)
-    if cell_size is None:
-        cell_size = float(radius_max.numpy()[0]) or 1.0
-    grid.build(points, cell_size)
-    counters.fill_(1)
-
-    def one_round():
-        counters[:1].zero_()
-        wp.launch(
-            poisson_accept,
-            dim=n,
-            inputs=[grid.id, points, radius, confidence, levels, radius_max],
-            outputs=[keep_out],
-            device=device,
-        )
-        wp.launch(
-            poisson_reject,
-            dim=n,
-            inputs=[grid.id, points, radius, radius_max],
-            outputs=[keep_out, counters],
-            device=device,
-        )
-
-    counters[1:2].zero_()
-    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    loop_until_zero(counters[:1], one_round)
-    return keep_out
-
-
-def thin_blue_noise(
-    confidence: wp.array,
-    spacing_px: float,
-    keep_out: wp.array | None = None,
-    counters: wp.array | None = None,
-    levels: int = CONFIDENCE_LEVELS,
-) -> wp.array:
-    """Blue-noise subset of the pixels of a confidence image, the most confident preferred.
-
-    confidence: (H, W) float32 (Eq. 12; 0 = no match); spacing_px: minimum distance in pixels
-    between kept pixels.  Returns keep (H, W) int32, 1 for kept pixels: no kept pair closer than
-    ``spacing_px``, every pixel of positive confidence within ``spacing_px`` of a kept one.
-    ``counters``: optional (2,) int32 scratch; ``counters[1]`` holds the number of rounds afterwards.
-    """
-    device = confidence.device
-    if keep_out is None:
-        keep_out = wp.empty(confidence.shape, dtype=wp.int32, device=device)
-    if counters is None:
-        counters = wp.zeros(2, dtype=wp.int32, device=device)
-    wp.launch(thinning_init, dim=confidence.shape, inputs=[confidence], outputs=[keep_out], device=device)
-    counters.fill_(1)
-
-    def one_round():
-        counters[:1].zero_()
-        wp.launch(
-            thinning_accept,
-            dim=confidence.shape,
-            inputs=[confidence, float(spacing_px), levels],
-            outputs=[keep_out],
-            device=device,
-        )
-        wp.launch(
-            thinning_reject,
-            dim=confidence.shape,
-            inputs=[float(spacing_px)],
-            outputs=[keep_out, counters],
-            device=device,
-        )
-
-    counters[1:2].zero_()
-    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    loop_until_zero(counters[:1], one_round)
-    return keep_out
-
-
-def compact_mask(
-    keep: wp.array, indices_out: wp.array | None = None, count_out: wp.array | None = None, offsets=None
-) -> tuple[wp.array, wp.array]:
-    """Indices (int32, ascending, flat for 2-d masks) of the 1s of a 0/1 int32 mask and their count
-    (a 1-element device array), without a host round trip; ``indices_out`` holds at least as many
-    entries as the mask, ``offsets`` is optional scratch of the mask's size."""
-    flat = keep.flatten()
-    n = flat.shape[0]
-    device = keep.device
-    if indices_out is None:
-        indices_out = wp.empty(n, dtype=wp.int32, device=device)
-    if count_out is None:
-        count_out = wp.zeros(1, dtype=wp.int32, device=device)
-    if offsets is None:
-        offsets = wp.empty(n, dtype=wp.int32, device=device)
-    wp.utils.array_scan(flat, offsets, inclusive=False)
-    wp.launch(scatter_kept, dim=n, inputs=[flat, offsets], outputs=[indices_out, count_out], device=device)
-    return indices_out, count_out
-
 
 CELL_PRIOR_POINTS = 1000  # weight of the nominal hash-grid cell size against measured radii
 
 
-class Seeder:
+class PointSeeder:
     """Initialises one Gaussian per Poisson-disk-subsampled triangulated point (supplement §4.5).
 
     Per point: mean = the triangulated point; rotation = the frame U = [t1, t2, v] of a plane
@@ -372,3 +216,159 @@ class Seeder:
         total, count = (float(v) for v in self._plane_radius_stats_host.numpy())
         self._radius_sum = 0.5 * self._radius_sum + total
         self._radius_count = 0.5 * self._radius_count + count
+
+
+class Seeder:
+    """The seeding stage (§4.5): new Gaussians where a keyframe shows surface the map lacks.
+
+    ``seed_matches``: the keyframe's triangulated matches, minus those whose depth disagrees with the
+    measured one (RGB-D, ``depth_consistency_tol``) and those the map already explains (it covers
+    their pixel at a consistent depth).  ``seed_depth``: measured-depth seeds where the map still does
+    not cover the keyframe (RGB-D with ``depth_fill``: plain walls have no matches), and the very
+    first seeds of an empty map (monocular: a plane at ``scene_depth_m``).  ``fill_frame``: the same
+    for a tracked frame that is not a keyframe, when it shows more than ``frame_fill_min_uncovered``
+    of new surface; those seeds wait in ``pending`` (tracking does not change the map, §4.6, so the
+    co-visibility test of the next frames sees the same map) until ``join_pending`` at the next
+    keyframe, before its seeding; its mapping refines those it sees.
+
+    ``match_spacing_px``: image pixels between thinned matches (the Poisson radius and tangential
+    scale of triangulated seeds are in these units, those of depth seeds in ``depth_stride``).
+    """
+
+    def __init__(
+        self,
+        cfg: SeedingConfig,
+        camera: Camera,
+        device=None,
+        *,
+        mode: str = "rgbd",
+        match_spacing_px: float = 1.0,
+        scene_depth_m: float = 2.0,
+        sh_degree: int = 2,
+        renderer: Renderer | None = None,
+    ):
+        self.cfg, self.camera, self.mode = cfg, camera, mode
+        self.device = dev = wp.get_device(device)
+        self.renderer = renderer or Renderer(dev)
+        radius = cfg.poisson_radius_px
+        self._from_matches = PointSeeder(replace(cfg, poisson_radius_px=radius * match_spacing_px), camera, dev)
+        self._from_depth = PointSeeder(replace(cfg, poisson_radius_px=radius * cfg.depth_stride), camera, dev)
+        self.pending = GaussianMap(1024, sh_degree=sh_degree, device=dev)
+        self._fill_frame: KeyframeBuffer | None = None  # the tracked frame of ``fill_frame``
+        hg, wg = camera.height // cfg.depth_stride, camera.width // cfg.depth_stride
+        n = hg * wg
+        self._depth_grid = (hg, wg)
+        self._depth_points = TriangulatedPoints(
+            wp.zeros(n, dtype=wp.vec3d, device=dev),
+            wp.zeros(n, dtype=wp.float64, device=dev),
+            wp.zeros(n, dtype=wp.float64, device=dev),
+            wp.zeros(n, dtype=wp.int32, device=dev),
+            wp.zeros(n, dtype=wp.int32, device=dev),
+        )
+        # measured depth is certain (Eq. 14 at full confidence); a monocular plane is not
+        self._depth_confidence = wp.full(n, 1.0 if mode == "rgbd" else 0.0, dtype=wp.float32, device=dev)
+        shape = (camera.height, camera.width)
+        self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
+        self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
+        self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
+
+    def seed_points(
+        self,
+        gmap: GaussianMap,
+        keyframes: KeyframeBuffer,
+        view_slots: Sequence[int],
+        points: TriangulatedPoints,
+        confidence: wp.array,
+    ) -> int:
+        """Gaussians from triangulated ``points`` (reference view first in ``view_slots``) with their
+        aggregated ``confidence``, as they are; returns how many."""
+        return self._from_matches.seed(points, confidence, keyframes, view_slots, gmap)
+
+    def seed_matches(
+        self,
+        gmap: GaussianMap,
+        keyframes: KeyframeBuffer,
+        slot: int,
+        matches: Matches,
+        points: TriangulatedPoints,
+    ) -> int:
+        """Gaussians from keyframe ``slot``'s triangulated ``matches`` where the map does not explain
+        the keyframe yet (see the class); returns how many."""
+        cfg, dev = self.cfg, self.device
+        T_CW = wp.mat44d(invert_pose(keyframes.poses[slot]))
+        n = points.X.shape[0]
+        if self.mode == "rgbd" and cfg.depth_consistency_tol > 0.0:
+            wp.launch(
+                ks.reject_depth_inconsistent_points,
+                dim=n,
+                inputs=[matches.ref_uv, keyframes.depth[slot], points.X, T_CW, cfg.depth_consistency_tol],
+                outputs=[points.valid],
+                device=dev,
+            )
+        if len(gmap):
+            res = self.renderer.forward(gmap, self.camera, keyframes.poses[slot])
+            wp.launch(
+                ks.mask_covered_points,
+                dim=n,
+                inputs=[matches.ref_uv, res.alpha, res.depth, points.X, T_CW, cfg.covered_alpha]
+                + [cfg.covered_depth_tol],
+                outputs=[points.valid],
+                device=dev,
+            )
+        return self.seed_points(gmap, keyframes, [slot, *matches.neighbours], points, matches.aggregated)
+
+    def seed_depth(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
+        """Measured-depth seeds where the map does not cover keyframe ``slot`` (RGB-D with
+        ``depth_fill``), or the first seeds of an empty map; returns how many."""
+        if len(gmap) == 0:
+            depth = None if self.mode == "rgbd" else self._plane_depth
+            return self._seed_depth(keyframes, slot, self._zero_alpha, depth, gmap)
+        if self.mode == "rgbd" and self.cfg.depth_fill:
+            alpha = self.renderer.forward(gmap, self.camera, keyframes.poses[slot]).alpha
+            return self._seed_depth(keyframes, slot, alpha, None, gmap)
+        return 0
+
+    def fill_frame(self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure, coverage) -> int:
+        """Measured-depth seeds into ``pending`` from a tracked frame (``rgb``, ``depth`` on the device)
+        that is not a keyframe, where neither the map nor the pending seeds cover it, when more than
+        ``frame_fill_min_uncovered`` of it is uncovered (``coverage``: the fraction the map covers);
+        returns how many (0 in monocular mode or when off)."""
+        fill = self.cfg.frame_fill_min_uncovered
+        if self.mode != "rgbd" or fill < 0.0 or 1.0 - coverage <= fill:
+            return 0
+        dev = self.device
+        if self._fill_frame is None:
+            self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, dev)
+        self._fill_frame.add(frame_id, T_WC, rgb, depth, exposure)
+        alpha = self.renderer.forward(gmap, self.camera, T_WC).alpha
+        if len(self.pending):
+            wp.copy(self._alpha, alpha)  # the renderer's buffers are reused by the next render
+            alpha = self._alpha
+            pending = self.renderer.forward(self.pending, self.camera, T_WC).alpha
+            wp.launch(ks.union_alpha, dim=alpha.shape, inputs=[alpha, pending], outputs=[alpha], device=dev)
+        return self._seed_depth(self._fill_frame, 0, alpha, None, self.pending)
+
+    def join_pending(self, gmap: GaussianMap) -> None:
+        """The seeds of ``fill_frame`` since the last keyframe join the map."""
+        p, n = self.pending, len(self.pending)
+        if n:
+            gmap.append(p.means[:n], p.rotations[:n], p.log_scales[:n], p.opacity_logits[:n], p.sh[:n])
+            p.count = 0
+
+    def _seed_depth(
+        self, frames: KeyframeBuffer, slot: int, alpha: wp.array, depth: wp.array | None, target: GaussianMap
+    ) -> int:
+        """Seeds from the measured depth of ``frames`` slot ``slot`` (``depth`` in its place, e.g. the
+        monocular plane) where ``alpha`` is below ``covered_alpha``, appended to ``target``."""
+        cfg, cam = self.cfg, self.camera
+        p = self._depth_points
+        wp.launch(
+            ks.depth_points,
+            dim=self._depth_grid,
+            inputs=[frames.depth[slot] if depth is None else depth]
+            + [cam.fx, cam.fy, cam.cx, cam.cy, wp.mat44d(frames.poses[slot]), cfg.depth_stride]
+            + [cfg.depth_max_rel_jump, cfg.min_residual_px, 90.0, alpha, cfg.covered_alpha],
+            outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
+            device=self.device,
+        )
+        return self._from_depth.seed(p, self._depth_confidence, frames, [slot], target)

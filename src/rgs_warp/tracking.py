@@ -23,6 +23,7 @@ import warp as wp
 from rgs_warp.config import TrackingConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels import tracking as tk
+from rgs_warp.kernels.math import REDUCE_BLOCK
 from rgs_warp.render import Renderer
 from rgs_warp.types import Camera, GaussianMap
 
@@ -36,11 +37,12 @@ class TrackingResult:
     T_WC: 4x4 float64 camera-to-world pose; loss: Eq. 5 (+ depth term) per pixel at the last
     iteration; valid_ratio: fraction of pixels whose rendered opacity reaches tau_alpha; gain, bias:
     Eq. 3-4 at the last iteration; converged: over the last quarter of the steps the twist
-    gradient kept flipping sign (Adam's |m_hat| / sqrt(v_hat) below ``converged_consistency``) and
+    gradient kept flipping sign (Adam's |m_hat| / sqrt(v_hat) below ``CONVERGED_CONSISTENCY``) and
     the frame is not lost; lost: the map does not
     explain the frame (too little coverage, too large a residual, or non-finite values); reason: why;
     iters: Adam steps taken; residual: weighted mean |I - g I_hat - b| per channel; loss_history:
-    loss per iteration.
+    loss per iteration; alpha: the accumulated opacity of the last render (tracking resolution), for
+    the keyframe selector, valid until the tracker's renderer renders again.
     """
 
     T_WC: np.ndarray
@@ -54,8 +56,12 @@ class TrackingResult:
     iters: int
     residual: float
     loss_history: np.ndarray
+    alpha: wp.array
 
 
+# Converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps its
+# sign, the pose is still travelling; ~0.25 = it flips around the minimum) averages below this.
+CONVERGED_CONSISTENCY = 0.4
 BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
 
 
@@ -67,8 +73,7 @@ class Tracker:
     with other stages (it is only used between ``track``'s entry and return).
 
     The tracker remembers the last two tracked poses for its constant-velocity prediction;
-    ``reset`` clears or seeds them, ``set_last_pose`` replaces the latest (e.g. after mapping
-    refined it).
+    ``reset`` clears or seeds them.
     """
 
     def __init__(
@@ -109,7 +114,7 @@ class Tracker:
         self._d_color = wp.zeros(shape, dtype=wp.vec3, device=dev)
         self._d_depth = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._d_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
-        self._blocks = [(shape[0] * shape[1] + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK]  # per-pixel reductions
+        self._blocks = [(shape[0] * shape[1] + REDUCE_BLOCK - 1) // REDUCE_BLOCK]  # per-pixel reductions
         self._history = wp.zeros((cfg.iters, tk.H_COLUMNS), dtype=wp.float64, device=dev)
         self._history_host = wp.zeros((cfg.iters, tk.H_COLUMNS), dtype=wp.float64, device="cpu", pinned=pinned)
         self._adam_m = wp.zeros(6, dtype=wp.float32, device=dev)
@@ -146,13 +151,6 @@ class Tracker:
         if self._frame is None:
             raise RuntimeError("no frame tracked yet")
         return self._frame
-
-    def set_last_pose(self, T_WC: np.ndarray) -> None:
-        """Replace the latest pose (e.g. after mapping refined the keyframe's pose)."""
-        if not self._poses:
-            self._poses = [np.array(T_WC, dtype=np.float64)]
-        else:
-            self._poses[-1] = np.array(T_WC, dtype=np.float64)
 
     def predict(self) -> np.ndarray | None:
         """Constant-velocity prediction T_k = T_{k-1} T_{k-2}^-1 T_{k-1} (the last relative motion
@@ -275,13 +273,13 @@ class Tracker:
             dim=self._blocks,
             inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, k],
             outputs=[self._history],
-            block_dim=tk.REDUCE_BLOCK,
+            block_dim=REDUCE_BLOCK,
             device=dev,
         )
         wp.launch(
             tk.solve_brightness,
             dim=1,
-            inputs=[BRIGHTNESS_MODELS[cfg.brightness], cfg.brightness_ridge, k],
+            inputs=[BRIGHTNESS_MODELS[cfg.brightness], k],
             outputs=[self._history],
             device=dev,
         )
@@ -297,15 +295,14 @@ class Tracker:
             inputs=[self._rgb, self._depth, self._w_grad, res.color, res.depth, res.alpha]
             + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, k],
             outputs=[self._d_color, self._d_depth, self._d_alpha, self._history],
-            block_dim=tk.REDUCE_BLOCK,
+            block_dim=REDUCE_BLOCK,
             device=dev,
         )
         _, pose_grad = self.renderer.backward(self._d_color, self._d_depth, self._d_alpha, pose_only=True)
         wp.launch(
             tk.adam_pose_step,
             dim=1,
-            inputs=[pose_grad, k, cfg.iters, cfg.lr, cfg.lr_amplitude, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps]
-            + [self._history],
+            inputs=[pose_grad, k, cfg.iters, cfg.lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps] + [self._history],
             outputs=[self._adam_m, self._adam_v, self._T_CW, self._T_WC, self._pose_history],
             device=dev,
         )
@@ -335,7 +332,7 @@ class Tracker:
             reason = f"photometric residual {residual:.3f} > {cfg.max_residual}"
         else:
             lost = False
-            converged = consistency < cfg.converged_consistency
+            converged = consistency < CONVERGED_CONSISTENCY
             reason = "converged" if converged else "still descending"
             reason += (
                 f": gradient consistency {consistency:.2f} over the last {tail} steps, "
@@ -354,6 +351,7 @@ class Tracker:
             iters=cfg.iters,
             residual=residual,
             loss_history=hist[:, tk.H_LOSS].copy(),
+            alpha=self._last_render.alpha,
         )
 
 

@@ -91,22 +91,44 @@ class Frame:
         return self.rgb.shape[1]
 
 
-_GAUSSIAN_FIELDS = ("means", "rotations", "log_scales", "opacity_logits", "sh")
+@dataclass
+class _Column:
+    """One per-Gaussian column of a GaussianMap: ``array`` has ``capacity`` rows of ``dtype`` with
+    ``inner`` trailing dimensions (SH: the coefficients).  ``fill`` says what a row gets when the map
+    grows over it: "zero", the value of another column (e.g. "means"), or None (the parameters, which
+    whoever adds the rows writes).  ``scratch`` columns (per-iteration gradients, flags) only follow
+    the capacity: no fill, and a compaction does not carry them."""
+
+    array: object
+    dtype: type
+    inner: tuple[int, ...]
+    fill: str | None
+    scratch: bool = False
+    requires_grad: bool = False
 
 
 class GaussianMap:
-    """The Gaussian map as struct-of-arrays ``wp.array`` fields (supplement §4.1).
+    """The Gaussian map as struct-of-arrays ``wp.array`` columns (supplement §4.1).
 
-    Fields hold ``capacity`` rows, of which the first ``len(map)`` are live; kernels launch over
-    ``len(map)``.  ``means`` (vec3, world metres), ``rotations`` (``wp.quat``, x, y, z, w; normalised
-    where used), ``log_scales`` (vec3, natural log of the axis standard deviations in metres),
-    ``opacity_logits`` (float, opacity = sigmoid(logit)), ``sh`` (2D array of vec3, shape
-    (capacity, (sh_degree + 1)^2): real SH coefficients per colour channel, 3DGS constants and
-    band order; colour = max(SH(view direction) + 0.5, 0) as in 3DGS).
+    Parameters (``PARAMETERS``): ``means`` (vec3, world metres), ``rotations`` (``wp.quat``, x, y, z, w;
+    normalised where used), ``log_scales`` (vec3, natural log of the axis standard deviations in
+    metres), ``opacity_logits`` (float, opacity = sigmoid(logit)), ``sh`` (2D array of vec3, shape
+    (capacity, (sh_degree + 1)^2): real SH coefficients per colour channel, 3DGS constants and band
+    order; colour = max(SH(view direction) + 0.5, 0) as in 3DGS).
 
-    Capacity doubles when an append needs more room; growing replaces the field arrays (holders
-    of the old arrays must fetch them again), while ``remove`` compacts in place.
+    Every other per-Gaussian state lives here too, as a registered column (``add_column``): the
+    optimiser's moments, the mapper's statistics, the densifier's sums.  All columns hold
+    ``capacity`` rows, of which the first ``len(map)`` are live, kernels launch over ``len(map)``,
+    and they change together in one place:
+
+    * growth (``reserve``) doubles the capacity of every column, keeping the live rows; it replaces
+      the arrays, so holders fetch them again (``column(name)``, or the parameter attributes);
+    * new rows (``count`` set higher, ``append``) get each column's fill (zero, or a copy of another
+      column), whoever wrote their parameters (a Seeder, the densifier);
+    * ``remove(mask)`` compacts every non-scratch column in place, in one pass.
     """
+
+    PARAMETERS = ("means", "rotations", "log_scales", "opacity_logits", "sh")
 
     def __init__(self, capacity: int = 1024, sh_degree: int = 2, device=None, requires_grad: bool = False):
         import warp as wp
@@ -116,8 +138,22 @@ class GaussianMap:
         self.device = wp.get_device(device)
         self.sh_degree = sh_degree
         self.requires_grad = requires_grad
-        self.count = 0
-        self._allocate(max(int(capacity), 1))
+        self._count = 0
+        self._capacity = max(int(capacity), 1)
+        self._columns: dict[str, _Column] = {}
+        for name, dtype, inner in self.parameter_layout():
+            self.add_column(name, dtype, inner, fill=None, requires_grad=requires_grad)
+
+    def parameter_layout(self):
+        import warp as wp
+
+        return (
+            ("means", wp.vec3, ()),
+            ("rotations", wp.quat, ()),
+            ("log_scales", wp.vec3, ()),
+            ("opacity_logits", wp.float32, ()),
+            ("sh", wp.vec3, (self.num_sh,)),
+        )
 
     @property
     def num_sh(self) -> int:
@@ -125,33 +161,100 @@ class GaussianMap:
 
     @property
     def capacity(self) -> int:
-        return self.means.shape[0]
+        return self._capacity
 
     def __len__(self) -> int:
-        return self.count
+        return self._count
 
-    def _allocate(self, capacity: int) -> None:
+    # ---- columns -----------------------------------------------------------------------------
+    means = property(lambda self: self._columns["means"].array)
+    rotations = property(lambda self: self._columns["rotations"].array)
+    log_scales = property(lambda self: self._columns["log_scales"].array)
+    opacity_logits = property(lambda self: self._columns["opacity_logits"].array)
+    sh = property(lambda self: self._columns["sh"].array)
+
+    def add_column(
+        self,
+        name: str,
+        dtype,
+        inner: tuple[int, ...] = (),
+        fill: str | None = "zero",
+        scratch: bool = False,
+        requires_grad: bool = False,
+    ):
+        """Register a per-Gaussian column (see the class and ``_Column``) and return its array;
+        registering a name again with the same layout returns the existing column (a stage rebuilt on
+        the same map)."""
         import warp as wp
 
-        kw = {"device": self.device, "requires_grad": self.requires_grad}
-        self.means = wp.zeros(capacity, dtype=wp.vec3, **kw)
-        self.rotations = wp.zeros(capacity, dtype=wp.quat, **kw)
-        self.log_scales = wp.zeros(capacity, dtype=wp.vec3, **kw)
-        self.opacity_logits = wp.zeros(capacity, dtype=wp.float32, **kw)
-        self.sh = wp.zeros((capacity, self.num_sh), dtype=wp.vec3, **kw)
+        inner = tuple(inner)
+        if scratch:
+            fill = None
+        elif fill not in (None, "zero") and fill not in self._columns:
+            raise ValueError(f"column {name!r}: fill {fill!r} is neither 'zero', None nor a column of the map")
+        if name in self._columns:
+            c = self._columns[name]
+            if (c.dtype, c.inner, c.fill, c.scratch) != (dtype, inner, fill, scratch):
+                raise ValueError(f"column {name!r} exists with another layout ({c.dtype}, {c.inner}, {c.fill!r})")
+            return c.array
+        array = wp.zeros((self._capacity, *inner), dtype=dtype, device=self.device, requires_grad=requires_grad)
+        self._columns[name] = _Column(array, dtype, inner, fill, scratch, requires_grad)
+        if self._count and fill is not None:
+            self._fill(name, 0, self._count)
+        return array
+
+    def column(self, name: str):
+        """The array of a registered column (replaced when the map grows: fetch it again)."""
+        try:
+            return self._columns[name].array
+        except KeyError:
+            raise KeyError(f"no column {name!r} in the map; columns: {', '.join(self._columns)}") from None
+
+    def has_column(self, name: str) -> bool:
+        return name in self._columns
+
+    # ---- rows --------------------------------------------------------------------------------
+    @property
+    def count(self) -> int:
+        return self._count
+
+    @count.setter
+    def count(self, n: int) -> None:
+        """Set the number of live rows (e.g. after a kernel wrote new rows' parameters); rows that
+        become live get every column's fill."""
+        n = int(n)
+        if not 0 <= n <= self._capacity:
+            raise ValueError(f"count {n} outside 0..{self._capacity} (reserve first)")
+        old, self._count = self._count, n
+        if n > old:
+            for name, c in self._columns.items():
+                if c.fill is not None:
+                    self._fill(name, old, n)
+
+    def _fill(self, name: str, start: int, stop: int) -> None:
+        import warp as wp
+
+        c = self._columns[name]
+        if c.fill == "zero":
+            c.array[start:stop].zero_()
+        else:
+            rows = int(np.prod(c.inner, dtype=np.int64))
+            wp.copy(c.array, self._columns[c.fill].array, start * rows, start * rows, (stop - start) * rows)
 
     def reserve(self, capacity: int) -> None:
-        """Grow to at least ``capacity`` rows (doubling), keeping the live rows."""
+        """Grow every column to at least ``capacity`` rows (doubling), keeping the live rows."""
         import warp as wp
 
-        if capacity <= self.capacity:
+        if capacity <= self._capacity:
             return
-        new_capacity = grown_capacity(self.capacity, capacity)
-        old = {name: getattr(self, name) for name in _GAUSSIAN_FIELDS}
-        self._allocate(new_capacity)
-        if self.count:
-            for name in _GAUSSIAN_FIELDS:
-                wp.copy(getattr(self, name), old[name], count=self.count * (self.num_sh if name == "sh" else 1))
+        self._capacity = grown_capacity(self._capacity, capacity)
+        for c in self._columns.values():
+            old = c.array
+            c.array = wp.zeros(
+                (self._capacity, *c.inner), dtype=c.dtype, device=self.device, requires_grad=c.requires_grad
+            )
+            if self._count:
+                wp.copy(c.array, old, count=self._count * int(np.prod(c.inner, dtype=np.int64)))
 
     def append(self, means, quats_xyzw, log_scales, opacity_logits, sh) -> None:
         """Append rows given as NumPy arrays or ``wp.array``s (same shapes as ``from_numpy``)."""
@@ -160,48 +263,48 @@ class GaussianMap:
         n = int(means.shape[0])
         if sh.shape[1] != self.num_sh:
             raise ValueError(f"sh has {sh.shape[1]} coefficients per channel, map holds {self.num_sh}")
-        self.reserve(self.count + n)
-        dtypes = (wp.vec3, wp.quat, wp.vec3, wp.float32, wp.vec3)
-        for name, dtype, value in zip(
-            _GAUSSIAN_FIELDS, dtypes, (means, quats_xyzw, log_scales, opacity_logits, sh), strict=True
-        ):
+        self.reserve(self._count + n)
+        values = (means, quats_xyzw, log_scales, opacity_logits, sh)
+        for (name, dtype, _), value in zip(self.parameter_layout(), values, strict=True):
             if not isinstance(value, wp.array):
                 value = wp.array(np.ascontiguousarray(value, dtype=np.float32), dtype=dtype, device=self.device)
             rows = self.num_sh if name == "sh" else 1
-            wp.copy(getattr(self, name), value, dest_offset=self.count * rows, count=n * rows)
-        self.count += n
+            wp.copy(self.column(name), value, dest_offset=self._count * rows, count=n * rows)
+        self.count = self._count + n
 
     def remove(self, mask) -> None:
         """Remove the rows where ``mask`` (length ``len(self)``, bool NumPy or int32 ``wp.array``,
-        nonzero = remove) is set, compacting the survivors in place in their original order."""
+        nonzero = remove) is set: every column but scratch is compacted in place, in one pass, the
+        survivors keeping their order."""
         import warp as wp
 
-        from rgs_warp.kernels.map_ops import scatter_kept, scatter_kept_rows
+        from rgs_warp.kernels.map_ops import compact_rows
 
-        n = self.count
-        if n == 0:
-            return
+        n = self._count
         if not isinstance(mask, wp.array):
             mask = wp.array(np.asarray(mask).astype(np.int32), dtype=wp.int32, device=self.device)
+        if mask.shape[0] != n:
+            raise ValueError(f"removal mask has {mask.shape[0]} entries for {n} Gaussians")
+        if n == 0:
+            return
         removed_before = wp.empty(n, dtype=wp.int32, device=self.device)
         wp.utils.array_scan(mask, removed_before, inclusive=False)
         removed = int(removed_before[n - 1 : n].numpy()[0] + mask[n - 1 : n].numpy()[0])
-        for name in _GAUSSIAN_FIELDS:
-            field_ = getattr(self, name)
-            tmp = wp.empty_like(field_)
-            if name == "sh":
-                wp.launch(
-                    scatter_kept_rows,
-                    dim=(n, self.num_sh),
-                    inputs=[field_, mask, removed_before, tmp],
-                    device=self.device,
-                )
-            else:
-                wp.launch(scatter_kept, dim=n, inputs=[field_, mask, removed_before, tmp], device=self.device)
-            rows = self.num_sh if name == "sh" else 1
-            wp.copy(field_, tmp, count=(n - removed) * rows)
-        self.count = n - removed
+        if removed == 0:
+            return
+        for c in self._columns.values():
+            if c.scratch:
+                continue
+            width = int(np.prod(c.inner, dtype=np.int64))
+            rows = c.array.reshape((self._capacity, width))
+            tmp = wp.empty((n - removed, width), dtype=c.dtype, device=self.device)
+            wp.launch(
+                compact_rows, dim=(n, width), inputs=[rows, mask, removed_before], outputs=[tmp], device=self.device
+            )
+            wp.copy(c.array, tmp, count=(n - removed) * width)
+        self._count = n - removed
 
+    # ---- conversion --------------------------------------------------------------------------
     @classmethod
     def from_numpy(
         cls,
@@ -233,12 +336,15 @@ class GaussianMap:
         gmap.device = means.device
         gmap.sh_degree = round(num_sh**0.5) - 1
         gmap.requires_grad = means.requires_grad
-        gmap.count = means.shape[0]
-        gmap.means, gmap.rotations, gmap.log_scales = means, rotations, log_scales
-        gmap.opacity_logits, gmap.sh = opacity_logits, sh
+        gmap._count = gmap._capacity = means.shape[0]
+        arrays = (means, rotations, log_scales, opacity_logits, sh)
+        gmap._columns = {
+            name: _Column(array, dtype, inner, None, requires_grad=gmap.requires_grad)
+            for (name, dtype, inner), array in zip(gmap.parameter_layout(), arrays, strict=True)
+        }
         return gmap
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """Live rows as float32 NumPy arrays keyed by field name (rotations as x, y, z, w)."""
-        n = self.count
-        return {name: getattr(self, name).numpy()[:n] for name in _GAUSSIAN_FIELDS}
+        """Live parameter rows as float32 NumPy arrays keyed by name (rotations as x, y, z, w)."""
+        n = self._count
+        return {name: self.column(name).numpy()[:n] for name in self.PARAMETERS}

@@ -25,13 +25,13 @@ NA_SUFFIX = "_na_reason"
 _UNITS = {"_cm": "cm", "_m": "m", "_db": "dB", "_pct": "%", "_s": "s", "_ms": "ms", "_fps": "fps", "_mib": "MiB"}
 
 
-def _to_json(value):
+def to_json(value):
     if isinstance(value, dict):
-        return {str(k): _to_json(v) for k, v in value.items()}
+        return {str(k): to_json(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_to_json(v) for v in value]
+        return [to_json(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _to_json(value.tolist())
+        return to_json(value.tolist())
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, float) and not math.isfinite(value):
@@ -95,7 +95,7 @@ def write_report(run_dir: str | Path, metrics: dict, title: str = "rgs_warp eval
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     json_path, md_path = run_dir / "metrics.json", run_dir / "metrics.md"
-    json_path.write_text(json.dumps(_to_json(metrics), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    json_path.write_text(json.dumps(to_json(metrics), indent=2, allow_nan=False) + "\n", encoding="utf-8")
 
     lines = [f"# {title}", ""]
     summary = {k: v for k, v in metrics.items() if not isinstance(v, dict)}

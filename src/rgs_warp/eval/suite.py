@@ -38,9 +38,10 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from rgs_warp.config import ConfigError, group_options, load_config  # noqa: E402
-from rgs_warp.eval.report import NA_SUFFIX, _to_json  # noqa: E402
+from rgs_warp.eval.report import NA_SUFFIX, to_json  # noqa: E402
+from rgs_warp.run import run  # noqa: E402
 
-# runner(cfg, run_dir=..., progress=...) -> (run folder, metrics): the signature of rgs_warp.slam.run
+# runner(cfg, run_dir=..., progress=...) -> (run folder, metrics): the signature of rgs_warp.run.run
 Runner = Callable[..., tuple[Path, dict]]
 
 # The shared real-data folder next to the checkout (tests/conftest.py uses the same place).
@@ -176,7 +177,7 @@ def _one_run(
     record["seconds"] = time.perf_counter() - t0
     record["convergence"] = _read_convergence(run_dir) if record["status"] == "ok" else None
     if record["status"] == "ok":
-        (run_dir / RECORD_FILE).write_text(json.dumps(_to_json({**record, "overrides": overrides}), indent=1))
+        (run_dir / RECORD_FILE).write_text(json.dumps(to_json({**record, "overrides": overrides}), indent=1))
     return record
 
 
@@ -194,7 +195,7 @@ def _finished_record(run_dir: Path, overrides: list[str]) -> dict | None:
 
 
 def _read_convergence(run_dir: Path) -> list[dict] | None:
-    """``convergence.json`` of a run (``rgs_warp.slam.write_convergence``): a list of
+    """``convergence.json`` of a run (``rgs_warp.run.write_convergence``): a list of
     ``{"iteration", "frame", "phase" ("init" | "keyframe"), "psnr_db", "gaussians"}``; points without
     a PSNR (an empty map) are left out."""
     path = run_dir / "convergence.json"
@@ -241,12 +242,12 @@ def run_suite(
 ) -> dict:
     """Run every present scene of ``plan`` with every method, ``repeats`` times (``seed=0..repeats-1``),
     aggregate and write ``out_dir/eval.json``, ``out_dir/eval.md`` and the plots; returns what
-    ``eval.json`` holds. ``runner`` defaults to ``rgs_warp.slam.run``; ``extra_overrides`` go to every
+    ``eval.json`` holds. ``runner`` defaults to ``rgs_warp.run.run``; ``extra_overrides`` go to every
     run after the plan's own (``device=cuda:0``, ``tracking.iters=40``).  ``resume``: a run whose folder
     holds the record of a finished run with the same overrides is read back instead of run again (a
     suite cut short goes on where it stopped)."""
     if runner is None:
-        from rgs_warp.slam import run as runner
+        runner = run
     out_dir = Path(out_dir)
     runs_dir = out_dir / "eval_runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
@@ -277,7 +278,7 @@ def run_suite(
         "runs": runs,
     }
     result["plots"] = write_plots(result, out_dir)
-    result = _to_json(result)
+    result = to_json(result)
     (out_dir / "eval.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     (out_dir / "eval.md").write_text(render_markdown(result), encoding="utf-8")
     return result

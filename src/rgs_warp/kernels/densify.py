@@ -8,7 +8,7 @@ Actions per Gaussian (``new_rows``): 0 = untouched, 1 = cloned (one exact copy a
 
 import warp as wp
 
-from rgs_warp.kernels.projection import quat_to_rot, vec10
+from rgs_warp.kernels.math import quat_to_rot, vec10
 
 wp.set_module_options({"enable_backward": False})
 

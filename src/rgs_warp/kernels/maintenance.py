@@ -22,7 +22,7 @@ Merging runs in three launches over one view:
 
 import warp as wp
 
-from rgs_warp.kernels.projection import COV2D_DILATION, SH_C0, CameraParams, exp3, projection_jacobian, quat_to_rot
+from rgs_warp.kernels.math import COV2D_DILATION, SH_C0, CameraParams, exp3, projection_jacobian, quat_to_rot
 
 wp.set_module_options({"enable_backward": False})
 

@@ -1,4 +1,4 @@
-"""Bulk operations on GaussianMap fields: stream compaction for in-place removal."""
+"""The GaussianMap's own kernel: stream compaction of its columns for ``GaussianMap.remove``."""
 
 from typing import Any
 
@@ -8,28 +8,19 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def scatter_kept(
-    # in: field rows, removal flags and their exclusive prefix sum
-    src: wp.array(dtype=Any),
-    remove: wp.array(dtype=wp.int32),
-    removed_before: wp.array(dtype=wp.int32),
-    # out: compacted rows (row i moves to i - removed_before[i])
-    dst_out: wp.array(dtype=Any),
-):
-    i = wp.tid()
-    if remove[i] == 0:
-        dst_out[i - removed_before[i]] = src[i]
-
-
-@wp.kernel
-def scatter_kept_rows(
-    # in: 2D field (rows of SH coefficients), removal flags and their exclusive prefix sum
+def compact_rows(
+    # in: a column viewed as (rows, entries per row), removal flags and their exclusive prefix sum
     src: wp.array2d(dtype=Any),
     remove: wp.array(dtype=wp.int32),
     removed_before: wp.array(dtype=wp.int32),
-    # out: compacted rows
+    # out: the kept rows, in order (row i moves to i - removed_before[i])
     dst_out: wp.array2d(dtype=Any),
 ):
     i, k = wp.tid()
     if remove[i] == 0:
         dst_out[i - removed_before[i], k] = src[i, k]
+
+
+# the column types of the map (parameters, optimiser moments, statistics), compiled ahead of use
+for _dtype in (wp.float32, wp.int32, wp.vec3, wp.quat):
+    wp.overload(compact_rows, {"src": wp.array2d(dtype=_dtype), "dst_out": wp.array2d(dtype=_dtype)})

@@ -1,15 +1,15 @@
 """Kernels of the mapper (supplement §4.5): the window loss's image gradients (L1 with robust per-pixel
 weights, exposure (g, b) of the keyframe, depth L1), the regularizer of the Gaussians (elongation,
 saturated opacity, drift from the EMA position), the per-Gaussian statistics m_i, v_i and the EMA of
-Eq. 15, Adam on the keyframe poses, and the depth seeds of the first keyframe.
+Eq. 15, and the window's exposure-corrected squared error (convergence curves).
 
-Reductions follow ``kernels/tracking.py``: 256 pixels summed in a block tile, one float64 atomic per
-block and column, so nothing is read back to the host inside the mapping loop.
+Reductions sum ``REDUCE_BLOCK`` pixels in a block tile and add one float64 atomic per block and column,
+so nothing is read back to the host inside the mapping loop.
 """
 
 import warp as wp
 
-from rgs_warp.kernels.tracking import REDUCE_BLOCK, rigid_inverse_f32, se3_exp
+from rgs_warp.kernels.math import REDUCE_BLOCK
 
 wp.set_module_options({"enable_backward": False})
 
@@ -20,8 +20,6 @@ L_PIXELS = 2  # pixels counted
 L_DEPTH = 3  # sum |D_hat - D| over pixels with observed depth
 L_DEPTH_PIXELS = 4
 L_COLUMNS = 5
-
-vec6 = wp.types.vector(length=6, dtype=wp.float32)
 
 
 @wp.kernel
@@ -185,219 +183,26 @@ def update_ema(
 
 
 @wp.kernel
-def init_statistics(
-    # in:
-    means: wp.array(dtype=wp.vec3),
-    start: int,
-    # out: fresh rows start + tid
-    obs_count: wp.array(dtype=wp.int32),
-    vis_count: wp.array(dtype=wp.float32),
-    ema_means: wp.array(dtype=wp.vec3),
+def exposed_squared_error(
+    # in: keyframe image, render of the map at its pose, its exposure (Eq. 3)
+    observed: wp.array2d(dtype=wp.vec3),
+    rendered: wp.array2d(dtype=wp.vec3),
+    gain: float,
+    bias: float,
+    row: int,
+    # out: sum over pixels and channels of (clip(g I_hat + b, 0, 1) - I)^2, added to entry `row`
+    sums_out: wp.array(dtype=wp.float64),
 ):
-    i = start + wp.tid()
-    obs_count[i] = 0
-    vis_count[i] = 0.0
-    ema_means[i] = means[i]
-
-
-@wp.kernel
-def adam_keyframe_pose_step(
-    # in: twist gradient of this iteration's render, slot in the window, schedule
-    grad: wp.array(dtype=wp.float32),
-    k: int,
-    lr: float,
-    beta1: float,
-    beta2: float,
-    eps: float,
-    # in/out: per-window-slot Adam moments (6 floats each), step counts and camera-from-world poses
-    m: wp.array2d(dtype=wp.float32),
-    v: wp.array2d(dtype=wp.float32),
-    steps: wp.array(dtype=wp.int32),
-    T_CW: wp.array(dtype=wp.mat44d),
-    # out: the renderer's camera-to-world pose of slot k
-    T_WC_out: wp.array(dtype=wp.mat44),
-):
-    # Same left update as the tracker (T_CW <- Exp(xi) T_CW), about the camera centre: the mapping
-    # steps are small corrections of a tracked pose, not a search.
-    n = steps[k] + 1
-    steps[k] = n
-    c1 = 1.0 - wp.pow(beta1, float(n))
-    c2 = 1.0 - wp.pow(beta2, float(n))
-    step = vec6()
-    for j in range(6):
-        g = grad[j]
-        mj = beta1 * m[k, j] + (1.0 - beta1) * g
-        vj = beta2 * v[k, j] + (1.0 - beta2) * g * g
-        m[k, j] = mj
-        v[k, j] = vj
-        step[j] = -lr * (mj / c1) / (wp.sqrt(vj / c2) + eps)
-    rho = wp.vec3d(wp.float64(step[0]), wp.float64(step[1]), wp.float64(step[2]))
-    phi = wp.vec3d(wp.float64(step[3]), wp.float64(step[4]), wp.float64(step[5]))
-    T = se3_exp(rho, phi) @ T_CW[k]
-    T_CW[k] = T
-    T_WC_out[k] = rigid_inverse_f32(T)
-
-
-@wp.kernel
-def depth_points(
-    # in: keyframe depth (metres, 0 = invalid), pinhole intrinsics, camera-to-world pose
-    depth: wp.array2d(dtype=wp.float32),
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    T_WC: wp.mat44d,
-    stride: int,
-    max_rel_jump: float,
-    residual_px: float,
-    parallax_deg: float,
-    # in: the map's accumulated opacity at this keyframe (empty map: zeros) and the coverage bound
-    alpha: wp.array2d(dtype=wp.float32),
-    max_alpha: float,
-    # out: one point per grid cell (the Triangulator's output layout, single view)
-    X_out: wp.array(dtype=wp.vec3d),
-    residual_out: wp.array(dtype=wp.float64),
-    parallax_out: wp.array(dtype=wp.float64),
-    support_out: wp.array(dtype=wp.int32),
-    valid_out: wp.array(dtype=wp.int32),
-):
-    # RGB-D seeds: the pixel at the centre of each stride x stride cell, back-projected with its
-    # measured depth, where the map does not cover the view yet (alpha < max_alpha) and the depth is
-    # not on a discontinuity (neighbours at +-stride within max_rel_jump after a linear fit, i.e.
-    # the second difference): a point straddling an edge would float between two surfaces.
-    gy, gx = wp.tid()
-    i = gy * (depth.shape[1] // stride) + gx
-    u = gx * stride + stride // 2
-    v = gy * stride + stride // 2
-    z = depth[v, u]
-    ok = z > 0.0 and alpha[v, u] < max_alpha
-    if ok and u >= stride and u + stride < depth.shape[1] and v >= stride and v + stride < depth.shape[0]:
-        zl = depth[v, u - stride]
-        zr = depth[v, u + stride]
-        zu = depth[v - stride, u]
-        zd = depth[v + stride, u]
-        ok = zl > 0.0 and zr > 0.0 and zu > 0.0 and zd > 0.0
-        if ok:
-            ok = wp.abs(zl + zr - 2.0 * z) < max_rel_jump * z and wp.abs(zu + zd - 2.0 * z) < max_rel_jump * z
-    zd64 = wp.float64(z)
-    pc = wp.vec4d(
-        (wp.float64(u) - wp.float64(cx)) / wp.float64(fx) * zd64,
-        (wp.float64(v) - wp.float64(cy)) / wp.float64(fy) * zd64,
-        zd64,
-        wp.float64(1.0),
-    )
-    pw = T_WC @ pc
-    X_out[i] = wp.vec3d(pw[0], pw[1], pw[2])
-    residual_out[i] = wp.float64(residual_px)
-    parallax_out[i] = wp.float64(parallax_deg)
-    support_out[i] = 1
-    valid_out[i] = wp.where(ok, 1, 0)
-
-
-@wp.func
-def reference_pixel(coordinate: wp.float64, size: int):
-    """The pixel index of an image coordinate (pixel centres at integers), clamped into the image."""
-    return wp.clamp(int(wp.round(float(coordinate))), 0, size - 1)
-
-
-@wp.func
-def camera_depth(X: wp.vec3d, T_CW: wp.mat44d):
-    """z of the world point X in the camera T_CW (metres, float32)."""
-    return float((T_CW @ wp.vec4d(X[0], X[1], X[2], wp.float64(1.0)))[2])
-
-
-@wp.kernel
-def mask_covered_points(
-    # in: reference-view pixels of the triangulated points and the map's render at the reference
-    ref_uv: wp.array(dtype=wp.vec2d),
-    alpha: wp.array2d(dtype=wp.float32),
-    rendered_depth: wp.array2d(dtype=wp.float32),
-    X: wp.array(dtype=wp.vec3d),
-    T_CW: wp.mat44d,
-    max_alpha: float,
-    depth_rel_tol: float,
-    # in/out: validity of each point
-    valid: wp.array(dtype=wp.int32),
-):
-    # A new keyframe's seeds go where the map is missing: pixels it does not cover yet, or where the
-    # map's surface (alpha-normalised depth) is off the triangulated point by more than depth_rel_tol.
-    # Elsewhere the map already explains the keyframe and a seed would only double the density.
-    i = wp.tid()
-    if valid[i] == 0:
-        return
-    u = reference_pixel(ref_uv[i][0], alpha.shape[1])
-    v = reference_pixel(ref_uv[i][1], alpha.shape[0])
-    a = alpha[v, u]
-    if a < max_alpha:
-        return
-    z = camera_depth(X[i], T_CW)
-    d_map = rendered_depth[v, u] / a
-    if wp.abs(d_map - z) > depth_rel_tol * z:
-        return
-    valid[i] = 0
-
-
-@wp.kernel
-def map_depth_ratio(
-    # in: reference-view pixels of the triangulated points and the map's render at the reference
-    ref_uv: wp.array(dtype=wp.vec2d),
-    alpha: wp.array2d(dtype=wp.float32),
-    rendered_depth: wp.array2d(dtype=wp.float32),
-    X: wp.array(dtype=wp.vec3d),
-    valid: wp.array(dtype=wp.int32),
-    T_CW: wp.mat44d,
-    min_alpha: float,
-    # out: the map's depth over the point's (alpha-normalised, reference view); 0 where the map does
-    # not cover the point's pixel or the point is invalid or behind the camera
-    ratio: wp.array(dtype=wp.float32),
-):
-    # Monocular: the scale of a keyframe's triangulated points against the map it extends.
-    i = wp.tid()
-    ratio[i] = 0.0
-    if valid[i] == 0:
-        return
-    u = reference_pixel(ref_uv[i][0], alpha.shape[1])
-    v = reference_pixel(ref_uv[i][1], alpha.shape[0])
-    a = alpha[v, u]
-    z = camera_depth(X[i], T_CW)
-    if a < min_alpha or z <= 0.0:
-        return
-    ratio[i] = rendered_depth[v, u] / a / z
-
-
-@wp.kernel
-def reject_depth_inconsistent_points(
-    # in: reference-view pixels of the triangulated points and the reference keyframe's measured depth
-    ref_uv: wp.array(dtype=wp.vec2d),
-    measured_depth: wp.array2d(dtype=wp.float32),
-    X: wp.array(dtype=wp.vec3d),
-    T_CW: wp.mat44d,
-    depth_rel_tol: float,
-    # in/out: validity of each point
-    valid: wp.array(dtype=wp.int32),
-):
-    # RGB-D: a triangulated point whose depth in the reference view is off the sensor's by more than
-    # depth_rel_tol is a wrong match (or a low-parallax triangulation) and would seed a floater; the
-    # measured-depth fill covers its pixel instead.  Pixels without a measurement keep their points.
-    i = wp.tid()
-    if valid[i] == 0:
-        return
-    u = reference_pixel(ref_uv[i][0], measured_depth.shape[1])
-    v = reference_pixel(ref_uv[i][1], measured_depth.shape[0])
-    d = measured_depth[v, u]
-    if d <= 0.0:
-        return
-    if wp.abs(camera_depth(X[i], T_CW) - d) > depth_rel_tol * d:
-        valid[i] = 0
-
-
-@wp.kernel
-def union_alpha(
-    # in: accumulated opacities of two maps rendered at the same pose
-    alpha_a: wp.array2d(dtype=wp.float32),
-    alpha_b: wp.array2d(dtype=wp.float32),
-    # out: the opacity of both together, 1 - (1 - a)(1 - b) (order-independent)
-    alpha_out: wp.array2d(dtype=wp.float32),
-):
-    y, x = wp.tid()
-    alpha_out[y, x] = 1.0 - (1.0 - alpha_a[y, x]) * (1.0 - alpha_b[y, x])
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    width = observed.shape[1]
+    e = float(0.0)
+    if i < observed.shape[0] * width:
+        y = i // width
+        x = i - y * width
+        c = gain * rendered[y, x] + wp.vec3(bias)
+        r = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0)) - observed[y, x]
+        e = wp.dot(r, r)
+    total = wp.tile_extract(wp.tile_sum(wp.tile(e)), 0)
+    if lane == 0:
+        wp.atomic_add(sums_out, row, wp.float64(total))

@@ -14,82 +14,40 @@ scales s = exp(log_s), camera-from-world rotation W and translation t:
 
 import warp as wp
 
+from rgs_warp.kernels.math import (
+    ALPHA_MIN,
+    COV2D_DILATION,
+    POSE_JAC_COLOR,
+    POSE_JAC_CONIC,
+    POSE_JAC_X,
+    SH_C0,
+    SH_C1,
+    SH_C2_0,
+    SH_C2_1,
+    SH_C2_2,
+    SH_C2_3,
+    SH_C2_4,
+    SH_C3_0,
+    SH_C3_1,
+    SH_C3_2,
+    SH_C3_3,
+    SH_C3_4,
+    SH_C3_5,
+    SH_C3_6,
+    TILE_SIZE,
+    CameraParams,
+    exp3,
+    mat23,
+    projection_jacobian,
+    quat_to_rot,
+    vec6,
+    vec10,
+    vec32,
+)
+
 wp.set_module_options({"enable_backward": False})
 
-TILE_SIZE = 16
-# Skip threshold of the compositing (3DGS): contributions with alpha below 1/255 are invisible in
-# 8-bit output and are dropped; the projection's radius is derived from the same threshold.
-ALPHA_MIN = 1.0 / 255.0
-COV2D_DILATION = 0.3
-# Frustum widening for the Jacobian clamp (3DGS/gsplat: 1.3 x the half field of view): bounds the
-# linearisation error of Gaussians far outside the image, whose x/z would otherwise explode J.
-FRUSTUM_MARGIN = 0.3
 PROJECT_BLOCK = 256
-
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2_0 = 1.0925484305920792
-SH_C2_1 = -1.0925484305920792
-SH_C2_2 = 0.31539156525252005
-SH_C2_3 = -1.0925484305920792
-SH_C2_4 = 0.5462742152960396
-SH_C3_0 = -0.5900435899266435
-SH_C3_1 = 2.890611442640554
-SH_C3_2 = -0.4570457994644658
-SH_C3_3 = 0.3731763325901154
-SH_C3_4 = -0.4570457994644658
-SH_C3_5 = 1.445305721320277
-SH_C3_6 = -0.5900435899266435
-
-# Per-Gaussian screen-space gradient accumulated by the compositing backward:
-# (d/du, d/dv, d/dconic_a, d/dconic_b, d/dconic_c, d/dopacity, d/dr, d/dg, d/db, d/ddepth).
-vec10 = wp.types.vector(length=10, dtype=wp.float32)
-vec6 = wp.types.vector(length=6, dtype=wp.float32)
-mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
-# Per-Gaussian pose Jacobian for the pose-only backward, d(screen-space Gaussian)/d(twist):
-# [0:3] X (camera frame), [3] 1/z (mean2d and depth follow from these), [4:22] rows of d(conic a, b, c)/dxi,
-# [22:31] rows of d(colour r, g, b)/drho (the view direction depends on the camera centre only), [31] unused.
-vec32 = wp.types.vector(length=32, dtype=wp.float32)
-POSE_JAC_X = 0
-POSE_JAC_CONIC = 4
-POSE_JAC_COLOR = 22
-
-
-@wp.struct
-class CameraParams:
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    tiles_x: int
-    tiles_y: int
-    near: float
-    # clamp range of x/z and y/z in the projection Jacobian
-    tan_x_min: float
-    tan_x_max: float
-    tan_y_min: float
-    tan_y_max: float
-
-
-@wp.func
-def quat_to_rot(q: wp.quat):
-    x = q[0]
-    y = q[1]
-    z = q[2]
-    w = q[3]
-    return wp.mat33(
-        1.0 - 2.0 * (y * y + z * z),
-        2.0 * (x * y - z * w),
-        2.0 * (x * z + y * w),
-        2.0 * (x * y + z * w),
-        1.0 - 2.0 * (x * x + z * z),
-        2.0 * (y * z - x * w),
-        2.0 * (x * z - y * w),
-        2.0 * (y * z + x * w),
-        1.0 - 2.0 * (x * x + y * y),
-    )
 
 
 @wp.func
@@ -159,11 +117,6 @@ def sh_basis(k: int, d: wp.vec3):
 
 
 @wp.func
-def exp3(v: wp.vec3):
-    return wp.vec3(wp.exp(v[0]), wp.exp(v[1]), wp.exp(v[2]))
-
-
-@wp.func
 def tile_rect(mean2d: wp.vec2, radii: wp.vec2i, cam: CameraParams):
     """Tiles [x0, x1) x [y0, y1) holding the pixels within radii of mean2d (pixel px is in tile px // 16)."""
     ts = float(TILE_SIZE)
@@ -186,14 +139,6 @@ def view_direction(mean: wp.vec3, view: wp.mat44):
     )
     t = wp.vec3(view[0, 3], view[1, 3], view[2, 3])
     return mean + wp.transpose(W) @ t, W, t
-
-
-@wp.func
-def projection_jacobian(X: wp.vec3, cam: CameraParams):
-    z = X[2]
-    u = wp.clamp(X[0] / z, cam.tan_x_min, cam.tan_x_max)
-    v = wp.clamp(X[1] / z, cam.tan_y_min, cam.tan_y_max)
-    return mat23(cam.fx / z, 0.0, -cam.fx * u / z, 0.0, cam.fy / z, -cam.fy * v / z)
 
 
 @wp.func

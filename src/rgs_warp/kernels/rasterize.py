@@ -18,7 +18,7 @@ before one global atomic) for speed, and a plain per-pixel one used as a second 
 
 import warp as wp
 
-from rgs_warp.kernels.projection import (
+from rgs_warp.kernels.math import (
     ALPHA_MIN,
     POSE_JAC_COLOR,
     POSE_JAC_CONIC,

@@ -1,4 +1,6 @@
-"""Per-seed Gaussian initialisation (supplement §4.5, Eq. 13-14), one triangulated point per thread.
+"""Kernels of the Seeder (supplement §4.5): per-seed Gaussian initialisation (Eq. 13-14, one
+triangulated point per thread), and where seeds go: points the map already covers or that disagree
+with the measured depth are dropped, and measured-depth seeds are taken where the map is missing.
 
 Views are indexed as in the Triangulator: view 0 is the reference, view v its neighbour v - 1, and
 bit v of a point's support mask says that view was used.  ``view_T_CW`` holds their world-to-camera
@@ -7,7 +9,7 @@ poses, ``view_slot`` their keyframe-buffer slots, ``view_exposure`` their (g, b)
 
 import warp as wp
 
-from rgs_warp.kernels.projection import SH_C0
+from rgs_warp.kernels.math import SH_C0
 
 wp.set_module_options({"enable_backward": False})
 
@@ -306,3 +308,141 @@ def seed_gaussians(
     for c in range(1, sh_out.shape[1]):
         sh_out[row, c] = wp.vec3(0.0)
     seed_index_out[i] = k
+
+
+# ---- where seeds go: coverage by the map, agreement with measured depth, depth seeds ----------------
+@wp.kernel
+def depth_points(
+    # in: keyframe depth (metres, 0 = invalid), pinhole intrinsics, camera-to-world pose
+    depth: wp.array2d(dtype=wp.float32),
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    T_WC: wp.mat44d,
+    stride: int,
+    max_rel_jump: float,
+    residual_px: float,
+    parallax_deg: float,
+    # in: the map's accumulated opacity at this keyframe (empty map: zeros) and the coverage bound
+    alpha: wp.array2d(dtype=wp.float32),
+    max_alpha: float,
+    # out: one point per grid cell (the Triangulator's output layout, single view)
+    X_out: wp.array(dtype=wp.vec3d),
+    residual_out: wp.array(dtype=wp.float64),
+    parallax_out: wp.array(dtype=wp.float64),
+    support_out: wp.array(dtype=wp.int32),
+    valid_out: wp.array(dtype=wp.int32),
+):
+    # RGB-D seeds: the pixel at the centre of each stride x stride cell, back-projected with its
+    # measured depth, where the map does not cover the view yet (alpha < max_alpha) and the depth is
+    # not on a discontinuity (neighbours at +-stride within max_rel_jump after a linear fit, i.e.
+    # the second difference): a point straddling an edge would float between two surfaces.
+    gy, gx = wp.tid()
+    i = gy * (depth.shape[1] // stride) + gx
+    u = gx * stride + stride // 2
+    v = gy * stride + stride // 2
+    z = depth[v, u]
+    ok = z > 0.0 and alpha[v, u] < max_alpha
+    if ok and u >= stride and u + stride < depth.shape[1] and v >= stride and v + stride < depth.shape[0]:
+        zl = depth[v, u - stride]
+        zr = depth[v, u + stride]
+        zu = depth[v - stride, u]
+        zd = depth[v + stride, u]
+        ok = zl > 0.0 and zr > 0.0 and zu > 0.0 and zd > 0.0
+        if ok:
+            ok = wp.abs(zl + zr - 2.0 * z) < max_rel_jump * z and wp.abs(zu + zd - 2.0 * z) < max_rel_jump * z
+    zd64 = wp.float64(z)
+    pc = wp.vec4d(
+        (wp.float64(u) - wp.float64(cx)) / wp.float64(fx) * zd64,
+        (wp.float64(v) - wp.float64(cy)) / wp.float64(fy) * zd64,
+        zd64,
+        wp.float64(1.0),
+    )
+    pw = T_WC @ pc
+    X_out[i] = wp.vec3d(pw[0], pw[1], pw[2])
+    residual_out[i] = wp.float64(residual_px)
+    parallax_out[i] = wp.float64(parallax_deg)
+    support_out[i] = 1
+    valid_out[i] = wp.where(ok, 1, 0)
+
+
+@wp.func
+def reference_pixel(coordinate: wp.float64, size: int):
+    """The pixel index of an image coordinate (pixel centres at integers), clamped into the image."""
+    return wp.clamp(int(wp.round(float(coordinate))), 0, size - 1)
+
+
+@wp.func
+def camera_depth(X: wp.vec3d, T_CW: wp.mat44d):
+    """z of the world point X in the camera T_CW (metres, float32)."""
+    return float((T_CW @ wp.vec4d(X[0], X[1], X[2], wp.float64(1.0)))[2])
+
+
+@wp.kernel
+def mask_covered_points(
+    # in: reference-view pixels of the triangulated points and the map's render at the reference
+    ref_uv: wp.array(dtype=wp.vec2d),
+    alpha: wp.array2d(dtype=wp.float32),
+    rendered_depth: wp.array2d(dtype=wp.float32),
+    X: wp.array(dtype=wp.vec3d),
+    T_CW: wp.mat44d,
+    max_alpha: float,
+    depth_rel_tol: float,
+    # in/out: validity of each point
+    valid: wp.array(dtype=wp.int32),
+):
+    # A new keyframe's seeds go where the map is missing: pixels it does not cover yet, or where the
+    # map's surface (alpha-normalised depth) is off the triangulated point by more than depth_rel_tol.
+    # Elsewhere the map already explains the keyframe and a seed would only double the density.
+    i = wp.tid()
+    if valid[i] == 0:
+        return
+    u = reference_pixel(ref_uv[i][0], alpha.shape[1])
+    v = reference_pixel(ref_uv[i][1], alpha.shape[0])
+    a = alpha[v, u]
+    if a < max_alpha:
+        return
+    z = camera_depth(X[i], T_CW)
+    d_map = rendered_depth[v, u] / a
+    if wp.abs(d_map - z) > depth_rel_tol * z:
+        return
+    valid[i] = 0
+
+
+@wp.kernel
+def reject_depth_inconsistent_points(
+    # in: reference-view pixels of the triangulated points and the reference keyframe's measured depth
+    ref_uv: wp.array(dtype=wp.vec2d),
+    measured_depth: wp.array2d(dtype=wp.float32),
+    X: wp.array(dtype=wp.vec3d),
+    T_CW: wp.mat44d,
+    depth_rel_tol: float,
+    # in/out: validity of each point
+    valid: wp.array(dtype=wp.int32),
+):
+    # RGB-D: a triangulated point whose depth in the reference view is off the sensor's by more than
+    # depth_rel_tol is a wrong match (or a low-parallax triangulation) and would seed a floater; the
+    # measured-depth fill covers its pixel instead.  Pixels without a measurement keep their points.
+    i = wp.tid()
+    if valid[i] == 0:
+        return
+    u = reference_pixel(ref_uv[i][0], measured_depth.shape[1])
+    v = reference_pixel(ref_uv[i][1], measured_depth.shape[0])
+    d = measured_depth[v, u]
+    if d <= 0.0:
+        return
+    if wp.abs(camera_depth(X[i], T_CW) - d) > depth_rel_tol * d:
+        valid[i] = 0
+
+
+@wp.kernel
+def union_alpha(
+    # in: accumulated opacities of two maps rendered at the same pose
+    alpha_a: wp.array2d(dtype=wp.float32),
+    alpha_b: wp.array2d(dtype=wp.float32),
+    # out: the opacity of both together, 1 - (1 - a)(1 - b) (order-independent)
+    alpha_out: wp.array2d(dtype=wp.float32),
+):
+    y, x = wp.tid()
+    alpha_out[y, x] = 1.0 - (1.0 - alpha_a[y, x]) * (1.0 - alpha_b[y, x])

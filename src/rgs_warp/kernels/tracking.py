@@ -9,9 +9,10 @@ Reductions sum 256 pixels in a block tile, then add one float64 atomic per block
 
 import warp as wp
 
+from rgs_warp.kernels.math import REDUCE_BLOCK, rigid_inverse_f32, se3_exp, vec6
+
 wp.set_module_options({"enable_backward": False})
 
-REDUCE_BLOCK = 256
 
 # History columns (one row per iteration).
 H_S0 = 0  # Eq. 4 normal equations over pixels x channels, weighted by w_alpha: sum w
@@ -34,7 +35,6 @@ H_COLUMNS = 14
 # w_alpha = alpha / tau_alpha is negligible there anyway).
 ALPHA_DEPTH_MIN = 1.0e-3
 
-vec6 = wp.types.vector(length=6, dtype=wp.float32)
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
 
@@ -169,19 +169,20 @@ def brightness_sums(
 BRIGHTNESS_OFF = 0
 BRIGHTNESS_AFFINE = 1
 BRIGHTNESS_GAIN = 2
+# pull of the affine (g, b) towards (1, 0), relative to the Eq. 4 weight sum (below)
+BRIGHTNESS_RIDGE = wp.constant(wp.float32(1e-3))
 
 
 @wp.kernel
 def solve_brightness(
-    # in: model (BRIGHTNESS_*), ridge of the affine solve, history row
+    # in: model (BRIGHTNESS_*), history row
     model: int,
-    ridge: float,
     row: int,
     # out: columns H_GAIN, H_BIAS of history row `row`, from its H_S* sums
     history_out: wp.array2d(dtype=wp.float64),
 ):
     # BRIGHTNESS_AFFINE, the closed form of Eq. 4: [[Sxx, Sx], [Sx, S0]] (g, b) = (Sxy, Sy), with a
-    # ridge ridge * S0 pulling (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~
+    # ridge BRIGHTNESS_RIDGE * S0 pulling (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~
     # 0) cannot produce a wild gain.  Least squares of y on x is biased towards g < 1 when the render
     # x has errors of its own (regression dilution: misalignment, unfitted detail), and a
     # mapper that paints the map with the keyframes' exposure-corrected colours feeds that bias
@@ -193,7 +194,7 @@ def solve_brightness(
     b = wp.float64(0.0)
     s0 = history_out[row, H_S0]
     if model == BRIGHTNESS_AFFINE and s0 > wp.float64(0.0):
-        lam = wp.float64(ridge) * s0
+        lam = wp.float64(BRIGHTNESS_RIDGE) * s0
         a11 = history_out[row, H_SXX] + lam
         a12 = history_out[row, H_SX]
         a22 = s0 + lam
@@ -303,53 +304,6 @@ def tracking_loss(
         wp.atomic_add(history_out, row, H_WEIGHT, wp.float64(total[2]))
 
 
-@wp.func
-def skew_d(v: wp.vec3d):
-    z = wp.float64(0.0)
-    return wp.mat33d(z, -v[2], v[1], v[2], z, -v[0], -v[1], v[0], z)
-
-
-@wp.func
-def se3_exp(rho: wp.vec3d, phi: wp.vec3d):
-    """4x4 exponential of the twist (rho, phi), float64: R = I + A K + B K^2, t = (I + B K + C K^2) rho."""
-    theta = wp.length(phi)
-    K = skew_d(phi)
-    K2 = K @ K
-    t2 = theta * theta
-    A = wp.float64(1.0) - t2 / wp.float64(6.0)
-    B = wp.float64(0.5) - t2 / wp.float64(24.0)
-    C = wp.float64(1.0) / wp.float64(6.0) - t2 / wp.float64(120.0)
-    if theta > wp.float64(1.0e-3):  # below, the series' next terms are < 1e-16
-        A = wp.sin(theta) / theta
-        B = (wp.float64(1.0) - wp.cos(theta)) / t2
-        C = (theta - wp.sin(theta)) / (t2 * theta)
-    eye = wp.identity(n=3, dtype=wp.float64)
-    R = eye + A * K + B * K2
-    t = (eye + B * K + C * K2) @ rho
-    z = wp.float64(0.0)
-    o = wp.float64(1.0)
-    return wp.mat44d(
-        R[0, 0], R[0, 1], R[0, 2], t[0],
-        R[1, 0], R[1, 1], R[1, 2], t[1],
-        R[2, 0], R[2, 1], R[2, 2], t[2],
-        z, z, z, o,
-    )  # fmt: skip
-
-
-@wp.func
-def rigid_inverse_f32(T: wp.mat44d):
-    """Inverse of a rigid float64 transform, as the float32 matrix the renderer takes."""
-    R = wp.mat33d(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
-    Rt = wp.transpose(R)
-    t = -(Rt @ wp.vec3d(T[0, 3], T[1, 3], T[2, 3]))
-    return wp.mat44(
-        float(Rt[0, 0]), float(Rt[0, 1]), float(Rt[0, 2]), float(t[0]),
-        float(Rt[1, 0]), float(Rt[1, 1]), float(Rt[1, 2]), float(t[1]),
-        float(Rt[2, 0]), float(Rt[2, 1]), float(Rt[2, 2]), float(t[2]),
-        0.0, 0.0, 0.0, 1.0,
-    )  # fmt: skip
-
-
 @wp.kernel
 def adam_pose_step(
     # in: twist gradient of the loss (renderer's pose backward), schedule and Adam constants
@@ -357,7 +311,6 @@ def adam_pose_step(
     row: int,
     iters: int,
     lr: float,
-    lr_amplitude: float,
     beta1: float,
     beta2: float,
     eps: float,
@@ -371,9 +324,9 @@ def adam_pose_step(
     T_WC_out: wp.array(dtype=wp.mat44),
     pose_history_out: wp.array(dtype=wp.mat44d),
 ):
-    # Cosine schedule centred on lr: lr_k = lr (1 + a cos(pi k / K)), from (1 + a) lr at k = 0 down to
-    # ~(1 - a) lr at k = K - 1; its mean over the K steps is lr.
-    lr_k = lr * (1.0 + lr_amplitude * wp.cos(wp.pi * float(row) / float(iters)))
+    # Cosine schedule centred on lr: lr_k = lr (1 + cos(pi k / K)), from 2 lr at k = 0 down to ~0 at
+    # k = K - 1; its mean over the K steps is lr (experiments/results/tracking.md).
+    lr_k = lr * (1.0 + wp.cos(wp.pi * float(row) / float(iters)))
     n_steps = float(row + 1)
     c1 = 1.0 - wp.pow(beta1, n_steps)
     c2 = 1.0 - wp.pow(beta2, n_steps)

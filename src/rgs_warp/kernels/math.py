@@ -1,0 +1,146 @@
+"""Kernel math shared by the stages' kernel files: constants and types of the Gaussian and rasterizer
+layout, quaternions, SH constants, SE(3) in float64, the pinhole projection's Jacobian, and the block
+size of the per-pixel reductions.  Stage kernel files import from here and never from each other."""
+
+import warp as wp
+
+# ---- per-pixel reductions ------------------------------------------------------------------------
+# Reductions over pixels sum REDUCE_BLOCK values in a block tile and issue one float64 atomic per
+# block and column, so nothing is read back to the host inside an optimisation loop.
+REDUCE_BLOCK = 256
+
+# ---- rasterizer layout (projection.py and rasterize.py) ------------------------------------------
+TILE_SIZE = 16
+# Skip threshold of the compositing (3DGS): contributions with alpha below 1/255 are invisible in
+# 8-bit output and are dropped; the projection's radius is derived from the same threshold.
+ALPHA_MIN = 1.0 / 255.0
+COV2D_DILATION = 0.3
+# Frustum widening for the Jacobian clamp (3DGS/gsplat: 1.3 x the half field of view): bounds the
+# linearisation error of Gaussians far outside the image, whose x/z would otherwise explode J.
+FRUSTUM_MARGIN = 0.3
+
+# Per-Gaussian screen-space gradient accumulated by the compositing backward:
+# (d/du, d/dv, d/dconic_a, d/dconic_b, d/dconic_c, d/dopacity, d/dr, d/dg, d/db, d/ddepth).
+vec10 = wp.types.vector(length=10, dtype=wp.float32)
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
+# Per-Gaussian pose Jacobian for the pose-only backward, d(screen-space Gaussian)/d(twist):
+# [0:3] X (camera frame), [3] 1/z (mean2d and depth follow from these), [4:22] rows of d(conic a, b, c)/dxi,
+# [22:31] rows of d(colour r, g, b)/drho (the view direction depends on the camera centre only), [31] unused.
+vec32 = wp.types.vector(length=32, dtype=wp.float32)
+POSE_JAC_X = 0
+POSE_JAC_CONIC = 4
+POSE_JAC_COLOR = 22
+
+# ---- spherical harmonics (3DGS's real SH constants and band order) --------------------------------
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2_0 = 1.0925484305920792
+SH_C2_1 = -1.0925484305920792
+SH_C2_2 = 0.31539156525252005
+SH_C2_3 = -1.0925484305920792
+SH_C2_4 = 0.5462742152960396
+SH_C3_0 = -0.5900435899266435
+SH_C3_1 = 2.890611442640554
+SH_C3_2 = -0.4570457994644658
+SH_C3_3 = 0.3731763325901154
+SH_C3_4 = -0.4570457994644658
+SH_C3_5 = 1.445305721320277
+SH_C3_6 = -0.5900435899266435
+
+
+@wp.struct
+class CameraParams:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
+    near: float
+    # clamp range of x/z and y/z in the projection Jacobian
+    tan_x_min: float
+    tan_x_max: float
+    tan_y_min: float
+    tan_y_max: float
+
+
+@wp.func
+def quat_to_rot(q: wp.quat):
+    x = q[0]
+    y = q[1]
+    z = q[2]
+    w = q[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - z * w),
+        2.0 * (x * z + y * w),
+        2.0 * (x * y + z * w),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - x * w),
+        2.0 * (x * z - y * w),
+        2.0 * (y * z + x * w),
+        1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+@wp.func
+def exp3(v: wp.vec3):
+    return wp.vec3(wp.exp(v[0]), wp.exp(v[1]), wp.exp(v[2]))
+
+
+@wp.func
+def projection_jacobian(X: wp.vec3, cam: CameraParams):
+    z = X[2]
+    u = wp.clamp(X[0] / z, cam.tan_x_min, cam.tan_x_max)
+    v = wp.clamp(X[1] / z, cam.tan_y_min, cam.tan_y_max)
+    return mat23(cam.fx / z, 0.0, -cam.fx * u / z, 0.0, cam.fy / z, -cam.fy * v / z)
+
+
+@wp.func
+def skew_d(v: wp.vec3d):
+    z = wp.float64(0.0)
+    return wp.mat33d(z, -v[2], v[1], v[2], z, -v[0], -v[1], v[0], z)
+
+
+@wp.func
+def se3_exp(rho: wp.vec3d, phi: wp.vec3d):
+    """4x4 exponential of the twist (rho, phi), float64: R = I + A K + B K^2, t = (I + B K + C K^2) rho."""
+    theta = wp.length(phi)
+    K = skew_d(phi)
+    K2 = K @ K
+    t2 = theta * theta
+    A = wp.float64(1.0) - t2 / wp.float64(6.0)
+    B = wp.float64(0.5) - t2 / wp.float64(24.0)
+    C = wp.float64(1.0) / wp.float64(6.0) - t2 / wp.float64(120.0)
+    if theta > wp.float64(1.0e-3):  # below, the series' next terms are < 1e-16
+        A = wp.sin(theta) / theta
+        B = (wp.float64(1.0) - wp.cos(theta)) / t2
+        C = (theta - wp.sin(theta)) / (t2 * theta)
+    eye = wp.identity(n=3, dtype=wp.float64)
+    R = eye + A * K + B * K2
+    t = (eye + B * K + C * K2) @ rho
+    z = wp.float64(0.0)
+    o = wp.float64(1.0)
+    return wp.mat44d(
+        R[0, 0], R[0, 1], R[0, 2], t[0],
+        R[1, 0], R[1, 1], R[1, 2], t[1],
+        R[2, 0], R[2, 1], R[2, 2], t[2],
+        z, z, z, o,
+    )  # fmt: skip
+
+
+@wp.func
+def rigid_inverse_f32(T: wp.mat44d):
+    """Inverse of a rigid float64 transform, as the float32 matrix the renderer takes."""
+    R = wp.mat33d(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+    Rt = wp.transpose(R)
+    t = -(Rt @ wp.vec3d(T[0, 3], T[1, 3], T[2, 3]))
+    return wp.mat44(
+        float(Rt[0, 0]), float(Rt[0, 1]), float(Rt[0, 2]), float(t[0]),
+        float(Rt[1, 0]), float(Rt[1, 1]), float(Rt[1, 2]), float(t[1]),
+        float(Rt[2, 0]), float(Rt[2, 1]), float(Rt[2, 2]), float(t[2]),
+        0.0, 0.0, 0.0, 1.0,
+    )  # fmt: skip
