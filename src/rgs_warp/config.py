@@ -121,7 +121,7 @@ class KeyframeConfig:
 
 @dataclass
 class MatchingConfig:
-    # Numbers marked "measured" come from experiments/matching_precision.py (docs/matching.md).
+    # Numbers marked "measured" come from experiments/bench/matching_precision.py (docs/matching.md).
     backbone: str = "classic"  # classic | xfeat | dinov2 | dinov3; measured (docs/matching.md)
     weights_path: str = ""  # local weights file for dinov2 / dinov3
     classic_stride: int = 4  # classic descriptor grid = image / stride; measured

@@ -3,7 +3,7 @@ Seeder at one keyframe with its neighbours, ground-truth poses; reports match ac
 true correspondences, triangulated depth error, seeds, and the PSNR of the seeded map (no
 optimisation) rendering the reference keyframe.
 
-    PYTHONPATH=src python experiments/dense_init.py --width 1200 --height 680 --frames 100 --ids 50,47,53
+    PYTHONPATH=src python experiments/bench/dense_init.py --width 1200 --height 680 --frames 100 --ids 50,47,53
 """
 
 from __future__ import annotations
