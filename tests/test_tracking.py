@@ -334,7 +334,7 @@ def test_adam_step_and_se3_update_match_numpy(device, lr, pivot_z):
 # discs on the ground-truth depth of frames 0, 4, 8, seen with a 1.5x wider field of view so that the
 # frames in between are covered to their borders.  The frames tracked here are the map's own renders at
 # the true poses: the tests measure the tracker (gradient, optimiser, brightness, motion model), not how
-# faithfully a 96-pixel map reproduces the ray-traced images (experiments/tracking_gt_map.py does that).
+# faithfully a 96-pixel map reproduces the ray-traced images (experiments/bench/tracking_gt_map.py does that).
 SIZE = (96, 54)
 MAP_FRAMES = (0, 4, 8)
 

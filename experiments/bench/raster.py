@@ -285,7 +285,7 @@ def gsplat_graph_attempt(scene: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--sizes", type=int, nargs="+", default=[100_000, 300_000, 1_000_000])
-    parser.add_argument("--out", default=os.environ.get("OUT", "experiments/results"))
+    parser.add_argument("--out", default=os.environ.get("OUT", "bench_out"))
     parser.add_argument("--no-gsplat", action="store_true")
     args = parser.parse_args()
     wp.init()

@@ -13,7 +13,7 @@ held-out loss is the pose's misregistration to the final map, not the map), and 
 that re-tracking; and writes
 DIR/mesh_inputs.tar.gz (half-resolution rendered depth of every keyframe as uint16 mm, poses, camera,
 and the dataset's ground-truth mesh) so that the mesh metrics can be computed where open3d is
-installed: ``python experiments/mesh_from_inputs.py DIR/mesh_inputs.tar.gz``.
+installed: ``python experiments/bench/mesh_from_inputs.py DIR/mesh_inputs.tar.gz``.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rgs_warp.config import load_config
 from rgs_warp import SLAM
+from rgs_warp.config import load_config
 from rgs_warp.run import run
 from rgs_warp.types import Camera
 

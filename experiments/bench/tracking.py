@@ -60,7 +60,7 @@ def main() -> None:
     parser.add_argument("--gaussians", type=int, default=300_000)
     parser.add_argument("--reps", type=int, default=100)
     parser.add_argument("--small", action="store_true", help="CPU dry run: 160x90, 3000 Gaussians, 5 reps")
-    parser.add_argument("--out", default=os.environ.get("OUT", "experiments/results"))
+    parser.add_argument("--out", default=os.environ.get("OUT", "bench_out"))
     args = parser.parse_args()
     wp.init()
     device = wp.get_device("cuda:0" if wp.get_cuda_device_count() else "cpu")

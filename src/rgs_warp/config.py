@@ -42,7 +42,7 @@ class DatasetConfig:
     # 7-Scenes only: its colour and depth images come from two cameras.  register_depth reprojects each
     # depth image into the colour camera (colour_intrinsics fx, fy, cx, cy; a depth-camera point plus
     # depth_to_colour_m is the colour-camera point) and moves the ground-truth poses (the depth
-    # camera's) to the colour camera.  Measured: experiments/results/sevenscenes_calibration.md
+    # camera's) to the colour camera.  Measured: experiments/results/slam.md, 7-Scenes calibration
     register_depth: bool = True
     colour_intrinsics: tuple[float, float, float, float] = (526.0, 526.0, 322.0, 238.0)
     depth_to_colour_m: tuple[float, float, float] = (-0.03, 0.0, 0.0)
@@ -116,7 +116,7 @@ class KeyframeConfig:
 
 @dataclass
 class MatchingConfig:
-    # Numbers marked "measured" come from experiments/matching_precision.py (docs/matching.md).
+    # Numbers marked "measured" come from experiments/bench/matching_precision.py (docs/matching.md).
     backbone: str = "classic"  # classic | xfeat | dinov2 | dinov3; measured (docs/matching.md)
     weights_path: str = ""  # local weights file for dinov2 / dinov3
     classic_stride: int = 4  # classic descriptor grid = image / stride; measured
@@ -157,11 +157,11 @@ class SeedingConfig:
     # Poisson-disk radius in units of the local pixel footprint (depth / focal at the reference view):
     # the seed spacing, at least the matcher's thinning spacing in image pixels
     poisson_radius_px: float = 1.0
-    # Eq. 13 tangential scale s_perp in Poisson radii (measured, experiments/results/seeding.md)
+    # Eq. 13 tangential scale s_perp in Poisson radii (measured, experiments/results/matching.md)
     tangential_scale: float = 0.8
     # plane fit (§4.5): triangulated neighbours within this many pixel footprints; the patch must be
     # wide against the depth noise (~2 footprints at 0.3 px and 10 deg parallax; measured,
-    # experiments/results/seeding.md).  With fewer than the minimum the normal is the viewing
+    # experiments/results/matching.md).  With fewer than the minimum the normal is the viewing
     # direction (3 define a plane; 6 keep one noisy neighbour from tilting it)
     plane_radius_px: float = 8.0
     plane_min_neighbours: int = 6

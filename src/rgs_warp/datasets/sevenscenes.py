@@ -7,8 +7,8 @@ a wider field of view and an offset.  By default the loader therefore registers 
 the colour camera (reprojects it, nearest surface wins) and moves the ground-truth poses to the
 colour camera, so that frames are what the RGB-D pipeline assumes: colour and depth on one pinhole
 camera.  The colour calibration is ours, measured on the shared redkitchen frames by aligning depth
-discontinuities with colour edges (``experiments/sevenscenes_calibration.py``,
-``experiments/results/sevenscenes_calibration.md``); DSAC's public code uses the same colour focal
+discontinuities with colour edges (``experiments/results/slam.md``, section "7-Scenes
+calibration"); DSAC's public code uses the same colour focal
 length (525 px)."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from rgs_warp.types import Camera, Frame
 # The dataset's stated calibration (Kinect v1, 640x480): the depth camera's.
 SEVENSCENES_CAMERA = Camera(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
 # The colour camera (fx, fy, cx, cy) and the depth-to-colour offset (a depth-camera point plus this is
-# the colour-camera point, metres), measured (experiments/results/sevenscenes_calibration.md); the
+# the colour-camera point, metres), measured (experiments/results/slam.md, 7-Scenes calibration); the
 # numbers live in the config's defaults
 SEVENSCENES_COLOUR_INTRINSICS = DatasetConfig.colour_intrinsics
 SEVENSCENES_DEPTH_TO_COLOUR_M = DatasetConfig.depth_to_colour_m

@@ -13,14 +13,15 @@ Data: Replica office0 frames 0-3 (reference 0, neighbours 1-3) and 7-Scenes redk
 20 frames apart (references 40, 80, ..., 440; neighbours chosen by ``select_neighbours`` among the
 keyframes up to 40 frames away).
 
-    python experiments/matching_precision.py [--backbones classic xfeat dinov2] [--device cpu]
-        [--set matching.key=value ...] [--out experiments/results]
+    python experiments/bench/matching_precision.py [--backbones classic xfeat dinov2] [--device cpu]
+        [--set matching.key=value ...] [--out DIR]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import time
 from dataclasses import asdict
@@ -35,7 +36,7 @@ from rgs_warp.geometry import invert_pose
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
 THRESHOLD_PX = 2.0
 CONFIDENT = 0.5
@@ -179,7 +180,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--set", nargs="*", default=[], help="matching.key=value overrides")
     ap.add_argument("--modes", nargs="+", default=["rgbd", "mono"])
-    ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results")
+    ap.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "bench_out")))
     args = ap.parse_args()
     wp.init()
     data = datasets()
@@ -210,7 +211,7 @@ def markdown(results: dict) -> str:
     lines = [
         "# Dense matching precision (issue 6)",
         "",
-        f"Commit `{results['commit']}`, device `{results['device']}`, by `experiments/matching_precision.py` "
+        f"Commit `{results['commit']}`, device `{results['device']}`, by `experiments/bench/matching_precision.py` "
         "(protocol in its docstring). Precision = fraction of matches with confidence > 0.5 within 2 px of the "
         "ground-truth correspondence; 'confident' = their number (all neighbours, all references); 'after "
         "thinning' = the same after blue-noise thinning (what the Triangulator receives).",

@@ -14,9 +14,9 @@ For each: ATE with drift off / drift on / drift on without the brightness model 
 growing by each keyframe (rho, buffer contents).  Results go to
 ``<out>/tracking_<observations>.json``; ``<out>/tracking.md`` summarises every such file there.
 
-    PYTHONPATH=src python experiments/tracking_gt_map.py --observations rendered --map-stride 2 --refine-iters 0
-    PYTHONPATH=src python experiments/tracking_gt_map.py --observations raw
-    PYTHONPATH=src python experiments/tracking_gt_map.py --keyframes
+    PYTHONPATH=src python experiments/bench/tracking_gt_map.py --observations rendered --map-stride 2 --refine-iters 0
+    PYTHONPATH=src python experiments/bench/tracking_gt_map.py --observations raw
+    PYTHONPATH=src python experiments/bench/tracking_gt_map.py --keyframes
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))  # helpers_maps: the map-from-ground-truth builder
 
 
@@ -84,8 +84,7 @@ def refit_with_mapper(gmap, camera, frames, iters: int, device) -> None:
     buf = KeyframeBuffer(max(len(frames), 2), camera.width, camera.height, device)
     slots = [buf.add(k, T, rgb, depth) for k, (rgb, depth, T) in enumerate(frames)]
     mapper = Mapper(MappingConfig(), camera, gmap, device, mode="rgbd")
-    mapper.sync()
-    result = mapper.optimize(buf, slots, iters, fixed=slots, optimize_poses=False)
+    result = mapper.optimize(buf, slots, iters)
     print(f"map refit: {iters} iterations, L1 {result.l1_history[0]:.4f} -> {result.final_l1:.4f}", flush=True)
 
 
@@ -225,7 +224,7 @@ def main() -> None:
     )
     parser.add_argument("--tag", default="", help="suffix of the result file name (e.g. gpu)")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", default=str(ROOT / "experiments" / "results"))
+    parser.add_argument("--out", default=os.environ.get("OUT", "bench_out"))
     args = parser.parse_args()
     os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".cache" / "warp"))
     wp.config.log_level = wp.LOG_WARNING

@@ -1,9 +1,9 @@
 """One-shot dense initialization on a synthetic scene (issue 6): DenseMatcher -> Triangulator ->
-Seeder at one keyframe with its neighbours, ground-truth poses; reports match accuracy against the
+PointSeeder at one keyframe with its neighbours, ground-truth poses; reports match accuracy against the
 true correspondences, triangulated depth error, seeds, and the PSNR of the seeded map (no
 optimisation) rendering the reference keyframe.
 
-    PYTHONPATH=src python experiments/dense_init.py --width 1200 --height 680 --frames 100 --ids 50,47,53
+    PYTHONPATH=src python experiments/bench/dense_init.py --width 1200 --height 680 --frames 100 --ids 50,47,53
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from rgs_warp.geometry import invert_pose
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.render import Renderer
-from rgs_warp.seeding import Seeder
+from rgs_warp.seeding import PointSeeder
 from rgs_warp.triangulation import Triangulator
 from rgs_warp.types import GaussianMap
 
@@ -59,7 +59,7 @@ def run(args) -> dict:
     matcher = DenseMatcher(MatchingConfig(thin_spacing=args.thin_spacing), cam, device)
     triangulator = Triangulator(TriangulationConfig(), device)
     # Seed spacing = the thinning spacing in image pixels, so the splats close into a surface.
-    seeder = Seeder(SeedingConfig(poisson_radius_px=args.thin_spacing * matcher.stride), cam, device)
+    seeder = PointSeeder(SeedingConfig(poisson_radius_px=args.thin_spacing * matcher.stride), cam, device)
     gmap = GaussianMap(1024, 2, device)
     ref_slot, nb_slots = slots[ids[0]], [slots[i] for i in ids[1:]]
 

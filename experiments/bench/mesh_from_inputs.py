@@ -4,7 +4,7 @@ rendered depth of every keyframe, their poses, the camera and, when small, the d
 ground-truth mesh); this fuses the depth with the same TSDF and metrics as ``python -m
 rgs_warp.slam`` (``rgs_warp.eval.tsdf_fuse`` / ``mesh_metrics``) and prints / writes JSON.
 
-    python experiments/mesh_from_inputs.py OUT/mesh_inputs.tar.gz [--gt-mesh mesh.ply] [--json out.json]
+    python experiments/bench/mesh_from_inputs.py OUT/mesh_inputs.tar.gz [--gt-mesh mesh.ply] [--json out.json]
 """
 
 from __future__ import annotations
