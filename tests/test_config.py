@@ -134,4 +134,4 @@ def test_group_file_settings_of_other_sections(tmp_path, monkeypatch):
     (tmp_path / "dataset" / "x" / "bad.yaml").write_text("type: synthetic\nsettings:\n  tracking:\n    tau_gard: 0\n")
     monkeypatch.setattr(config_module, "CONFIG_DIR", tmp_path)
     with pytest.raises(ConfigError, match="tau_gard"):
-        config_module._apply_group(Config(), "dataset", "x/bad")
+        config_module.load_config(["dataset=x/bad"])

@@ -285,8 +285,8 @@ def test_default_plan_scene_selection(tmp_path, monkeypatch):
 
 def test_second_best_underlined_among_three():
     lower = suite.METRIC_BY_ID["ate_keyframes_rmse_cm"]
-    marks = suite._rank_marks({"a": 2.0, "b": 1.0, "c": 3.0, "d": None}, lower)
+    marks = suite.rank_marks({"a": 2.0, "b": 1.0, "c": 3.0, "d": None}, lower)
     assert marks == {"b": "best", "a": "second"}
     higher = suite.METRIC_BY_ID["psnr_db"]
-    assert suite._rank_marks({"a": 30.001, "b": 30.004, "c": 20.0}, higher) == {"a": "best", "b": "best"}
-    assert suite._rank_marks({"a": 2.0, "b": 1.0}, lower) == {"b": "best"}  # two methods: no underline
+    assert suite.rank_marks({"a": 30.001, "b": 30.004, "c": 20.0}, higher) == {"a": "best", "b": "best"}
+    assert suite.rank_marks({"a": 2.0, "b": 1.0}, lower) == {"b": "best"}  # two methods: no underline

@@ -147,4 +147,4 @@ def test_intersection_capacity_and_overflow(device):
 
     # reserving ahead (as before capturing a graph) keeps the capacity until a count says otherwise
     renderer.reserve_intersections(10 * needed)
-    assert renderer._isect_capacity >= 10 * needed and renderer._isect_alloc >= 10 * needed
+    assert renderer.intersection_capacity >= 10 * needed

@@ -91,7 +91,7 @@ def test_parameter_and_pose_gradients(device, problem, tiled):
     analytic = grads.to_numpy(len(gmap))
     _assert_close(pose_grad.numpy(), _fd_pose(loss, scene))
 
-    visible = np.flatnonzero(renderer._radii.numpy()[: len(gmap), 0] > 0)
+    visible = np.flatnonzero(renderer.radii.numpy()[: len(gmap), 0] > 0)
     for key, name in FIELDS.items():
         entries = [
             (int(rng.choice(visible)),) + tuple(int(rng.integers(0, s)) for s in scene[key].shape[1:])
@@ -100,7 +100,7 @@ def test_parameter_and_pose_gradients(device, problem, tiled):
         numeric = [_fd(loss, scene, key, idx) for idx in entries]
         _assert_close([analytic[name][idx] for idx in entries], numeric)
     # culled Gaussians get exactly zero
-    culled = renderer._radii.numpy()[: len(gmap), 0] == 0
+    culled = renderer.radii.numpy()[: len(gmap), 0] == 0
     assert culled.any() and not analytic["means"][culled].any()
 
 
@@ -132,7 +132,7 @@ def test_pose_only_fast_path(device, problem, jacobians_in_forward):
     renderer.forward(gmap, CAM, T_WC, BACKGROUND, pose_jacobians=jacobians_in_forward)
     grads, pose_grad = renderer.backward(*_image_grads(weights, device), pose_only=True)
     assert grads is None
-    assert not renderer._grad2d.numpy().any()  # no per-Gaussian gradient buffer touched
+    assert not renderer.grad2d.numpy().any()  # no per-Gaussian gradient buffer touched
     np.testing.assert_allclose(pose_grad.numpy(), expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
     _assert_close(pose_grad.numpy(), _fd_pose(loss, scene))
 
@@ -140,7 +140,7 @@ def test_pose_only_fast_path(device, problem, jacobians_in_forward):
     renderer.backward(*_image_grads(weights, device), pose_only=True, accumulate=True)
     np.testing.assert_allclose(pose_grad.numpy(), 2 * expected, rtol=1e-4, atol=2e-4 * np.abs(expected).max())
     renderer.forward(gmap, CAM, T_WC, BACKGROUND)
-    assert renderer._last[4]
+    assert renderer.pose_jacobians_stored
 
 
 def test_tape_backward_through_warp_loss(device, problem):

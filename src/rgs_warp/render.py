@@ -192,6 +192,17 @@ class Renderer:
             wp.synchronize_device(self.device)
         return int(self._count_host.numpy()[0])
 
+    @property
+    def intersection_capacity(self) -> int:
+        """Tile intersections the next forward has room for (``reserve_intersections``)."""
+        return self._isect_capacity
+
+    @property
+    def pose_jacobians_stored(self) -> bool:
+        """Whether the latest forward stored the per-Gaussian pose Jacobians, so that a pose-only
+        ``backward`` needs no extra projection pass (a tracking loop's forwards do, once one asked)."""
+        return self._last is not None and self._last[4]
+
     def intersections_overflowed(self) -> bool:
         """Whether the latest forward (eager or replayed from a graph) dropped intersections."""
         return self._read_count() > self._isect_capacity

@@ -485,7 +485,7 @@ def _number(value: float, digits: int) -> str:
     return f"{value:.{digits}f}" if math.isfinite(value) else str(value)
 
 
-def _rank_marks(means: dict[str, float | None], metric: Metric) -> dict[str, str]:
+def rank_marks(means: dict[str, float | None], metric: Metric) -> dict[str, str]:
     """``{method: "best" | "second"}`` by the values as printed (ties share the mark)."""
     if metric.lower_is_better is None:
         return {}
@@ -530,10 +530,10 @@ def _table(result: dict, group: str, bench: str, notes: _Footnotes) -> list[str]
     for metric in (m for m in METRICS if m.group == group):
         arrow = {True: " ↓", False: " ↑", None: ""}[metric.lower_is_better]
         scene_marks = {
-            s: _rank_marks({k: result["aggregate"][s][k][metric.id]["mean"] for k in methods}, metric) for s in scenes
+            s: rank_marks({k: result["aggregate"][s][k][metric.id]["mean"] for k in methods}, metric) for s in scenes
         }
         averages = {k: result["averages"][bench][k][metric.id] for k in methods}
-        avg_marks = _rank_marks({k: a["mean"] for k, a in averages.items()}, metric)
+        avg_marks = rank_marks({k: a["mean"] for k, a in averages.items()}, metric)
         for i, method in enumerate(methods):
             cells = [
                 _scene_cell(result["aggregate"][s][method][metric.id], metric, scene_marks[s].get(method), notes)
