@@ -14,11 +14,12 @@ then tries a later k, up to ``BootstrapConfig.max_wait_frames``.
    as in the DenseMatcher), searched back from k into 0; kept when similar enough, distinctive
    (Lowe's ratio against the best match outside the immediate neighbourhood) and mutual
    (``kernels/bootstrap.py``).
-3. On the host, once per attempt: the normalised 8-point essential matrix in a MSAC loop (fixed
-   seed; Sampson error in image px), refined on its inliers by Levenberg-Marquardt on the Sampson
-   error, decomposed into its four (R, t), the one with the most points in front of both cameras
-   kept.  Rejected when the inliers are too few or too small a part of the matches, the
-   cheirality vote is not clear, or their median parallax angle is below ``min_parallax_deg``.
+3. On the host, once per attempt: the essential matrix and the relative pose by OpenCV
+   (``relative_pose``: ``findEssentialMat`` with USAC, Sampson error in image px, deterministic;
+   ``recoverPose`` picks the (R, t) that puts the most inliers in front of both cameras).  Rejected
+   when the inliers are too few or too small a part of the matches, too few of them are in front
+   of both cameras (a wrong pose puts several % behind one), or their median parallax angle is
+   below ``min_parallax_deg``.
 4. The inliers triangulated with the project's batched DLT (``triangulation.triangulate_dlt``) and
    the gauge fixed: frame 0 is the origin and the median depth of the points in frame 0 is
    ``matching.scene_depth_m`` (the unit the rest of a monocular run measures in).
@@ -35,12 +36,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import warp as wp
 
 from rgs_warp.config import BootstrapConfig, MatchingConfig
 from rgs_warp.features import make_backbone
-from rgs_warp.geometry import invert_pose, skew, so3_exp
+from rgs_warp.geometry import invert_pose, skew
 from rgs_warp.kernels.bootstrap import select_matches, window_search
 from rgs_warp.kernels.matching import sample_descriptors, score_matches
 from rgs_warp.triangulation import TriangulatedPoints, baseline_angle_deg, projection_matrices, triangulate_dlt
@@ -199,15 +201,16 @@ class MonoBootstrap:
         self.last_rejection = None
         if len(selected) < max(cfg.min_inliers, 8):
             return self._reject(f"{len(selected)} selected matches < {cfg.min_inliers}")
-        uv0, uvk = ref_uv[selected], match_uv[selected]
-        E, inliers = estimate_essential(
-            uv0, uvk, K, cfg.ransac_iters, cfg.ransac_threshold_px, cfg.ransac_seed, cfg.refine_rounds
+        pose = relative_pose(
+            ref_uv[selected], match_uv[selected], K, cfg.ransac_threshold_px, cfg.ransac_confidence, cfg.ransac_iters
         )
+        if pose is None:
+            return self._reject("no essential matrix")
+        R, t, inliers, in_front = pose
         if inliers.sum() < cfg.min_inliers:
             return self._reject(f"{inliers.sum()} essential-matrix inliers < {cfg.min_inliers}")
         if inliers.mean() < cfg.min_inlier_ratio:
             return self._reject(f"inlier ratio {inliers.mean():.2f} < {cfg.min_inlier_ratio}")
-        R, t, in_front = relative_pose_from_essential(E, normalised(uv0[inliers], K), normalised(uvk[inliers], K))
         if in_front.mean() < cfg.min_cheirality_ratio:
             return self._reject(f"cheirality {in_front.mean():.2f} < {cfg.min_cheirality_ratio} (ambiguous pose)")
         T_0k = invert_pose(_rigid(R, t))  # unit baseline
@@ -228,7 +231,7 @@ class MonoBootstrap:
             return self._reject("no point passes the reprojection and parallax tests")
         scale = self.matching.scene_depth_m / float(np.median(X[good, 2]))
         T_0k[:3, 3] *= scale
-        confidence = self._confidence_of(E, ref_uv, match_uv)[keep[good]]
+        confidence = self._confidence_of(skew(t) @ R, ref_uv, match_uv)[keep[good]]
         return BootstrapResult(
             T_0k=T_0k,
             points=X[good] * scale,
@@ -281,183 +284,48 @@ def to_triangulated_points(result: BootstrapResult, T_W0: np.ndarray, device=Non
 # ---------------------------------------------------------------------------- two-view geometry (host)
 
 
-def normalised(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(..., 2) pixels to normalised image coordinates K^-1 (u, v, 1), first two components."""
-    return (uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+def relative_pose(
+    uv0: np.ndarray,
+    uvk: np.ndarray,
+    K: np.ndarray,
+    threshold_px: float = 1.0,
+    confidence: float = 0.999999999,
+    max_iters: int = 1000,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Relative pose of pixel correspondences uv0 <-> uvk (n, 2), both seen by the camera K, by
+    OpenCV: ``findEssentialMat`` with USAC_DEFAULT (5-point samples, MSAC score on the Sampson error
+    in image px, local optimisation; OpenCV seeds it with a fixed state, so the same input gives the
+    same pose) and ``recoverPose`` on its inliers (the one of E's four (R, t) with the most inliers
+    in front of both cameras; no far limit on the points).
+
+    Returns (R, t, inliers (n,) bool, in_front (number of inliers,) bool) with camera-0 points
+    mapping into camera k as X_k = R X_0 + t, |t| = 1; None when OpenCV finds no essential matrix."""
+    uv0 = np.ascontiguousarray(uv0, dtype=np.float64)
+    uvk = np.ascontiguousarray(uvk, dtype=np.float64)
+    E, mask = cv2.findEssentialMat(
+        uv0, uvk, K, method=cv2.USAC_DEFAULT, prob=confidence, threshold=threshold_px, maxIters=max_iters
+    )
+    if E is None or mask is None or E.shape != (3, 3):
+        return None
+    inliers = mask.ravel() > 0
+    if inliers.sum() < 5:
+        return None
+    _, R, t, front, _ = cv2.recoverPose(E, uv0[inliers], uvk[inliers], K, distanceThresh=np.inf)
+    return R, t.ravel(), inliers, front.ravel() > 0
 
 
 def _homogeneous(x: np.ndarray) -> np.ndarray:
     return np.concatenate([x, np.ones(x.shape[:-1] + (1,))], -1)
 
 
-def _hartley(x: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) similarity moving the points (..., n, 2) to centroid 0, mean distance sqrt(2)."""
-    c = x.mean(-2)
-    d = np.linalg.norm(x - c[..., None, :], axis=-1).mean(-1)
-    s = np.sqrt(2.0) / np.maximum(d, 1e-12)
-    T = np.zeros(x.shape[:-2] + (3, 3))
-    T[..., 0, 0] = T[..., 1, 1] = s
-    T[..., :2, 2] = -s[..., None] * c
-    T[..., 2, 2] = 1.0
-    return T
-
-
-def essential_8point(x0: np.ndarray, xk: np.ndarray) -> np.ndarray:
-    """Normalised 8-point essential matrix (Hartley) of correspondences in normalised image
-    coordinates x0, xk (..., n >= 8, 2), batched over leading axes: the 3x3 matrix minimising the
-    algebraic error of ``x_k^T E x_0 = 0`` (in Hartley-normalised coordinates), projected onto the
-    essential matrices (singular values (1, 1, 0)) and scaled to unit Frobenius norm.  Camera-0
-    points map into camera k as X_k = R X_0 + t, E = [t]x R."""
-    T0, Tk = _hartley(x0), _hartley(xk)
-    p0 = np.einsum("...ij,...nj->...ni", T0, _homogeneous(x0))
-    pk = np.einsum("...ij,...nj->...ni", Tk, _homogeneous(xk))
-    A = (pk[..., :, :, None] * p0[..., :, None, :]).reshape(p0.shape[:-1] + (9,))
-    e = np.linalg.svd(A, full_matrices=True)[2][..., -1, :]
-    E = np.swapaxes(Tk, -1, -2) @ e.reshape(e.shape[:-1] + (3, 3)) @ T0
-    U, _, Vt = np.linalg.svd(E)
-    E = U @ np.diag([1.0, 1.0, 0.0]) @ Vt
-    return E / np.linalg.norm(E, axis=(-2, -1), keepdims=True)
-
-
-def _epipolar_terms(E: np.ndarray, uv0: np.ndarray, uvk: np.ndarray, K: np.ndarray):
-    """Algebraic residual x_k^T F x_0 and the gradients' components (F x_0, F^T x_k) in pixels."""
+def epipolar_distance_px(E: np.ndarray, uv0: np.ndarray, uvk: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Distance (image px) of each uvk from the epipolar line of its uv0 in image k under the
+    essential matrix E (x_k^T E x_0 = 0 in normalised coordinates): (n,)."""
     Kinv = np.linalg.inv(K)
     F = Kinv.T @ E @ Kinv
-    h0, hk = _homogeneous(uv0), _homogeneous(uvk)
-    Fx0 = np.einsum("...ij,nj->...ni", F, h0)
-    Ftxk = np.einsum("...ji,nj->...ni", F, hk)
-    return np.einsum("...ni,ni->...n", Fx0, hk), Fx0, Ftxk
-
-
-def sampson_error_px(
-    E: np.ndarray, uv0: np.ndarray, uvk: np.ndarray, K: np.ndarray, signed: bool = False
-) -> np.ndarray:
-    """First-order geometric (Sampson) error in image px of pixel correspondences (n, 2) under
-    essential matrices E (..., 3, 3): (..., n); ``signed`` keeps the sign of the algebraic residual
-    (a least-squares residual)."""
-    r, Fx0, Ftxk = _epipolar_terms(E, uv0, uvk, K)
-    grad2 = Fx0[..., 0] ** 2 + Fx0[..., 1] ** 2 + Ftxk[..., 0] ** 2 + Ftxk[..., 1] ** 2
-    return (r if signed else np.abs(r)) / np.sqrt(np.maximum(grad2, 1e-300))
-
-
-def epipolar_distance_px(E: np.ndarray, uv0: np.ndarray, uvk: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Distance (image px) of each uvk from the epipolar line of its uv0 in image k: (n,)."""
-    r, Fx0, _ = _epipolar_terms(E, uv0, uvk, K)
+    Fx0 = _homogeneous(uv0) @ F.T
+    r = np.einsum("ni,ni->n", Fx0, _homogeneous(uvk))
     return np.abs(r) / np.sqrt(np.maximum(Fx0[:, 0] ** 2 + Fx0[:, 1] ** 2, 1e-300))
-
-
-def estimate_essential(
-    uv0: np.ndarray,
-    uvk: np.ndarray,
-    K: np.ndarray,
-    iters: int = 512,
-    threshold_px: float = 1.0,
-    seed: int = 0,
-    refine_rounds: int = 2,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Essential matrix of pixel correspondences uv0 <-> uvk (n >= 8, 2) by MSAC over ``iters``
-    random 8-point samples (seeded: deterministic), then ``refine_rounds`` rounds of refinement on the
-    inliers (``refine_essential``) and re-selection of the inliers, those of Sampson error below
-    ``threshold_px``.
-    Returns (E, inliers (n,) bool)."""
-    n = len(uv0)
-    if n < 8:
-        raise ValueError(f"the 8-point algorithm needs at least 8 correspondences, got {n}")
-    x0, xk = normalised(uv0, K), normalised(uvk, K)
-    rng = np.random.default_rng(seed)
-    samples = rng.random((iters, n)).argpartition(7, axis=1)[:, :8]  # 8 distinct indices per row
-    hypotheses = essential_8point(x0[samples], xk[samples])
-    cost = np.empty(iters)
-    for lo in range(0, iters, 64):  # bounded memory: 64 hypotheses x n at a time
-        err = sampson_error_px(hypotheses[lo : lo + 64], uv0, uvk, K)
-        cost[lo : lo + 64] = (np.minimum(err, threshold_px) ** 2).sum(-1)
-    E = hypotheses[np.argmin(cost)]
-    inliers = sampson_error_px(E, uv0, uvk, K) < threshold_px
-    for _ in range(refine_rounds):
-        if inliers.sum() < 8:
-            break
-        E = refine_essential(E, uv0[inliers], uvk[inliers], K)
-        inliers = sampson_error_px(E, uv0, uvk, K) < threshold_px
-    return E, inliers
-
-
-def refine_essential(E: np.ndarray, uv0: np.ndarray, uvk: np.ndarray, K: np.ndarray, iters: int = 10) -> np.ndarray:
-    """E minimising the squared Sampson error of the correspondences over essential matrices
-    (Levenberg-Marquardt on E = [t]x R, 5 degrees of freedom: R <- Exp(w) R, t on the unit sphere).
-
-    Needed because the 8-point solution minimises an algebraic error over all 3x3 matrices and is
-    only then projected onto the essential matrices, which at small baselines costs accuracy
-    (measured on office0 160x90, frame 0 with frames 6 / 8: rotation 0.69 / 1.19 deg and
-    translation direction 12.6 / 15.1 deg off without the refinement, 0.09 / 0.29 and 1.9 / 3.4
-    with it)."""
-    R, t = decompose_essential(E)[0]
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        t_x = t + x[3] * basis[0] + x[4] * basis[1]
-        return sampson_error_px(skew(t_x / np.linalg.norm(t_x)) @ so3_exp(x[:3]) @ R, uv0, uvk, K, signed=True)
-
-    damping = 1e-3
-    for _ in range(iters):
-        basis = np.linalg.svd(t[None])[2][1:]  # two unit vectors orthogonal to t
-        x0 = np.zeros(5)
-        r = residuals(x0)
-        cost = r @ r
-        step = 1e-6
-        J = np.stack([(residuals(step * e) - residuals(-step * e)) / (2 * step) for e in np.eye(5)], 1)
-        JtJ, Jtr = J.T @ J, J.T @ r
-        while damping < 1e8:
-            x = np.linalg.solve(JtJ + damping * np.diag(np.diag(JtJ) + 1e-12), -Jtr)
-            r_new = residuals(x)
-            if r_new @ r_new < cost:
-                t_new = t + x[3] * basis[0] + x[4] * basis[1]
-                R, t = so3_exp(x[:3]) @ R, t_new / np.linalg.norm(t_new)
-                damping = max(damping / 10, 1e-9)
-                break
-            damping *= 10
-        else:
-            break
-        if cost - r_new @ r_new < 1e-12 * cost:
-            break
-    E = skew(t) @ R
-    return E / np.linalg.norm(E)
-
-
-def decompose_essential(E: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The four (R, t) of an essential matrix (t unit, X_k = R X_0 + t), the classic
-    ``R = U W V^T`` or ``U W^T V^T``, ``t = +/- u_3``."""
-    U, _, Vt = np.linalg.svd(E)
-    U = U * np.sign(np.linalg.det(U))
-    Vt = Vt * np.sign(np.linalg.det(Vt))
-    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    t = U[:, 2]
-    return [(U @ W @ Vt, t), (U @ W @ Vt, -t), (U @ W.T @ Vt, t), (U @ W.T @ Vt, -t)]
-
-
-def two_view_depths(R: np.ndarray, t: np.ndarray, x0: np.ndarray, xk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Depths (z0, zk) of the rays through normalised points x0, xk (n, 2) meeting as
-    zk xk = z0 R x0 + t (exactly where they intersect, least squares otherwise); NaN for parallel rays."""
-    r0 = _homogeneous(x0) @ R.T
-    hk = _homogeneous(xk)
-    a = np.cross(hk, r0)
-    b = np.cross(hk, t)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z0 = -(a * b).sum(-1) / (a * a).sum(-1)
-        zk = ((z0[:, None] * r0 + t) * hk).sum(-1) / (hk * hk).sum(-1)
-    return z0, zk
-
-
-def relative_pose_from_essential(
-    E: np.ndarray, x0: np.ndarray, xk: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The (R, t) of E that puts the most correspondences (normalised coordinates) in front of both
-    cameras (cheirality); returns (R, t, in_front (n,) bool)."""
-    best = None
-    for R, t in decompose_essential(E):
-        z0, zk = two_view_depths(R, t, x0, xk)
-        in_front = (z0 > 0) & (zk > 0)
-        if best is None or in_front.sum() > best[2].sum():
-            best = (R, t, in_front)
-    return best
 
 
 def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
