@@ -1,7 +1,7 @@
 """Monocular two-view bootstrap: the window search against brute force, the relative pose (OpenCV's
 essential matrix) on synthetic correspondences against their true pose (exact without noise, robust
 to 30 and 50 % outliers, deterministic), the whole bootstrap on rendered office pairs against their
-ground-truth pose and depth, rejection of pairs without parallax, and the hand-over to the Seeder."""
+ground-truth pose and depth, rejection of pairs without parallax, and the hand-over to the PointSeeder."""
 
 import cv2
 import numpy as np
@@ -18,10 +18,9 @@ from rgs_warp.bootstrap import (
 from rgs_warp.config import MatchingConfig, SeedingConfig
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg, skew, so3_exp
-from rgs_warp.kernels.bootstrap import select_matches, window_search
-from rgs_warp.kernels.matching import NO_MATCH
+from rgs_warp.kernels.matching import NO_MATCH, select_matches, window_search
 from rgs_warp.keyframes import KeyframeBuffer
-from rgs_warp.seeding import Seeder
+from rgs_warp.seeding import PointSeeder
 from rgs_warp.types import GaussianMap
 
 # ---- window search ------------------------------------------------------------------------------
@@ -33,7 +32,7 @@ def parabola(left, centre, right):
 
 
 def brute_force_window(query, uv, target, stride, offset, radius, exclusion):
-    """kernels/bootstrap.py: window_search without ZNCC refinement, one query at a time in NumPy."""
+    """kernels/matching.py: window_search without ZNCC refinement, one query at a time in NumPy."""
     hf, wf, _ = target.shape
     out = []
     for q, (u, v) in zip(query, uv, strict=True):
@@ -300,7 +299,7 @@ def test_to_triangulated_points_seeds_both_keyframes(office_pair, device):
     assert np.all(points.support.numpy() == 0b11) and np.all(points.valid.numpy() == 1)
     keyframes = KeyframeBuffer(2, cam.width, cam.height, device)
     slots = [keyframes.add(0, T_W0, truth["rgb"][0]), keyframes.add(8, T_W0 @ r.T_0k, truth["rgb"][1])]
-    seeder = Seeder(SeedingConfig(), cam, device)
+    seeder = PointSeeder(SeedingConfig(), cam, device)
     gmap = GaussianMap(1024, sh_degree=2, device=device)
     added = seeder.seed(points, wp.array(r.confidence, device=device), keyframes, slots, gmap)
     assert 0.3 * len(X_world) < added <= len(X_world)

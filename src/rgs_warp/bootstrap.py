@@ -13,7 +13,7 @@ then tries a later k, up to ``BootstrapConfig.max_wait_frames``.
    coarse whole-image pass finds, refined to sub-pixel (parabola, then image-resolution patch ZNCC
    as in the DenseMatcher), searched back from k into 0; kept when similar enough, distinctive
    (Lowe's ratio against the best match outside the immediate neighbourhood) and mutual
-   (``kernels/bootstrap.py``).
+   (``kernels/matching.py``, the bootstrap's section).
 3. On the host, once per attempt: the essential matrix and the relative pose by OpenCV
    (``relative_pose``: ``findEssentialMat`` with USAC, Sampson error in image px, deterministic;
    ``recoverPose`` picks the (R, t) that puts the most inliers in front of both cameras).  Rejected
@@ -43,8 +43,7 @@ import warp as wp
 from rgs_warp.config import BootstrapConfig, MatchingConfig
 from rgs_warp.features import make_backbone
 from rgs_warp.geometry import invert_pose, skew
-from rgs_warp.kernels.bootstrap import select_matches, window_search
-from rgs_warp.kernels.matching import sample_descriptors, score_matches
+from rgs_warp.kernels.matching import sample_descriptors, score_matches, select_matches, window_search
 from rgs_warp.triangulation import TriangulatedPoints, baseline_angle_deg, projection_matrices, triangulate_dlt
 from rgs_warp.types import Camera
 
@@ -213,7 +212,7 @@ class MonoBootstrap:
             return self._reject(f"inlier ratio {inliers.mean():.2f} < {cfg.min_inlier_ratio}")
         if in_front.mean() < cfg.min_cheirality_ratio:
             return self._reject(f"cheirality {in_front.mean():.2f} < {cfg.min_cheirality_ratio} (ambiguous pose)")
-        T_0k = invert_pose(_rigid(R, t))  # unit baseline
+        T_0k = invert_pose(_transform(R, t))  # unit baseline
         keep = selected[inliers][in_front]
         P = projection_matrices(K, np.stack([np.eye(4), T_0k]))
         x = np.stack([ref_uv[keep], match_uv[keep]], 1)
@@ -328,7 +327,7 @@ def epipolar_distance_px(E: np.ndarray, uv0: np.ndarray, uvk: np.ndarray, K: np.
     return np.abs(r) / np.sqrt(np.maximum(Fx0[:, 0] ** 2 + Fx0[:, 1] ** 2, 1e-300))
 
 
-def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T

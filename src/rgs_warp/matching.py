@@ -188,7 +188,17 @@ class DenseMatcher:
             wp.launch(
                 epipolar_search,
                 dim=n,
-                inputs=[ref_desc, self._ref_uv, self._always, ref_depth, ref_rgb, nb_desc, nb_rgb, K, *_rigid(T_nr)]
+                inputs=[
+                    ref_desc,
+                    self._ref_uv,
+                    self._always,
+                    ref_depth,
+                    ref_rgb,
+                    nb_desc,
+                    nb_rgb,
+                    K,
+                    *_warp_rigid(T_nr),
+                ]
                 + [*search],
                 outputs=[self._fwd_uv, self._fwd_sim, self._fwd_epi],
                 device=d,
@@ -198,7 +208,7 @@ class DenseMatcher:
                 epipolar_search,
                 dim=n,
                 inputs=[self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_rgb, ref_desc_3d, ref_rgb, K]
-                + [*_rigid(T_rn), *search],
+                + [*_warp_rigid(T_rn), *search],
                 outputs=[self._bwd_uv, self._bwd_sim, self._bwd_epi],
                 device=d,
             )
@@ -241,5 +251,5 @@ class DenseMatcher:
         )
 
 
-def _rigid(T: np.ndarray) -> tuple[wp.mat33, wp.vec3]:
+def _warp_rigid(T: np.ndarray) -> tuple[wp.mat33, wp.vec3]:
     return wp.mat33(*T[:3, :3].astype(np.float32).ravel()), wp.vec3(*T[:3, 3].astype(np.float32))

@@ -160,7 +160,7 @@ class Tracker:
         if len(self._poses) == 1:
             return self._poses[-1].copy()
         prev, last = self._poses[-2], self._poses[-1]
-        return _rigid(last @ invert_pose(prev) @ last)
+        return _nearest_rigid(last @ invert_pose(prev) @ last)
 
     # ---- tracking ----------------------------------------------------------------------------
     def track(self, rgb, depth, gmap: GaussianMap, T_init_WC: np.ndarray | None = None) -> TrackingResult:
@@ -314,7 +314,11 @@ class Tracker:
         wp.synchronize_device(self.device)
         hist = self._history_host.numpy().copy()
         poses_CW = np.array(self._pose_history_host.numpy(), dtype=np.float64)
-        T_WC = _rigid(invert_pose(poses_CW[-1])) if np.all(np.isfinite(poses_CW[-1])) else invert_pose(poses_CW[-1])
+        T_WC = (
+            _nearest_rigid(invert_pose(poses_CW[-1]))
+            if np.all(np.isfinite(poses_CW[-1]))
+            else invert_pose(poses_CW[-1])
+        )
         last = hist[-1]
         n_pixels = self._rgb.shape[0] * self._rgb.shape[1]
         valid_ratio = float(last[tk.H_VALID] / n_pixels)
@@ -355,7 +359,7 @@ class Tracker:
         )
 
 
-def _rigid(T: np.ndarray) -> np.ndarray:
+def _nearest_rigid(T: np.ndarray) -> np.ndarray:
     """``T`` with its rotation projected onto SO(3) (nearest in Frobenius norm).  Rounding leaves
     ~1e-16 of non-orthogonality per step, and the constant-velocity extrapolation T R_prev^T T
     amplifies it about 2.4x a frame (measured: 5e-7 after 24 frames, diverging by 40); projecting
