@@ -33,3 +33,12 @@ def scatter_kept_rows(
     i, k = wp.tid()
     if remove[i] == 0:
         dst_out[i - removed_before[i], k] = src[i, k]
+
+
+# The element types the package launches these with (GaussianMap fields, MapAdam's float32 moment
+# rows, per-Gaussian statistics), declared so that the module compiles ahead of time like every
+# other (tests/test_cuda_compile.py); any other type still compiles at its first launch.
+for _dtype in (wp.float32, wp.int32, wp.vec3, wp.quat):
+    wp.overload(scatter_kept, {"src": wp.array(dtype=_dtype), "dst_out": wp.array(dtype=_dtype)})
+for _dtype in (wp.float32, wp.vec3):
+    wp.overload(scatter_kept_rows, {"src": wp.array2d(dtype=_dtype), "dst_out": wp.array2d(dtype=_dtype)})
