@@ -473,6 +473,7 @@ def _keyframes(room, frames, device) -> tuple[KeyframeBuffer, list[int]]:
     return kf, [kf.add(i, T, rgb, depth) for i, (rgb, depth, T) in enumerate(frames)]
 
 
+@pytest.mark.slow
 def test_mapping_refines_corrupted_colours(device, room):
     # Measured (CPU): +1.3 / +1.8 / +2.0 dB in 60 iterations with the higher SH bands at 1/20 of the
     # colour rate (mapping.lr_color_rest_factor); at the full rate they took up part of the noise as
@@ -519,6 +520,7 @@ def _reprojection_px(points, camera, T_WC, T_ref_WC) -> float:
     return float(np.linalg.norm(project(T_WC)[0] - uv_ref, axis=1)[inside].mean())
 
 
+@pytest.mark.slow
 def test_mapping_reduces_a_keyframe_pose_error(device, room):
     # The keyframes are the map's own renders at the true poses (as in test_tracking), so that the true
     # pose is the optimum; keyframe 0 is fixed, keyframe 1 starts 1 cm / 0.5 deg off.  Measured (CPU), 8
