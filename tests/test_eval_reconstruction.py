@@ -4,11 +4,13 @@ import copy
 
 import cv2
 import numpy as np
-import open3d as o3d
 import pytest
 
+from helpers_open3d import import_open3d
 from rgs_warp.eval import depth_l1_cm, mesh_metrics, tsdf_fuse
 from rgs_warp.types import Camera
+
+o3d = import_open3d()  # every test here needs it: the module is skipped, with the reason, without it
 
 REPLICA_CAMERA = Camera(fx=600.0, fy=600.0, cx=599.5, cy=339.5, width=1200, height=680)
 

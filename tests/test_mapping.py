@@ -253,6 +253,7 @@ def _keyframes(room, frames, device) -> tuple[KeyframeBuffer, list[int]]:
     return kf, [kf.add(i, T, rgb, depth) for i, (rgb, depth, T) in enumerate(frames)]
 
 
+@pytest.mark.slow
 def test_mapping_refines_corrupted_colours(device, room):
     # Measured (CPU): +1.3 / +1.8 / +2.0 dB in 60 iterations with the higher SH bands at 1/20 of the
     # colour rate (mapping.lr_color_rest_factor); at the full rate they took up part of the noise as

@@ -143,6 +143,7 @@ BASELINE = [
 ]
 
 
+@pytest.mark.slow
 def test_baseline_grows_by_densification_and_depth_coverage(tmp_path, device, monkeypatch):
     from rgs_warp.matching import DenseMatcher
 
@@ -187,6 +188,7 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     assert "tracking.brightness" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_warns_when_tracking_is_lost(tmp_path, capsys, device):
     """A map can never cover more than the whole view: with that demanded, every tracked frame is
     lost; the progress log, the report and the command's last line say where and why."""
@@ -201,6 +203,7 @@ def test_cli_warns_when_tracking_is_lost(tmp_path, capsys, device):
     assert tracking["first_lost_reason"] == entries[1]["lost_reason"]
 
 
+@pytest.mark.slow
 def test_cli_saves_what_it_tracked_when_terminated(tmp_path, device):
     """SIGTERM (a job scheduler's stop) in the middle of a run: the command leaves through the run's
     cleanup, so the log read so far, the trajectory of the frames tracked and the map are on disk."""
@@ -236,6 +239,7 @@ def test_slam_rejects_missing_depth_in_rgbd_mode(device):
         slam.track(np.zeros((90, 160, 3), np.float32), None)
 
 
+@pytest.mark.slow
 def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
     """RGB-D frames that are not keyframes seed their uncovered pixels from the measured depth, but
     the seeds join the map only at the next keyframe (or ``finish``): tracking does not change the
@@ -278,6 +282,7 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         assert all(r.seeded == 0 for r in results[5:]) and len(slam.seeder.pending) == 0, off
 
 
+@pytest.mark.slow
 def test_own_data_without_ground_truth(tmp_path, device):
     """A sequence of one's own in the TUM layout with cam_params.json and no groundtruth.txt runs end
     to end with dataset.require_pose=false: trajectory, map and photometric metrics, ATE not scored
@@ -310,6 +315,7 @@ def test_own_data_without_ground_truth(tmp_path, device):
     assert (run_dir / "trajectory_topview.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_given_poses_and_tracking_start(device, tmp_path):
     """``process(T_WC=...)``: no tracking, the frame is mapped at the given pose and mapping keeps it;
     ``process(T_init_WC=...)``: tracking starts there."""
@@ -366,6 +372,7 @@ def _frames(cfg, n):
     return ds.camera, [ds[i] for i in range(n)]
 
 
+@pytest.mark.slow
 def test_mono_bootstrap_builds_the_first_map_from_two_views(device):
     from rgs_warp.geometry import invert_pose, rotation_angle_deg
 
@@ -393,6 +400,7 @@ def test_mono_bootstrap_builds_the_first_map_from_two_views(device):
     assert all(np.abs(poses[j] - poses[0]).max() > 1e-6 for j in range(1, k))
 
 
+@pytest.mark.slow
 def test_mono_bootstrap_falls_back_to_a_plane(device):
     cfg = load_config([*MONO, "dataset.max_frames=3", "bootstrap.max_wait_frames=2", f"device={device}"])
     camera, frames = _frames(cfg, 3)

@@ -7,10 +7,10 @@ import re
 
 import cv2
 import numpy as np
-import open3d as o3d
 import plyfile
 import pytest
 
+from helpers_open3d import import_open3d
 from rgs_warp.datasets.base import DatasetError
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig, SyntheticDataset, build_scene, write_sequence
 from rgs_warp.datasets.synthetic import dataset as synthetic_dataset
@@ -29,7 +29,7 @@ def room(device):
     return seq, frames
 
 
-def _raycasting_scene(seq: SequenceRenderer) -> o3d.t.geometry.RaycastingScene:
+def _raycasting_scene(o3d, seq: SequenceRenderer):
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(seq.scene.positions.reshape(-1, 3).astype(np.float32)),
@@ -110,9 +110,10 @@ def test_warping_frame_j_into_i_reproduces_frame_i(room):
 def test_reprojection_agrees_with_an_independent_ray_cast(room):
     """Frame i's depth, reprojected into frame j at (u', v'): an Open3D ray through (u', v') from
     camera j must hit the same 3D point, and that point must project back onto frame i's pixel."""
+    o3d = import_open3d()
     seq, frames = room
     cam = seq.cfg.camera
-    rc = _raycasting_scene(seq)
+    rc = _raycasting_scene(o3d, seq)
     i, j = 60, 63
     depth_i = frames[i][1]
     Xw = _backproject(depth_i, cam, seq.poses[i])
@@ -134,6 +135,7 @@ def test_reprojection_agrees_with_an_independent_ray_cast(room):
 
 
 def test_depth_lies_on_the_ground_truth_mesh(tmp_path, device):
+    o3d = import_open3d()
     ds = SyntheticDataset(
         "office0", n_frames=12, cache_root=tmp_path, device=device, prefetch=0, progress=False, **SMALL
     )

@@ -369,7 +369,7 @@ def _perturbed(T_WC, t_m, r_deg, seed):
     return invert_pose(se3_exp(xi) @ invert_pose(T_WC))
 
 
-@pytest.mark.parametrize("mode", ["rgbd", "mono"])
+@pytest.mark.parametrize("mode", ["rgbd", pytest.param("mono", marks=pytest.mark.slow)])
 def test_recovers_a_perturbed_pose(device, scene, mode):
     # monocular: 40 steps (the paper allows 30-60); with 30 the gain model (ratio of means) leaves
     # 1.2 mm where the affine least squares (lower contrast early on) got just under 1 mm
@@ -389,6 +389,7 @@ def test_recovers_a_perturbed_pose(device, scene, mode):
         assert result.loss_history[-1] < 0.2 * result.loss_history[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ["affine", "gain"])
 def test_brightness_model_absorbs_an_exposure_change(device, scene, model):
 
@@ -411,6 +412,7 @@ def test_brightness_model_absorbs_an_exposure_change(device, scene, model):
     assert errors["off"][0] > 3 * errors[model][0]  # without Eq. 3 the exposure change costs accuracy
 
 
+@pytest.mark.slow
 def test_tracks_ten_frames_from_the_constant_velocity_prediction(device, scene):
 
     poses = scene["poses"]

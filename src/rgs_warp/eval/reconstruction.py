@@ -19,9 +19,14 @@ if TYPE_CHECKING:
 
 def _open3d():
     """Open3D, imported when a mesh metric runs: it is heavy (and needs libusb), and nothing else in
-    the package uses it."""
-    import open3d
-
+    the package uses it, so it is the optional extra ``mesh``."""
+    try:
+        import open3d
+    except ImportError as e:
+        raise ImportError(
+            f'mesh metrics need open3d, the optional extra: pip install "rgs_warp[mesh]" (on Linux it also needs '
+            f"the system libusb: apt-get install libusb-1.0-0); importing it failed: {e}"
+        ) from e
     return open3d
 
 
