@@ -1,5 +1,5 @@
-"""The SLAM system (supplement §4.6): the stages chained frame by frame; ``python -m rgs_warp.slam`` runs
-it on a dataset (``rgs_warp.run``).
+"""The SLAM system (supplement §4.6): the stages chained frame by frame; ``python -m rgs_warp.slam``
+(``__main__.py``) runs it on a dataset through ``rgs_warp.run``.
 
 ``SLAM(cfg, camera)`` is the library entry point: ``slam.track(rgb, depth)`` per frame returns the
 camera-to-world pose.  Every frame is tracked against the map (``Tracker``); when the co-visibility
@@ -16,8 +16,6 @@ densification cannot reach regions no Gaussian sees.  Everything else is shared.
 
 from __future__ import annotations
 
-import signal
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -379,12 +377,3 @@ class SLAM:
             slam.selector.should_add(slam._alpha_at(T_kf), T_kf)
             slam.selector.accept(T_kf)
         return slam
-
-
-if __name__ == "__main__":
-    from rgs_warp.run import main
-
-    # a job scheduler stops a run with SIGTERM: leave through the run's `finally`, which saves what was
-    # tracked (as Ctrl-C does), with the shell's exit status for it
-    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
-    sys.exit(main())
