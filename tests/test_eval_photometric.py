@@ -10,8 +10,10 @@ from skimage.metrics import structural_similarity
 
 from rgs_warp.eval import (
     LPIPS,
+    compensate_exposure,
     depth_l1_cm,
     eval_frame_indices,
+    fit_exposure,
     photometric_metrics,
     psnr,
     ssim,
@@ -178,7 +180,10 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     assert loaded["photometric"]["lpips"] is None
     assert loaded["align_T"] == np.eye(4).tolist()
     markdown = md_path.read_text()
-    assert "| psnr (dB) | ssim | lpips | depth_l1 (cm) |" in markdown
+    assert (
+        "| psnr (dB) | ssim | psnr_compensated (dB) | ssim_compensated | exposure_gain | lpips | depth_l1 (cm) |"
+        in markdown
+    )
     assert f"n/a ({out['lpips_na_reason']})" in markdown
     assert "| keyframes | 1.235 | 12 |" in markdown and "| all_frames | 2.5 |  |" in markdown
 
@@ -186,3 +191,30 @@ def test_photometric_metrics_and_report(frames, tmp_path):
         write_report(tmp_path / "bad", {"photometric": {"lpips": None}})
     json_path, _ = write_report(tmp_path / "inf", {"psnr_db": float("inf")})
     assert json.loads(json_path.read_text())["psnr_db"] == "inf"
+
+
+def test_exposure_fit_matches_lstsq_and_compensation_scores_the_map(frames):
+    # a real frame seen at another exposure (darker and offset, as auto-exposure does): the raw
+    # PSNR counts the exposure as error, the compensated one does not
+    a, _ = frames
+    rng = np.random.default_rng(3)
+    render = np.clip(a + rng.normal(0.0, 0.01, a.shape), 0.0, 1.0)  # the map: the frame with a little error
+    ref = 0.7 * a + 0.05  # the frame at another exposure (inside [0, 1]: nothing clipped)
+    alpha = np.ones(a.shape[:2])
+    alpha[:, : a.shape[1] // 3] = 0.2  # a part the map does not cover: left out of the fit
+    render[:, : a.shape[1] // 3] = 0.0
+    covered = alpha >= 0.5
+    x, y = render[covered].reshape(-1), ref[covered].reshape(-1)
+    g_ref, b_ref = np.linalg.lstsq(np.stack([x, np.ones_like(x)], 1), y, rcond=None)[0]
+    g, b = fit_exposure(render, ref, alpha)
+    assert (g, b) == pytest.approx((g_ref, b_ref), rel=1e-9, abs=1e-12)
+    assert g == pytest.approx(0.7, abs=0.02) and b == pytest.approx(0.05, abs=0.01)
+    compensated = compensate_exposure(render, ref, alpha)
+    np.testing.assert_allclose(compensated, np.clip(g_ref * render + b_ref, 0, 1), atol=1e-12)
+    assert psnr(compensated[covered], ref[covered]) > psnr(render[covered], ref[covered]) + 8.0
+    out = photometric_metrics([render], [ref], None, alphas=[alpha])
+    assert out["psnr_compensated_db"] == pytest.approx(psnr(compensated, ref), abs=1e-9)
+    assert out["psnr_compensated_db"] > out["psnr_db"] + 2.0 and out["ssim_compensated"] > out["ssim"]
+    assert out["exposure_gain"] == pytest.approx(g)
+    # a uniform render does not determine the fit: the identity
+    assert fit_exposure(np.full_like(a, 0.5), ref) == (1.0, 0.0)

@@ -40,7 +40,7 @@ def test_small_run_end_to_end(finished_run):
         assert (run_dir / name).is_file(), name
     assert (run_dir / "metrics.md").read_text().startswith("# rgs_warp")
     assert (run_dir / "trajectory_topview.png").stat().st_size > 1000
-    assert list((run_dir / "renders").glob("*_render_vs_gt.png"))
+    assert list((run_dir / "renders").glob("*_render_gt_error.png"))
     stamps, poses = read_tum_trajectory(run_dir / "trajectory.txt")
     assert len(poses) == metrics["frames"] == 20
     assert len(load_ply(run_dir / "map.ply")) == metrics["gaussians"] > 1000

@@ -21,9 +21,11 @@ from rgs_warp.datasets import DatasetError, open_dataset
 from rgs_warp.eval import (
     LPIPS,
     ate_keyframes_and_all,
+    compensate_exposure,
     eval_frame_indices,
     photometric_metrics,
     plot_trajectory_topview,
+    psnr,
     write_report,
 )
 from rgs_warp.slam import SLAM
@@ -227,22 +229,24 @@ def evaluate_run(
             plot_trajectory_topview(est, None, run_dir / "trajectory_topview.png", title=metrics["dataset"])
     # photometric metrics: every eval.every-th frame, keyframes excluded (§3), rendered at the estimate
     idx = eval_frame_indices(n, slam.keyframe_indices, cfg.eval.every)
-    renders, refs, depths, ref_depths = [], [], [], []
+    renders, refs, alphas, depths, ref_depths = [], [], [], [], []
     for i in idx:
         frame = ds[int(i)]
         res = slam.render(est[i])
         renders.append(np.clip(res.color.numpy(), 0.0, 1.0))
         refs.append(frame.rgb)
+        alphas.append(res.alpha.numpy().copy())
         if frame.depth is not None and cfg.mode == "rgbd":  # monocular depth has the map's own scale
-            alpha = res.alpha.numpy()
+            alpha = alphas[-1]
             depths.append(np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0))
             ref_depths.append(frame.depth)
     if renders:
         lpips = LPIPS(cfg.eval.lpips_alexnet_path or None, cfg.eval.lpips_linear_path or None)
         metrics["photometric"] = photometric_metrics(
-            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None
+            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas
         )
-        save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs)
+        metrics["photometric"].update(keyframe_fit(ds, slam, est))
+        save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)
     else:
         metrics["photometric"] = None
         metrics["photometric_na_reason"] = "no non-keyframe frame to score"
@@ -275,16 +279,33 @@ def mesh_section(cfg: Config, ds, slam: SLAM, est: np.ndarray) -> dict:
     return {"mesh": mesh_metrics(rec, gt)}
 
 
-def save_side_by_side(folder: Path, indices: list[int], renders: list, refs: list, count: int = 4) -> None:
-    """A few render | ground-truth pairs as PNG (as the seed's Figure 1), evenly over the run."""
+def keyframe_fit(ds, slam: SLAM, est: np.ndarray) -> dict:
+    """How well the map fits what it was trained on: the mean PSNR of the renders at every keyframe's
+    pose against its frame, raw and exposure-compensated (``keyframe_psnr_db``,
+    ``keyframe_psnr_compensated_db``)."""
+    raw, compensated = [], []
+    for i in slam.keyframe_indices:
+        res = slam.render(est[i])
+        render, ref = np.clip(res.color.numpy(), 0.0, 1.0), ds[int(i)].rgb
+        raw.append(psnr(render, ref))
+        compensated.append(psnr(compensate_exposure(render, ref, res.alpha.numpy()), ref))
+    return {"keyframe_psnr_db": float(np.mean(raw)), "keyframe_psnr_compensated_db": float(np.mean(compensated))}
+
+
+def save_side_by_side(
+    folder: Path, indices: list[int], renders: list, refs: list, alphas: list, count: int = 4
+) -> None:
+    """A few scored frames as PNG, evenly over the run: render | ground truth | error, the error being
+    |render at the frame's exposure - frame| (``compensate_exposure``), x4 in grey levels."""
     import cv2
 
     folder.mkdir(parents=True, exist_ok=True)
     picks = np.unique(np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int))
     for k in picks:
-        pair = np.concatenate([renders[k], refs[k]], axis=1)
-        image = (np.clip(pair, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-        cv2.imwrite(str(folder / f"frame{indices[k]:05d}_render_vs_gt.png"), image[..., ::-1])
+        error = np.abs(compensate_exposure(renders[k], refs[k], alphas[k]) - refs[k]).mean(axis=2, keepdims=True)
+        row = np.concatenate([renders[k], refs[k], np.repeat(np.clip(4.0 * error, 0.0, 1.0), 3, axis=2)], axis=1)
+        image = (np.clip(row, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(folder / f"frame{indices[k]:05d}_render_gt_error.png"), image[..., ::-1])
 
 
 def main(argv: list[str] | None = None) -> int:

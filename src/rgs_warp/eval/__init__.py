@@ -3,8 +3,10 @@
 from rgs_warp.eval.ate import ate, ate_keyframes_and_all, umeyama_alignment
 from rgs_warp.eval.photometric import (
     LPIPS,
+    compensate_exposure,
     depth_l1_cm,
     eval_frame_indices,
+    fit_exposure,
     photometric_metrics,
     psnr,
     ssim,
@@ -14,6 +16,8 @@ from rgs_warp.eval.report import plot_trajectory_topview, write_report
 
 __all__ = [
     "LPIPS",
+    "compensate_exposure",
+    "fit_exposure",
     "ate",
     "ate_keyframes_and_all",
     "depth_l1_cm",

@@ -78,6 +78,34 @@ def depth_l1_cm(depth_m: np.ndarray, ref_m: np.ndarray) -> float:
     return float(100.0 * np.mean(np.abs(depth_m[valid] - ref_m[valid])))
 
 
+# Pixels the map covers at least this much take part in the exposure fit of a scored frame.
+EXPOSURE_MIN_ALPHA = 0.5
+
+
+def fit_exposure(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray | None = None) -> tuple[float, float]:
+    """The affine brightness (gain g, bias b; one each for all channels) that maps ``render`` onto
+    ``ref`` in the least-squares sense (Eq. 4), over the pixels the map covers (``alpha`` >=
+    ``EXPOSURE_MIN_ALPHA``; every pixel without ``alpha``); (1, 0) when those pixels do not determine
+    it (fewer than two, or a uniform render).  A real camera changes its exposure from frame to
+    frame while the map has one colour: an exposure-compensated metric scores the map, not the
+    exposure (MonoGS's protocol)."""
+    render, ref = _check_pair(render, ref)
+    covered = np.ones(render.shape[:2], bool) if alpha is None else np.asarray(alpha) >= EXPOSURE_MIN_ALPHA
+    x, y = render[covered].reshape(-1), ref[covered].reshape(-1)
+    n = float(x.size)
+    sx, sy, sxx, sxy = x.sum(), y.sum(), (x * x).sum(), (x * y).sum()
+    det = n * sxx - sx * sx
+    if n < 2 or det <= 1e-12 * n * n:
+        return 1.0, 0.0
+    return float((n * sxy - sx * sy) / det), float((sxx * sy - sx * sxy) / det)
+
+
+def compensate_exposure(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
+    """``render`` at ``ref``'s exposure: clip(g render + b, 0, 1) with ``fit_exposure``'s (g, b)."""
+    g, b = fit_exposure(render, ref, alpha)
+    return np.clip(g * np.asarray(render, dtype=np.float64) + b, 0.0, 1.0)
+
+
 def eval_frame_indices(n_frames: int, keyframe_indices: Sequence[int], every: int = 5) -> np.ndarray:
     """Frames scored by the photometric metrics (§3): every ``every``-th frame (0, every, 2*every,
     ...), keyframes excluded, since the map was fitted to them."""
@@ -196,16 +224,28 @@ def photometric_metrics(
     lpips_model: LPIPS | None = None,
     depths_m: Sequence[np.ndarray] | None = None,
     ref_depths_m: Sequence[np.ndarray] | None = None,
+    alphas: Sequence[np.ndarray] | None = None,
 ) -> dict:
     """Means over the scored frames (pick them with ``eval_frame_indices``) of PSNR, SSIM, LPIPS
-    and depth L1, for ``write_report``. A metric that cannot be computed is None with its reason
-    under ``<name>_na_reason``."""
+    and depth L1, for ``write_report``: ``psnr_db`` and ``ssim`` of the raw render, and
+    ``psnr_compensated_db`` and ``ssim_compensated`` of the render at each frame's exposure
+    (``compensate_exposure``, fitted where ``alphas`` >= 0.5), with the mean fitted gain
+    ``exposure_gain`` (1 where the map's colour is the frames' exposure).  A metric that cannot be
+    computed is None with its reason under ``<name>_na_reason``."""
     if len(renders) != len(refs) or not renders:
         raise ValueError(f"need matching non-empty render/reference lists, got {len(renders)}, {len(refs)}")
+    alphas = [None] * len(renders) if alphas is None else alphas
+    exposures = [fit_exposure(x, y, a) for x, y, a in zip(renders, refs, alphas, strict=True)]
+    compensated = [
+        np.clip(g * np.asarray(x, np.float64) + b, 0, 1) for x, (g, b) in zip(renders, exposures, strict=True)
+    ]
     out: dict = {
         "n_frames": len(renders),
         "psnr_db": float(np.mean([psnr(x, y) for x, y in zip(renders, refs, strict=True)])),
         "ssim": float(np.mean([ssim(x, y) for x, y in zip(renders, refs, strict=True)])),
+        "psnr_compensated_db": float(np.mean([psnr(x, y) for x, y in zip(compensated, refs, strict=True)])),
+        "ssim_compensated": float(np.mean([ssim(x, y) for x, y in zip(compensated, refs, strict=True)])),
+        "exposure_gain": float(np.mean([g for g, _ in exposures])),
     }
     if lpips_model is not None and lpips_model.available:
         out["lpips"] = float(np.mean([lpips_model(x, y) for x, y in zip(renders, refs, strict=True)]))

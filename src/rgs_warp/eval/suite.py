@@ -79,8 +79,27 @@ METRICS = (
     # frames whose tracking was lost (the map covered too little of the view, or the residual was too
     # high): a low ATE over a run that lost frames is luck, not tracking
     Metric("lost_frames", ("tracking", "lost_frames"), "Lost frames", "Tracking", True, 1),
-    Metric("psnr_db", ("photometric", "psnr_db"), "PSNR (dB)", "Rendering", False, 2),
-    Metric("ssim", ("photometric", "ssim"), "SSIM", "Rendering", False, 3),
+    # raw: the render as the map holds it; compensated: at each scored frame's exposure (one gain and
+    # bias fitted to the frame, MonoGS's protocol), what a camera with auto-exposure can be fair to
+    Metric("psnr_db", ("photometric", "psnr_db"), "PSNR raw (dB)", "Rendering", False, 2),
+    Metric(
+        "psnr_compensated_db",
+        ("photometric", "psnr_compensated_db"),
+        "PSNR exposure-compensated (dB)",
+        "Rendering",
+        False,
+        2,
+    ),
+    Metric("ssim", ("photometric", "ssim"), "SSIM raw", "Rendering", False, 3),
+    Metric("ssim_compensated", ("photometric", "ssim_compensated"), "SSIM exposure-compensated", "Rendering", False, 3),
+    Metric(
+        "keyframe_psnr_compensated_db",
+        ("photometric", "keyframe_psnr_compensated_db"),
+        "Keyframe PSNR compensated (dB)",
+        "Rendering",
+        False,
+        2,
+    ),
     Metric("lpips", ("photometric", "lpips"), "LPIPS", "Rendering", True, 3),
     Metric("depth_l1_cm", ("photometric", "depth_l1_cm"), "Depth L1 (cm)", "Rendering", True, 2),
     Metric("acc_cm", ("mesh", "acc_cm"), "Acc. (cm)", "Reconstruction", True, 2),
