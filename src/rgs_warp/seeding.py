@@ -258,13 +258,7 @@ class Seeder:
         hg, wg = camera.height // cfg.depth_stride, camera.width // cfg.depth_stride
         n = hg * wg
         self._depth_grid = (hg, wg)
-        self._depth_points = TriangulatedPoints(
-            wp.zeros(n, dtype=wp.vec3d, device=dev),
-            wp.zeros(n, dtype=wp.float64, device=dev),
-            wp.zeros(n, dtype=wp.float64, device=dev),
-            wp.zeros(n, dtype=wp.int32, device=dev),
-            wp.zeros(n, dtype=wp.int32, device=dev),
-        )
+        self._depth_points = TriangulatedPoints.zeros(n, dev)
         # measured depth is certain (Eq. 14 at full confidence); a monocular plane is not
         self._depth_confidence = wp.full(n, 1.0 if mode == "rgbd" else 0.0, dtype=wp.float32, device=dev)
         shape = (camera.height, camera.width)
