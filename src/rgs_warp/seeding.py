@@ -26,6 +26,15 @@ from rgs_warp.types import Camera, GaussianMap, grown_capacity
 CELL_PRIOR_POINTS = 1000  # weight of the nominal hash-grid cell size against measured radii
 
 
+def _view_arrays(**kw) -> tuple[wp.array, wp.array, wp.array]:
+    """The per-view inputs of the seeding kernels, ``MAX_VIEWS`` rows each: pose, slot, exposure."""
+    return (
+        wp.zeros(MAX_VIEWS, dtype=wp.mat44, **kw),
+        wp.zeros(MAX_VIEWS, dtype=wp.int32, **kw),
+        wp.zeros(MAX_VIEWS, dtype=wp.vec2, **kw),
+    )
+
+
 class PointSeeder:
     """Initialises one Gaussian per Poisson-disk-subsampled triangulated point (supplement §4.5).
 
@@ -75,12 +84,8 @@ class PointSeeder:
         self._plane_radius_stats = wp.zeros(2, dtype=wp.float32, **kw)
         self._count_host = wp.zeros(1, dtype=wp.int32, **host)
         self._plane_radius_stats_host = wp.zeros(2, dtype=wp.float32, **host)
-        self._view_T_CW = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **kw)
-        self._view_slot = wp.zeros(MAX_VIEWS, dtype=wp.int32, **kw)
-        self._view_exposure = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **kw)
-        self._view_T_CW_host = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **host)
-        self._view_slot_host = wp.zeros(MAX_VIEWS, dtype=wp.int32, **host)
-        self._view_exposure_host = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **host)
+        self._view_T_CW, self._view_slot, self._view_exposure = _view_arrays(**kw)
+        self._view_T_CW_host, self._view_slot_host, self._view_exposure_host = _view_arrays(**host)
         # hash grid cell size: running, point-count-weighted mean of the plane-fit radius over the
         # calls so far (halved weight per call), starting from the radius at a nominal 2 m with the
         # weight of CELL_PRIOR_POINTS points: a call with a handful of (possibly outlying) points
