@@ -67,6 +67,25 @@ class CameraParams:
     tan_y_max: float
 
 
+def camera_params(camera, near_m: float = 0.0, frustum_margin: float = 0.0) -> CameraParams:
+    """The kernels' ``CameraParams`` of a ``types.Camera``: its intrinsics and tile grid, the near
+    plane ``near_m``, and the Jacobian's clamp range, the image edges (pixel centres -0.5 .. W-0.5)
+    widened by ``frustum_margin`` of the image size (the renderer's FRUSTUM_MARGIN; 0: the image)."""
+    p = CameraParams()
+    p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
+    p.width, p.height = camera.width, camera.height
+    p.tiles_x = (camera.width + TILE_SIZE - 1) // TILE_SIZE
+    p.tiles_y = (camera.height + TILE_SIZE - 1) // TILE_SIZE
+    p.near = near_m
+    mx = frustum_margin * camera.width
+    my = frustum_margin * camera.height
+    p.tan_x_min = (-0.5 - mx - camera.cx) / camera.fx
+    p.tan_x_max = (camera.width - 0.5 + mx - camera.cx) / camera.fx
+    p.tan_y_min = (-0.5 - my - camera.cy) / camera.fy
+    p.tan_y_max = (camera.height - 0.5 + my - camera.cy) / camera.fy
+    return p
+
+
 @wp.func
 def quat_to_rot(q: wp.quat):
     x = q[0]
