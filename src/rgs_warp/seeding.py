@@ -15,6 +15,7 @@ import warp as wp
 from rgs_warp.config import SeedingConfig
 from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels import seeding as ks
+from rgs_warp.kernels.math import camera_params
 from rgs_warp.kernels.seeding import MAX_VIEWS, SeedParams, seed_footprint, seed_gaussians
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import Matches
@@ -64,8 +65,7 @@ class PointSeeder:
         self.camera = camera
         self.device = wp.get_device(device)
         p = SeedParams()
-        p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
-        p.width, p.height = camera.width, camera.height
+        p.cam = camera_params(camera)
         p.poisson_radius_px, p.plane_radius_px = cfg.poisson_radius_px, cfg.plane_radius_px
         p.plane_min_neighbours, p.tangential_scale = cfg.plane_min_neighbours, cfg.tangential_scale
         p.min_residual_px, p.axial_min_ratio, p.axial_max_ratio = (
