@@ -2,12 +2,22 @@
 layout, quaternions, SH constants, SE(3) in float64, the pinhole projection's Jacobian, and the block
 size of the per-pixel reductions.  Stage kernel files import from here and never from each other."""
 
+from typing import Any
+
 import warp as wp
 
 # ---- per-pixel reductions ------------------------------------------------------------------------
 # Reductions over pixels sum REDUCE_BLOCK values in a block tile and issue one float64 atomic per
 # block and column, so nothing is read back to the host inside an optimisation loop.
 REDUCE_BLOCK = 256
+
+
+@wp.func
+def block_sum(x: Any):
+    """Sum of ``x`` (a scalar, vector or matrix) over the threads of the block, as a block tile;
+    every thread gets the total.  Launch with ``wp.launch_tiled`` (``block_dim`` threads a block)."""
+    return wp.tile_extract(wp.tile_sum(wp.tile(x, preserve_type=True)), 0)
+
 
 # ---- rasterizer layout (projection.py and rasterize.py) ------------------------------------------
 TILE_SIZE = 16
