@@ -1,5 +1,5 @@
-"""Shared kernel math (kernels/math.py): the helpers several stages' kernels use (block reductions,
-the CameraParams builder) against NumPy references written here."""
+"""Shared kernel math (kernels/math.py): the helpers several stages' kernels use (bilinear sampling,
+grey level, block reductions, the CameraParams builder) against NumPy references written here."""
 
 import numpy as np
 import pytest
@@ -9,12 +9,27 @@ from rgs_warp.kernels.math import (
     FRUSTUM_MARGIN,
     REDUCE_BLOCK,
     TILE_SIZE,
+    bilerp,
+    bilinear_corner,
     block_sum,
     camera_params,
+    grey_level,
 )
 from rgs_warp.types import Camera
 
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+
+@wp.kernel
+def _sample_grey(
+    image: wp.array2d(dtype=wp.vec3),
+    uv: wp.array(dtype=wp.vec2),
+    grey_out: wp.array(dtype=wp.float32),
+):
+    i = wp.tid()
+    x0, y0, fx, fy = bilinear_corner(uv[i][0], uv[i][1], image.shape[1], image.shape[0])
+    c = bilerp(image[y0, x0], image[y0, x0 + 1], image[y0 + 1, x0], image[y0 + 1, x0 + 1], fx, fy)
+    grey_out[i] = grey_level(c)
 
 
 @wp.kernel
@@ -34,6 +49,38 @@ def _block_sums(
         scalar_out[block] = wp.float64(total)
         for c in range(8):
             vector_out[block, c] = wp.float64(moments[c])
+
+
+def _bilinear_reference(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear sample (float64) with pixel centres at integers, coordinates clamped into the image."""
+    h, w = image.shape[:2]
+    u = np.clip(u, 0, w - 1)
+    v = np.clip(v, 0, h - 1)
+    x0 = np.minimum(np.floor(u).astype(int), w - 2)
+    y0 = np.minimum(np.floor(v).astype(int), h - 2)
+    a, b = (u - x0)[:, None], (v - y0)[:, None]
+    top = (1 - a) * image[y0, x0] + a * image[y0, x0 + 1]
+    bottom = (1 - a) * image[y0 + 1, x0] + a * image[y0 + 1, x0 + 1]
+    return (1 - b) * top + b * bottom
+
+
+def test_bilinear_grey_matches_numpy(device):
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0, 1, (7, 9, 3)).astype(np.float32)
+    # inside, on the last row/column (the corner is clamped to W-2 / H-2) and outside (clamped)
+    uv = np.concatenate(
+        [rng.uniform(0, [8, 6], (50, 2)), [[8.0, 6.0], [8.0, 2.5], [3.5, 6.0], [-2.0, 3.0], [11.0, -1.0], [0.0, 0.0]]]
+    ).astype(np.float32)
+    out = wp.zeros(len(uv), dtype=wp.float32, device=device)
+    wp.launch(
+        _sample_grey,
+        dim=len(uv),
+        inputs=[wp.array(image, dtype=wp.vec3, device=device), wp.array(uv, dtype=wp.vec2, device=device)],
+        outputs=[out],
+        device=device,
+    )
+    ref = _bilinear_reference(image.astype(np.float64), uv[:, 0].astype(np.float64), uv[:, 1].astype(np.float64))
+    np.testing.assert_allclose(out.numpy(), ref.mean(1), atol=1e-6)
 
 
 @pytest.mark.parametrize("n", [1, REDUCE_BLOCK, 3 * REDUCE_BLOCK + 17])

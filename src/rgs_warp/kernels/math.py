@@ -121,6 +121,30 @@ def exp3(v: wp.vec3):
 
 
 @wp.func
+def grey_level(c: wp.vec3) -> float:
+    """Grey level of an RGB colour: the channel mean."""
+    return (c[0] + c[1] + c[2]) / 3.0
+
+
+@wp.func
+def bilinear_corner(u: float, v: float, width: int, height: int):
+    """Bilinear interpolation at (u, v) on a width x height grid of samples at integer coordinates
+    (pixel centres, types.py), (u, v) clamped into the grid (width, height >= 2): the top-left sample
+    (x0, y0) and the weights (fx, fy) of ``bilerp``."""
+    uc = wp.clamp(u, 0.0, float(width - 1))
+    vc = wp.clamp(v, 0.0, float(height - 1))
+    x0 = wp.min(int(uc), width - 2)
+    y0 = wp.min(int(vc), height - 2)
+    return x0, y0, uc - float(x0), vc - float(y0)
+
+
+@wp.func
+def bilerp(p00: Any, p01: Any, p10: Any, p11: Any, fx: float, fy: float):
+    """Bilinear blend of the samples at (x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)."""
+    return (1.0 - fy) * ((1.0 - fx) * p00 + fx * p01) + fy * ((1.0 - fx) * p10 + fx * p11)
+
+
+@wp.func
 def projection_jacobian(X: wp.vec3, cam: CameraParams):
     z = X[2]
     u = wp.clamp(X[0] / z, cam.tan_x_min, cam.tan_x_max)

@@ -9,7 +9,7 @@ poses, ``view_slot`` their keyframe-buffer slots, ``view_exposure`` their (g, b)
 
 import warp as wp
 
-from rgs_warp.kernels.math import SH_C0, CameraParams
+from rgs_warp.kernels.math import SH_C0, CameraParams, bilerp, bilinear_corner
 
 wp.set_module_options({"enable_backward": False})
 
@@ -165,15 +165,12 @@ def axial_scale(
 
 @wp.func
 def bilinear(image: wp.array3d(dtype=wp.vec3), slot: int, u: float, v: float) -> wp.vec3:
-    """Bilinear sample at (u, v), pixel centres at integer coordinates (types.py); inside the
-    image's sample grid [0, W-1] x [0, H-1] only (the caller checks)."""
-    u0 = wp.min(int(wp.floor(u)), image.shape[2] - 2)
-    v0 = wp.min(int(wp.floor(v)), image.shape[1] - 2)
-    a = u - wp.float32(u0)
-    b = v - wp.float32(v0)
-    top = (wp.float32(1.0) - a) * image[slot, v0, u0] + a * image[slot, v0, u0 + 1]
-    bottom = (wp.float32(1.0) - a) * image[slot, v0 + 1, u0] + a * image[slot, v0 + 1, u0 + 1]
-    return (wp.float32(1.0) - b) * top + b * bottom
+    """Bilinear sample at (u, v), pixel centres at integer coordinates (types.py), in the image's
+    sample grid [0, W-1] x [0, H-1] (the caller skips points outside it)."""
+    x0, y0, fx, fy = bilinear_corner(u, v, image.shape[2], image.shape[1])
+    return bilerp(
+        image[slot, y0, x0], image[slot, y0, x0 + 1], image[slot, y0 + 1, x0], image[slot, y0 + 1, x0 + 1], fx, fy
+    )
 
 
 @wp.func
