@@ -10,7 +10,7 @@ import pytest
 import warp as wp
 
 from rgs_warp.config import MatchingConfig
-from rgs_warp.features import ClassicBackbone, make_backbone
+from rgs_warp.features import ClassicBackbone, feature_centres, make_backbone
 
 
 def _classic_reference(rgb: np.ndarray, stride: int) -> np.ndarray:
@@ -90,6 +90,14 @@ def test_classic_distinguishes_positions(device):
     ys, xs = np.divmod(np.arange(d.shape[0]), 16)
     far = np.hypot(ys[:, None] - ys[None], xs[:, None] - xs[None]) >= 2
     assert np.all(np.diag(sim) > np.where(far, sim, -1).max(1) + 0.05)
+
+
+def test_feature_centres():
+    # feature pixel (i, j) of stride s is centred at image (s j + (s - 1) / 2, s i + (s - 1) / 2), row-major
+    np.testing.assert_array_equal(
+        feature_centres((2, 3), 4), [[1.5, 1.5], [5.5, 1.5], [9.5, 1.5], [1.5, 5.5], [5.5, 5.5], [9.5, 5.5]]
+    )
+    np.testing.assert_array_equal(feature_centres((1, 2), 1), [[0.0, 0.0], [1.0, 0.0]])
 
 
 def test_make_backbone_rejects_unknown_name(device):

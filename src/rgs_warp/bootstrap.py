@@ -41,7 +41,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.config import BootstrapConfig, MatchingConfig
-from rgs_warp.features import make_backbone
+from rgs_warp.features import feature_centres, make_backbone
 from rgs_warp.geometry import invert_pose, skew
 from rgs_warp.kernels.matching import sample_descriptors, score_matches, select_matches, window_search
 from rgs_warp.triangulation import TriangulatedPoints, baseline_angle_deg, projection_matrices, triangulate_dlt
@@ -93,9 +93,7 @@ class MonoBootstrap:
         self.stride = s = self.backbone.stride
         hf, wf = self.grid = self.backbone.grid_shape(camera.height, camera.width)
         n = hf * wf
-        centres = np.stack(
-            np.meshgrid(np.arange(wf) * s + 0.5 * (s - 1), np.arange(hf) * s + 0.5 * (s - 1)), -1
-        ).reshape(-1, 2)
+        centres = feature_centres(self.grid, s)
         self._ref_uv_host = centres
         kw = {"device": self.device}
         self._rgb = [wp.zeros((camera.height, camera.width), dtype=wp.vec3, **kw) for _ in range(2)]

@@ -28,7 +28,7 @@ from rgs_warp.kernels.maintenance import (
     merge_pairs,
     prune_flags,
 )
-from rgs_warp.kernels.math import CameraParams
+from rgs_warp.kernels.math import camera_params
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 
@@ -138,19 +138,6 @@ class MergeScratch:
         self._capacity = cap
 
 
-def _camera_params(camera: Camera, near_m: float) -> CameraParams:
-    p = CameraParams()
-    p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
-    p.width, p.height = camera.width, camera.height
-    p.near = near_m
-    # only footprints centred inside the image are compared, so the Jacobian clamp is the image itself
-    p.tan_x_min = (-0.5 - camera.cx) / camera.fx
-    p.tan_x_max = (camera.width - 0.5 - camera.cx) / camera.fx
-    p.tan_y_min = (-0.5 - camera.cy) / camera.fy
-    p.tan_y_max = (camera.height - 0.5 - camera.cy) / camera.fy
-    return p
-
-
 def merge_duplicates(
     gmap: GaussianMap,
     camera: Camera,
@@ -206,10 +193,12 @@ def merge_duplicates(
     W = wp.mat33(*T_CW[:3, :3].astype(np.float32).ravel())
     t = wp.vec3(*T_CW[:3, 3].astype(np.float32))
     fields = _map_fields(gmap, n)
+    # no frustum margin: only footprints centred inside the image are compared, so the Jacobian
+    # clamp is the image itself
     wp.launch(
         merge_footprints,
         dim=n,
-        inputs=fields + [out, W, t, _camera_params(camera, near_m), float(max_footprint_px / max_depth_rel)],
+        inputs=fields + [out, W, t, camera_params(camera, near_m), float(max_footprint_px / max_depth_rel)],
         outputs=[points, cov2d, valid],
         device=device,
     )

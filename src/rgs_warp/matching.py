@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.config import MatchingConfig
-from rgs_warp.features import make_backbone
+from rgs_warp.features import feature_centres, make_backbone
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.kernels.matching import (
@@ -80,10 +80,7 @@ class DenseMatcher:
         n = hf * wf
         m = cfg.n_neighbours
         kw = {"device": self.device}
-        s = self.stride
-        centres = np.stack(
-            np.meshgrid(np.arange(wf) * s + 0.5 * (s - 1), np.arange(hf) * s + 0.5 * (s - 1)), -1
-        ).reshape(-1, 2)
+        centres = feature_centres(self.grid, self.stride)
         self._ref_uv = wp.array(centres.astype(np.float32), dtype=wp.vec2, **kw)
         self._ref_uv_d = wp.array(centres, dtype=wp.vec2d, **kw)
         self._always = wp.full(n, 1.0, dtype=wp.float32, **kw)  # forward queries are never skipped

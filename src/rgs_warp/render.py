@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.geometry import invert_pose
-from rgs_warp.kernels.math import FRUSTUM_MARGIN, TILE_SIZE, CameraParams, vec10, vec32
+from rgs_warp.kernels.math import FRUSTUM_MARGIN, TILE_SIZE, CameraParams, camera_params, vec10, vec32
 from rgs_warp.kernels.projection import (
     PROJECT_BLOCK,
     emit_intersections,
@@ -224,22 +224,6 @@ class Renderer:
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, **kw)
         self._image_shape = shape
 
-    def _camera_params(self, camera: Camera) -> CameraParams:
-        p = CameraParams()
-        p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
-        p.width, p.height = camera.width, camera.height
-        p.tiles_x = (camera.width + TILE_SIZE - 1) // TILE_SIZE
-        p.tiles_y = (camera.height + TILE_SIZE - 1) // TILE_SIZE
-        p.near = self.near
-        # image edges (pixel centres -0.5 .. W-0.5) widened by FRUSTUM_MARGIN of the image size
-        mx = FRUSTUM_MARGIN * camera.width
-        my = FRUSTUM_MARGIN * camera.height
-        p.tan_x_min = (-0.5 - mx - camera.cx) / camera.fx
-        p.tan_x_max = (camera.width - 0.5 + mx - camera.cx) / camera.fx
-        p.tan_y_min = (-0.5 - my - camera.cy) / camera.fy
-        p.tan_y_max = (camera.height - 0.5 + my - camera.cy) / camera.fy
-        return p
-
     # ---- forward -----------------------------------------------------------------------------
     def forward(
         self,
@@ -265,7 +249,7 @@ class Renderer:
         n = len(gmap)
         self._ensure_gaussians(gmap.capacity, gmap.num_sh)
         self._ensure_image(camera)
-        cam = self._camera_params(camera)
+        cam = camera_params(camera, self.near, FRUSTUM_MARGIN)
         if isinstance(T_WC, wp.array):
             wp.launch(invert_rigid, dim=1, inputs=[T_WC], outputs=[self._view], device=dev, record_tape=False)
         else:

@@ -43,6 +43,23 @@ def loop_until_zero(condition: wp.array, body) -> None:
         wp.capture_while(condition, body)
 
 
+def _throw_darts(accept, accept_inputs: list, reject, reject_inputs: list, dim, state: wp.array, counters: wp.array):
+    """Rounds of the ``accept`` then the ``reject`` launch over ``dim`` (``kernels/sampling.py``) until
+    no point of ``state`` is undecided: ``reject`` counts the undecided ones into ``counters[0]``,
+    the loop's condition, and the rounds into ``counters[1]``."""
+    device = state.device
+    counters.fill_(1)
+
+    def one_round():
+        counters[:1].zero_()
+        wp.launch(accept, dim=dim, inputs=accept_inputs, outputs=[state], device=device)
+        wp.launch(reject, dim=dim, inputs=reject_inputs, outputs=[state, counters], device=device)
+
+    counters[1:2].zero_()
+    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
+    loop_until_zero(counters[:1], one_round)
+
+
 def poisson_disk_subsample(
     points: wp.array,
     radius: wp.array,
@@ -87,28 +104,15 @@ def poisson_disk_subsample(
     if cell_size is None:
         cell_size = float(radius_max.numpy()[0]) or 1.0
     grid.build(points, cell_size)
-    counters.fill_(1)
-
-    def one_round():
-        counters[:1].zero_()
-        wp.launch(
-            poisson_accept,
-            dim=n,
-            inputs=[grid.id, points, radius, confidence, levels, radius_max],
-            outputs=[keep_out],
-            device=device,
-        )
-        wp.launch(
-            poisson_reject,
-            dim=n,
-            inputs=[grid.id, points, radius, radius_max],
-            outputs=[keep_out, counters],
-            device=device,
-        )
-
-    counters[1:2].zero_()
-    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    loop_until_zero(counters[:1], one_round)
+    _throw_darts(
+        poisson_accept,
+        [grid.id, points, radius, confidence, levels, radius_max],
+        poisson_reject,
+        [grid.id, points, radius, radius_max],
+        n,
+        keep_out,
+        counters,
+    )
     return keep_out
 
 
@@ -132,28 +136,16 @@ def thin_blue_noise(
     if counters is None:
         counters = wp.zeros(2, dtype=wp.int32, device=device)
     wp.launch(thinning_init, dim=confidence.shape, inputs=[confidence], outputs=[keep_out], device=device)
-    counters.fill_(1)
-
-    def one_round():
-        counters[:1].zero_()
-        wp.launch(
-            thinning_accept,
-            dim=confidence.shape,
-            inputs=[confidence, float(spacing_px), levels],
-            outputs=[keep_out],
-            device=device,
-        )
-        wp.launch(
-            thinning_reject,
-            dim=confidence.shape,
-            inputs=[float(spacing_px)],
-            outputs=[keep_out, counters],
-            device=device,
-        )
-
-    counters[1:2].zero_()
-    # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    loop_until_zero(counters[:1], one_round)
+    spacing_px = float(spacing_px)
+    _throw_darts(
+        thinning_accept,
+        [confidence, spacing_px, levels],
+        thinning_reject,
+        [spacing_px],
+        confidence.shape,
+        keep_out,
+        counters,
+    )
     return keep_out
 
 

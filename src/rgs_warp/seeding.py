@@ -15,6 +15,7 @@ import warp as wp
 from rgs_warp.config import SeedingConfig
 from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels import seeding as ks
+from rgs_warp.kernels.math import camera_params
 from rgs_warp.kernels.seeding import MAX_VIEWS, SeedParams, seed_footprint, seed_gaussians
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import Matches
@@ -24,6 +25,15 @@ from rgs_warp.triangulation import TriangulatedPoints
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 CELL_PRIOR_POINTS = 1000  # weight of the nominal hash-grid cell size against measured radii
+
+
+def _view_arrays(**kw) -> tuple[wp.array, wp.array, wp.array]:
+    """The per-view inputs of the seeding kernels, ``MAX_VIEWS`` rows each: pose, slot, exposure."""
+    return (
+        wp.zeros(MAX_VIEWS, dtype=wp.mat44, **kw),
+        wp.zeros(MAX_VIEWS, dtype=wp.int32, **kw),
+        wp.zeros(MAX_VIEWS, dtype=wp.vec2, **kw),
+    )
 
 
 class PointSeeder:
@@ -55,8 +65,7 @@ class PointSeeder:
         self.camera = camera
         self.device = wp.get_device(device)
         p = SeedParams()
-        p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
-        p.width, p.height = camera.width, camera.height
+        p.cam = camera_params(camera)
         p.poisson_radius_px, p.plane_radius_px = cfg.poisson_radius_px, cfg.plane_radius_px
         p.plane_min_neighbours, p.tangential_scale = cfg.plane_min_neighbours, cfg.tangential_scale
         p.min_residual_px, p.axial_min_ratio, p.axial_max_ratio = (
@@ -75,12 +84,8 @@ class PointSeeder:
         self._plane_radius_stats = wp.zeros(2, dtype=wp.float32, **kw)
         self._count_host = wp.zeros(1, dtype=wp.int32, **host)
         self._plane_radius_stats_host = wp.zeros(2, dtype=wp.float32, **host)
-        self._view_T_CW = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **kw)
-        self._view_slot = wp.zeros(MAX_VIEWS, dtype=wp.int32, **kw)
-        self._view_exposure = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **kw)
-        self._view_T_CW_host = wp.zeros(MAX_VIEWS, dtype=wp.mat44, **host)
-        self._view_slot_host = wp.zeros(MAX_VIEWS, dtype=wp.int32, **host)
-        self._view_exposure_host = wp.zeros(MAX_VIEWS, dtype=wp.vec2, **host)
+        self._view_T_CW, self._view_slot, self._view_exposure = _view_arrays(**kw)
+        self._view_T_CW_host, self._view_slot_host, self._view_exposure_host = _view_arrays(**host)
         # hash grid cell size: running, point-count-weighted mean of the plane-fit radius over the
         # calls so far (halved weight per call), starting from the radius at a nominal 2 m with the
         # weight of CELL_PRIOR_POINTS points: a call with a handful of (possibly outlying) points
@@ -258,13 +263,7 @@ class Seeder:
         hg, wg = camera.height // cfg.depth_stride, camera.width // cfg.depth_stride
         n = hg * wg
         self._depth_grid = (hg, wg)
-        self._depth_points = TriangulatedPoints(
-            wp.zeros(n, dtype=wp.vec3d, device=dev),
-            wp.zeros(n, dtype=wp.float64, device=dev),
-            wp.zeros(n, dtype=wp.float64, device=dev),
-            wp.zeros(n, dtype=wp.int32, device=dev),
-            wp.zeros(n, dtype=wp.int32, device=dev),
-        )
+        self._depth_points = TriangulatedPoints.zeros(n, dev)
         # measured depth is certain (Eq. 14 at full confidence); a monocular plane is not
         self._depth_confidence = wp.full(n, 1.0 if mode == "rgbd" else 0.0, dtype=wp.float32, device=dev)
         shape = (camera.height, camera.width)

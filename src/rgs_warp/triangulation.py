@@ -88,6 +88,18 @@ class TriangulatedPoints:
     support: wp.array
     valid: wp.array
 
+    @classmethod
+    def zeros(cls, n: int, device) -> TriangulatedPoints:
+        """N zeroed points on ``device`` (none valid)."""
+        kw = {"device": device}
+        return cls(
+            wp.zeros(n, dtype=wp.vec3d, **kw),
+            wp.zeros(n, dtype=wp.float64, **kw),
+            wp.zeros(n, dtype=wp.float64, **kw),
+            wp.zeros(n, dtype=wp.int32, **kw),
+            wp.zeros(n, dtype=wp.int32, **kw),
+        )
+
 
 class Triangulator:
     """Triangulates the dense matches of a reference keyframe against its neighbours.
@@ -117,12 +129,7 @@ class Triangulator:
         if n <= self._capacity:
             return
         cap = grown_capacity(self._capacity, n, minimum=1024)
-        kw = {"device": self.device}
-        self._X = wp.zeros(cap, dtype=wp.vec3d, **kw)
-        self._residual = wp.zeros(cap, dtype=wp.float64, **kw)
-        self._parallax = wp.zeros(cap, dtype=wp.float64, **kw)
-        self._support = wp.zeros(cap, dtype=wp.int32, **kw)
-        self._valid = wp.zeros(cap, dtype=wp.int32, **kw)
+        self._points = TriangulatedPoints.zeros(cap, self.device)
         self._capacity = cap
 
     def triangulate(
@@ -136,9 +143,8 @@ class Triangulator:
         if P.shape[0] != m + 1 or m > 30:
             raise ValueError(f"P must hold the reference and the {m} neighbours (M <= 30), got {P.shape[0]} matrices")
         self._ensure(n)
-        out = TriangulatedPoints(
-            self._X[:n], self._residual[:n], self._parallax[:n], self._support[:n], self._valid[:n]
-        )
+        p = self._points
+        out = TriangulatedPoints(p.X[:n], p.residual_px[:n], p.parallax_deg[:n], p.support[:n], p.valid[:n])
         wp.launch(
             triangulate_hypotheses,
             dim=n,

@@ -106,7 +106,9 @@ def downscale_depth(depth: np.ndarray, factor: int, max_rel_spread: float = 0.05
 class RGBDDataset:
     """Base of the loaders.  Subclasses fill ``self._items`` (one entry per frame of the full
     sequence, in order) and implement ``_load_full(item) -> Frame`` at native resolution; this class
-    applies start/stride/max_frames, downscaling, and prefetching iteration.
+    applies start/stride/max_frames, downscaling, and prefetching iteration.  Subclasses take their
+    own options keyword-only and pass the selection (``stride``, ``start``, ``max_frames``,
+    ``downscale``, ``prefetch``) through as ``**selection``.
 
     ``ds[i]`` loads frame i of the selection; ``iter(ds)`` yields all of them while a background
     thread reads the next ``prefetch`` frames (OpenCV decodes without holding the GIL).

@@ -64,16 +64,8 @@ class ReplicaDataset(RGBDDataset):
         "NICE-SLAM repository, cvg/nice-slam); see data_tools/README.md"
     )
 
-    def __init__(
-        self,
-        root,
-        stride: int = 1,
-        start: int = 0,
-        max_frames: int | None = None,
-        downscale: int = 1,
-        prefetch: int = 2,
-    ):
-        super().__init__(root, stride, start, max_frames, downscale, prefetch)
+    def __init__(self, root, **selection):
+        super().__init__(root, **selection)
         results = self.root / "results"
         if not results.is_dir():
             raise DatasetError(f"{self.root}: no 'results' folder (expected layout: {self.layout})")

@@ -38,18 +38,15 @@ class SevenScenesDataset(RGBDDataset):
     def __init__(
         self,
         root,
-        stride: int = 1,
-        start: int = 0,
-        max_frames: int | None = None,
-        downscale: int = 1,
-        prefetch: int = 2,
+        *,
         register_depth: bool = True,
         colour_intrinsics: tuple[float, float, float, float] = SEVENSCENES_COLOUR_INTRINSICS,
         depth_to_colour_m: tuple[float, float, float] = SEVENSCENES_DEPTH_TO_COLOUR_M,
+        **selection,
     ):
         """``register_depth=False`` gives the files as they are: colour and depth both on the depth
         camera's calibration (what earlier runs and most papers used), poses unchanged."""
-        super().__init__(root, stride, start, max_frames, downscale, prefetch)
+        super().__init__(root, **selection)
         pattern = re.compile(r"frame-(\d{6})\.color\.(jpg|png)$")
         colour = {}
         for f in self.root.iterdir():

@@ -89,18 +89,15 @@ class TUMDataset(RGBDDataset):
     def __init__(
         self,
         root,
-        stride: int = 1,
-        start: int = 0,
-        max_frames: int | None = None,
-        downscale: int = 1,
-        prefetch: int = 2,
+        *,
         camera: str = "auto",
         max_dt: float = 0.08,
         undistort: bool = True,
         require_depth: bool = True,
         require_pose: bool = True,
+        **selection,
     ):
-        super().__init__(root, stride, start, max_frames, downscale, prefetch)
+        super().__init__(root, **selection)
         self.depth_scale = TUM_DEPTH_SCALE  # raw units per metre
         if camera == "auto" and (self.root / "cam_params.json").is_file():
             cam, self.depth_scale = read_cam_params(self.root / "cam_params.json", TUM_DEPTH_SCALE)

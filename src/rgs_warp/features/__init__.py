@@ -12,6 +12,8 @@ extra ``rgs_warp[xfeat]``), ``dinov2`` and ``dinov3`` (ViTs from a local officia
 
 from __future__ import annotations
 
+import numpy as np
+
 from rgs_warp.config import MatchingConfig
 from rgs_warp.features.classic import ClassicBackbone
 
@@ -37,4 +39,13 @@ def make_backbone(cfg: MatchingConfig, device=None):
     raise ValueError(f"matching.backbone {cfg.backbone!r} is not one of {', '.join(BACKBONES)}")
 
 
-__all__ = ["BACKBONES", "ClassicBackbone", "make_backbone"]
+def feature_centres(grid: tuple[int, int], stride: int) -> np.ndarray:
+    """(Hf * Wf, 2) float64 image coordinates (u, v) of the centres of the feature pixels of an
+    (Hf, Wf) ``grid`` of ``stride``, row-major."""
+    hf, wf = grid
+    offset = 0.5 * (stride - 1)
+    u, v = np.meshgrid(np.arange(wf) * stride + offset, np.arange(hf) * stride + offset)
+    return np.stack([u, v], -1).reshape(-1, 2)
+
+
+__all__ = ["BACKBONES", "ClassicBackbone", "feature_centres", "make_backbone"]

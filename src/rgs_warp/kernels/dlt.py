@@ -188,6 +188,18 @@ def max_ray_angle_deg(P: wp.array(dtype=mat34d), views: int, X: wp.vec3d) -> wp.
     return best
 
 
+@wp.func
+def observed_views(valid: wp.array2d(dtype=wp.bool), i: int, n_views: int):
+    """Bit mask of the views (of ``n_views``) that observe point i, and their number."""
+    views = int(0)
+    n = int(0)
+    for v in range(n_views):
+        if valid[i, v]:
+            views = views | (1 << v)
+            n += 1
+    return views, n
+
+
 @wp.kernel
 def triangulate_points(
     # in:
@@ -202,12 +214,7 @@ def triangulate_points(
     them; the residual is +inf when fewer than two views or the solution is degenerate, and X is
     NaN when it is undefined (fewer than two views, w ~ 0)."""
     i = wp.tid()
-    views = int(0)
-    n = int(0)
-    for v in range(P.shape[0]):
-        if valid[i, v]:
-            views = views | (1 << v)
-            n += 1
+    views, n = observed_views(valid, i, P.shape[0])
     nan = wp.float64(wp.nan)
     X = wp.vec3d(nan, nan, nan)
     residual = wp.float64(wp.inf)
@@ -244,10 +251,7 @@ def baseline_angles(
     parallax_deg_out: wp.array(dtype=wp.float64),
 ):
     i = wp.tid()
-    views = int(0)
-    for v in range(P.shape[0]):
-        if valid[i, v]:
-            views = views | (1 << v)
+    views, _n = observed_views(valid, i, P.shape[0])
     parallax_deg_out[i] = max_ray_angle_deg(P, views, X[i])
 
 

@@ -3,6 +3,8 @@ gradient orientation cells, box pooling at two scales, DAISY-like sampling and n
 
 import warp as wp
 
+from rgs_warp.kernels.math import bilerp, bilinear_corner, grey_level
+
 wp.set_module_options({"enable_backward": False})
 
 N_ORIENT = wp.constant(8)
@@ -21,8 +23,7 @@ MIN_ENERGY = wp.constant(1e-3)
 def grey(rgb: wp.array2d(dtype=wp.vec3), y: int, x: int) -> float:
     H = rgb.shape[0]
     W = rgb.shape[1]
-    c = rgb[wp.clamp(y, 0, H - 1), wp.clamp(x, 0, W - 1)]
-    return (c[0] + c[1] + c[2]) / 3.0
+    return grey_level(rgb[wp.clamp(y, 0, H - 1), wp.clamp(x, 0, W - 1)])
 
 
 @wp.kernel
@@ -70,17 +71,8 @@ def box_pool(
 
 @wp.func
 def bilinear_cell(pooled: wp.array3d(dtype=wp.float32), y: float, x: float, o: int) -> float:
-    H = pooled.shape[0]
-    W = pooled.shape[1]
-    yc = wp.clamp(y, 0.0, float(H - 1))
-    xc = wp.clamp(x, 0.0, float(W - 1))
-    y0 = wp.min(int(yc), H - 2)
-    x0 = wp.min(int(xc), W - 2)
-    fy = yc - float(y0)
-    fx = xc - float(x0)
-    top = (1.0 - fx) * pooled[y0, x0, o] + fx * pooled[y0, x0 + 1, o]
-    bottom = (1.0 - fx) * pooled[y0 + 1, x0, o] + fx * pooled[y0 + 1, x0 + 1, o]
-    return (1.0 - fy) * top + fy * bottom
+    x0, y0, fx, fy = bilinear_corner(x, y, pooled.shape[1], pooled.shape[0])
+    return bilerp(pooled[y0, x0, o], pooled[y0, x0 + 1, o], pooled[y0 + 1, x0, o], pooled[y0 + 1, x0 + 1, o], fx, fy)
 
 
 @wp.kernel

@@ -9,7 +9,7 @@ so nothing is read back to the host inside the mapping loop.
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
 
 wp.set_module_options({"enable_backward": False})
 
@@ -79,8 +79,8 @@ def mapping_loss(
                 d_ab = wp.vec2(wp.abs(e), 1.0)
         d_depth_out[y, x] = d_depth
         s = wp.vec4(loss, mean_abs, 1.0, 0.0)
-    total = wp.tile_extract(wp.tile_sum(wp.tile(s, preserve_type=True)), 0)
-    total_d = wp.tile_extract(wp.tile_sum(wp.tile(d_ab, preserve_type=True)), 0)
+    total = block_sum(s)
+    total_d = block_sum(d_ab)
     if lane == 0:
         wp.atomic_add(loss_out, row, L_LOSS, wp.float64(total[0]))
         wp.atomic_add(loss_out, row, L_ABS, wp.float64(total[1]))
@@ -203,6 +203,6 @@ def exposed_squared_error(
         c = gain * rendered[y, x] + wp.vec3(bias)
         r = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0)) - observed[y, x]
         e = wp.dot(r, r)
-    total = wp.tile_extract(wp.tile_sum(wp.tile(e)), 0)
+    total = block_sum(e)
     if lane == 0:
         wp.atomic_add(sums_out, row, wp.float64(total))

@@ -9,6 +9,8 @@ feature grid; positions they return are in image pixels.
 
 import warp as wp
 
+from rgs_warp.kernels.math import bilerp, bilinear_corner, grey_level
+
 wp.set_module_options({"enable_backward": False})
 
 # Similarity of a query without a match (its segment leaves the image, or it was skipped).
@@ -34,10 +36,7 @@ def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float, max_re
     W = depth.shape[1]
     if u < 0.0 or v < 0.0 or u > float(W - 1) or v > float(H - 1):
         return 0.0
-    x0 = wp.min(int(u), W - 2)
-    y0 = wp.min(int(v), H - 2)
-    fx = u - float(x0)
-    fy = v - float(y0)
+    x0, y0, fx, fy = bilinear_corner(u, v, W, H)
     d00 = depth[y0, x0]
     d01 = depth[y0, x0 + 1]
     d10 = depth[y0 + 1, x0]
@@ -46,7 +45,7 @@ def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float, max_re
     hi = wp.max(wp.max(d00, d01), wp.max(d10, d11))
     if lo <= 0.0 or hi - lo > max_rel_spread * 0.5 * (hi + lo):
         return 0.0
-    return (1.0 - fy) * ((1.0 - fx) * d00 + fx * d01) + fy * ((1.0 - fx) * d10 + fx * d11)
+    return bilerp(d00, d01, d10, d11, fx, fy)
 
 
 @wp.func
@@ -71,18 +70,8 @@ def parabola_peak(s_minus: float, s0: float, s_plus: float) -> float:
 
 @wp.func
 def grey_bilinear(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
-    H = rgb.shape[0]
-    W = rgb.shape[1]
-    uc = wp.clamp(u, 0.0, float(W - 1))
-    vc = wp.clamp(v, 0.0, float(H - 1))
-    x0 = wp.min(int(uc), W - 2)
-    y0 = wp.min(int(vc), H - 2)
-    fx = uc - float(x0)
-    fy = vc - float(y0)
-    c = (1.0 - fy) * ((1.0 - fx) * rgb[y0, x0] + fx * rgb[y0, x0 + 1]) + fy * (
-        (1.0 - fx) * rgb[y0 + 1, x0] + fx * rgb[y0 + 1, x0 + 1]
-    )
-    return (c[0] + c[1] + c[2]) / 3.0
+    x0, y0, fx, fy = bilinear_corner(u, v, rgb.shape[1], rgb.shape[0])
+    return grey_level(bilerp(rgb[y0, x0], rgb[y0, x0 + 1], rgb[y0 + 1, x0], rgb[y0 + 1, x0 + 1], fx, fy))
 
 
 @wp.func
@@ -303,19 +292,12 @@ def sample_descriptors(
     """Bilinear descriptor at image point uv[i] (grid borders clamped), renormalised: the query of
     the backward search starts from where the forward search landed, not from a rounded cell."""
     i = wp.tid()
-    Hf = desc.shape[0]
-    Wf = desc.shape[1]
-    gx = wp.clamp(to_grid(uv[i][0], stride), 0.0, float(Wf - 1))
-    gy = wp.clamp(to_grid(uv[i][1], stride), 0.0, float(Hf - 1))
-    x0 = wp.min(int(gx), Wf - 2)
-    y0 = wp.min(int(gy), Hf - 2)
-    fx = gx - float(x0)
-    fy = gy - float(y0)
+    gx = to_grid(uv[i][0], stride)
+    gy = to_grid(uv[i][1], stride)
+    x0, y0, fx, fy = bilinear_corner(gx, gy, desc.shape[1], desc.shape[0])
     sq = float(0.0)
     for k in range(desc.shape[2]):
-        top = (1.0 - fx) * desc[y0, x0, k] + fx * desc[y0, x0 + 1, k]
-        bottom = (1.0 - fx) * desc[y0 + 1, x0, k] + fx * desc[y0 + 1, x0 + 1, k]
-        v = (1.0 - fy) * top + fy * bottom
+        v = bilerp(desc[y0, x0, k], desc[y0, x0 + 1, k], desc[y0 + 1, x0, k], desc[y0 + 1, x0 + 1, k], fx, fy)
         sampled_out[i, k] = v
         sq += v * v
     scale = wp.where(sq > 1e-12, 1.0 / wp.sqrt(wp.max(sq, 1e-12)), 0.0)

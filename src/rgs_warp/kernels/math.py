@@ -2,12 +2,22 @@
 layout, quaternions, SH constants, SE(3) in float64, the pinhole projection's Jacobian, and the block
 size of the per-pixel reductions.  Stage kernel files import from here and never from each other."""
 
+from typing import Any
+
 import warp as wp
 
 # ---- per-pixel reductions ------------------------------------------------------------------------
 # Reductions over pixels sum REDUCE_BLOCK values in a block tile and issue one float64 atomic per
 # block and column, so nothing is read back to the host inside an optimisation loop.
 REDUCE_BLOCK = 256
+
+
+@wp.func
+def block_sum(x: Any):
+    """Sum of ``x`` (a scalar, vector or matrix) over the threads of the block, as a block tile;
+    every thread gets the total.  Launch with ``wp.launch_tiled`` (``block_dim`` threads a block)."""
+    return wp.tile_extract(wp.tile_sum(wp.tile(x, preserve_type=True)), 0)
+
 
 # ---- rasterizer layout (projection.py and rasterize.py) ------------------------------------------
 TILE_SIZE = 16
@@ -67,6 +77,25 @@ class CameraParams:
     tan_y_max: float
 
 
+def camera_params(camera, near_m: float = 0.0, frustum_margin: float = 0.0) -> CameraParams:
+    """The kernels' ``CameraParams`` of a ``types.Camera``: its intrinsics and tile grid, the near
+    plane ``near_m``, and the Jacobian's clamp range, the image edges (pixel centres -0.5 .. W-0.5)
+    widened by ``frustum_margin`` of the image size (the renderer's FRUSTUM_MARGIN; 0: the image)."""
+    p = CameraParams()
+    p.fx, p.fy, p.cx, p.cy = camera.fx, camera.fy, camera.cx, camera.cy
+    p.width, p.height = camera.width, camera.height
+    p.tiles_x = (camera.width + TILE_SIZE - 1) // TILE_SIZE
+    p.tiles_y = (camera.height + TILE_SIZE - 1) // TILE_SIZE
+    p.near = near_m
+    mx = frustum_margin * camera.width
+    my = frustum_margin * camera.height
+    p.tan_x_min = (-0.5 - mx - camera.cx) / camera.fx
+    p.tan_x_max = (camera.width - 0.5 + mx - camera.cx) / camera.fx
+    p.tan_y_min = (-0.5 - my - camera.cy) / camera.fy
+    p.tan_y_max = (camera.height - 0.5 + my - camera.cy) / camera.fy
+    return p
+
+
 @wp.func
 def quat_to_rot(q: wp.quat):
     x = q[0]
@@ -89,6 +118,30 @@ def quat_to_rot(q: wp.quat):
 @wp.func
 def exp3(v: wp.vec3):
     return wp.vec3(wp.exp(v[0]), wp.exp(v[1]), wp.exp(v[2]))
+
+
+@wp.func
+def grey_level(c: wp.vec3) -> float:
+    """Grey level of an RGB colour: the channel mean."""
+    return (c[0] + c[1] + c[2]) / 3.0
+
+
+@wp.func
+def bilinear_corner(u: float, v: float, width: int, height: int):
+    """Bilinear interpolation at (u, v) on a width x height grid of samples at integer coordinates
+    (pixel centres, types.py), (u, v) clamped into the grid (width, height >= 2): the top-left sample
+    (x0, y0) and the weights (fx, fy) of ``bilerp``."""
+    uc = wp.clamp(u, 0.0, float(width - 1))
+    vc = wp.clamp(v, 0.0, float(height - 1))
+    x0 = wp.min(int(uc), width - 2)
+    y0 = wp.min(int(vc), height - 2)
+    return x0, y0, uc - float(x0), vc - float(y0)
+
+
+@wp.func
+def bilerp(p00: Any, p01: Any, p10: Any, p11: Any, fx: float, fy: float):
+    """Bilinear blend of the samples at (x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)."""
+    return (1.0 - fy) * ((1.0 - fx) * p00 + fx * p01) + fy * ((1.0 - fx) * p10 + fx * p11)
 
 
 @wp.func

@@ -36,6 +36,7 @@ from rgs_warp.kernels.math import (
     SH_C3_6,
     TILE_SIZE,
     CameraParams,
+    block_sum,
     exp3,
     mat23,
     projection_jacobian,
@@ -515,7 +516,7 @@ def project_gaussians_backward(
         grad_opacity_logits_out[i] = g_logit
 
     # One atomic per block for the 6-vector shared by all Gaussians.
-    total = wp.tile_extract(wp.tile_sum(wp.tile(g_pose, preserve_type=True)), 0)
+    total = block_sum(g_pose)
     if lane == 0:
         for c in range(6):
             wp.atomic_add(grad_pose_out, c, total[c])

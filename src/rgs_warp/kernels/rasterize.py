@@ -24,6 +24,7 @@ from rgs_warp.kernels.math import (
     POSE_JAC_CONIC,
     POSE_JAC_X,
     TILE_SIZE,
+    block_sum,
     vec6,
     vec10,
     vec32,
@@ -175,7 +176,7 @@ def rasterize_tiles(
     done = not inside
     for b in range(n_batches):
         # Block-wide early exit; the reduction is also the barrier before the shared tiles are reused.
-        n_done = wp.tile_extract(wp.tile_sum(wp.tile(wp.where(done, 1, 0))), 0)
+        n_done = block_sum(wp.where(done, 1, 0))
         if n_done == BLOCK:
             break
         batch_start = start + b * BLOCK
@@ -330,7 +331,7 @@ def _tiles_backward(pose_only: bool):
                             wp.atomic_add(grad2d_out, wp.tile_extract(ids, k), total)
 
         if wp.static(pose_only):
-            pose_total = wp.tile_extract(wp.tile_sum(wp.tile(g_pose, preserve_type=True)), 0)
+            pose_total = block_sum(g_pose)
             if lane == 0:
                 for c in range(6):
                     wp.atomic_add(grad_pose_out, c, pose_total[c])

@@ -9,7 +9,7 @@ poses, ``view_slot`` their keyframe-buffer slots, ``view_exposure`` their (g, b)
 
 import warp as wp
 
-from rgs_warp.kernels.math import SH_C0
+from rgs_warp.kernels.math import SH_C0, CameraParams, bilerp, bilinear_corner
 
 wp.set_module_options({"enable_backward": False})
 
@@ -22,12 +22,7 @@ OPACITY_EPS = wp.constant(1.0e-6)
 
 @wp.struct
 class SeedParams:
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
+    cam: CameraParams  # intrinsics and image size
     poisson_radius_px: float
     plane_radius_px: float
     plane_min_neighbours: int
@@ -62,7 +57,7 @@ def camera_centre(T_CW: wp.mat44) -> wp.vec3:
 @wp.func
 def focal(prm: SeedParams) -> float:
     """One focal length for an isotropic footprint: the geometric mean keeps the pixel's area."""
-    return wp.sqrt(prm.fx * prm.fy)
+    return wp.sqrt(prm.cam.fx * prm.cam.fy)
 
 
 @wp.kernel
@@ -170,15 +165,12 @@ def axial_scale(
 
 @wp.func
 def bilinear(image: wp.array3d(dtype=wp.vec3), slot: int, u: float, v: float) -> wp.vec3:
-    """Bilinear sample at (u, v), pixel centres at integer coordinates (types.py); inside the
-    image's sample grid [0, W-1] x [0, H-1] only (the caller checks)."""
-    u0 = wp.min(int(wp.floor(u)), image.shape[2] - 2)
-    v0 = wp.min(int(wp.floor(v)), image.shape[1] - 2)
-    a = u - wp.float32(u0)
-    b = v - wp.float32(v0)
-    top = (wp.float32(1.0) - a) * image[slot, v0, u0] + a * image[slot, v0, u0 + 1]
-    bottom = (wp.float32(1.0) - a) * image[slot, v0 + 1, u0] + a * image[slot, v0 + 1, u0 + 1]
-    return (wp.float32(1.0) - b) * top + b * bottom
+    """Bilinear sample at (u, v), pixel centres at integer coordinates (types.py), in the image's
+    sample grid [0, W-1] x [0, H-1] (the caller skips points outside it)."""
+    x0, y0, fx, fy = bilinear_corner(u, v, image.shape[2], image.shape[1])
+    return bilerp(
+        image[slot, y0, x0], image[slot, y0, x0 + 1], image[slot, y0 + 1, x0], image[slot, y0 + 1, x0 + 1], fx, fy
+    )
 
 
 @wp.func
@@ -223,10 +215,11 @@ def median_colour(
         if (support >> v) & 1:
             x = to_camera(view_T_CW[v], p)
             if x[2] > wp.float32(0.0):
-                px = prm.fx * x[0] / x[2] + prm.cx
-                py = prm.fy * x[1] / x[2] + prm.cy
-                inside_x = px >= wp.float32(0.0) and px <= wp.float32(prm.width - 1)
-                if inside_x and py >= wp.float32(0.0) and py <= wp.float32(prm.height - 1):
+                cam = prm.cam
+                px = cam.fx * x[0] / x[2] + cam.cx
+                py = cam.fy * x[1] / x[2] + cam.cy
+                inside_x = px >= wp.float32(0.0) and px <= wp.float32(cam.width - 1)
+                if inside_x and py >= wp.float32(0.0) and py <= wp.float32(cam.height - 1):
                     e = view_exposure[v]
                     c = (bilinear(rgb, view_slot[v], px, py) - wp.vec3(e[1])) / e[0]
                     r = sorted_insert(r, count, c[0])

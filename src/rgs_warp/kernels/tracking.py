@@ -9,7 +9,7 @@ Reductions sum 256 pixels in a block tile, then add one float64 atomic per block
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, rigid_inverse_f32, se3_exp, vec6
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, rigid_inverse_f32, se3_exp, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -157,7 +157,7 @@ def brightness_sums(
             rendered_depth[y, x],
             a,
         )
-    total = wp.tile_extract(wp.tile_sum(wp.tile(s, preserve_type=True)), 0)
+    total = block_sum(s)
     if lane == 0:
         for c in range(6):
             wp.atomic_add(history_out, row, H_S0 + c, wp.float64(total[c]))
@@ -297,7 +297,7 @@ def tracking_loss(
         d_depth_out[y, x] = d_depth
         d_alpha_out[y, x] = d_alpha
         s = wp.vec3(loss * inv_n, photo, w)
-    total = wp.tile_extract(wp.tile_sum(wp.tile(s, preserve_type=True)), 0)
+    total = block_sum(s)
     if lane == 0:
         wp.atomic_add(history_out, row, H_LOSS, wp.float64(total[0]))
         wp.atomic_add(history_out, row, H_PHOTO, wp.float64(total[1]))
