@@ -72,7 +72,7 @@ def test_mapping_loss_matches_numpy(device, robust_scale, use_depth):
         km.mapping_loss,
         dim=_blocks(shape),
         inputs=[_arr(obs, device, wp.vec3), _arr(obs_depth, device), _arr(color, device, wp.vec3), _arr(depth, device)]
-        + [g, b, robust_scale, use_depth, lam_d, l1_w, row],
+        + [wp.array([[0.5, 0.5], [g, b]], dtype=wp.vec2, device=device), 1, robust_scale, use_depth, lam_d, l1_w, row],
         outputs=[x_out, grad_x, d_depth, loss],
         block_dim=km.REDUCE_BLOCK,
         device=device,
@@ -110,8 +110,69 @@ def test_scale_image_grad_multiplies_by_the_gain(device):
     rng = np.random.default_rng(11)
     grad = rng.normal(size=(7, 9, 3))
     out = wp.zeros((7, 9), dtype=wp.vec3, device=device)
-    wp.launch(km.scale_image_grad, dim=(7, 9), inputs=[_arr(grad, device, wp.vec3), 1.3], outputs=[out], device=device)
+    exposure = wp.array([[0.7, 0.1], [1.3, -0.2]], dtype=wp.vec2, device=device)
+    wp.launch(
+        km.scale_image_grad, dim=(7, 9), inputs=[_arr(grad, device, wp.vec3), exposure, 1], outputs=[out], device=device
+    )
     np.testing.assert_allclose(out.numpy(), 1.3 * grad.astype(np.float32), rtol=1e-6)
+
+
+def test_exposure_grad_matches_finite_differences(device):
+    # dL/dg and dL/db of the L1 part of the mapping loss (weights frozen) through x = g I_hat + b: the
+    # kernel's sums of dL/dx I_hat and dL/dx against central differences of the loss in g and b
+    rng = np.random.default_rng(12)
+    shape = (23, 31)
+    obs = rng.uniform(0, 1, shape + (3,)).astype(np.float32).astype(np.float64)
+    color = rng.uniform(0.1, 0.9, shape + (3,)).astype(np.float32).astype(np.float64)
+    g, b = 1.1, 0.02
+    _, w, grad_ref, _, _ = _mapping_loss_reference(obs, obs[..., 0], color, color[..., 0], g, b, 0.25, 0, 0.0, 1.0)
+    out = wp.zeros(3, dtype=wp.vec2d, device=device)
+    wp.launch_tiled(
+        km.exposure_grad,
+        dim=_blocks(shape),
+        inputs=[_arr(grad_ref, device, wp.vec3), _arr(color, device, wp.vec3), 2],
+        outputs=[out],
+        block_dim=km.REDUCE_BLOCK,
+        device=device,
+    )
+
+    def l1(gv, bv):
+        return np.sum(w * np.abs(obs - (gv * color + bv)).sum(axis=2)) / w.size
+
+    eps = 1e-6
+    fd = [(l1(g + eps, b) - l1(g - eps, b)) / (2 * eps), (l1(g, b + eps) - l1(g, b - eps)) / (2 * eps)]
+    np.testing.assert_allclose(out.numpy()[2], fd, rtol=1e-4)
+    assert not out.numpy()[:2].any()  # other views untouched
+
+
+def test_adam_exposure_step_matches_numpy_and_holds_the_gauge(device):
+    b1, b2, lr = 0.9, 0.999, 1e-3
+    grads = np.array([[0.3, -0.2], [-0.05, 0.4], [1.0, 1.0]])
+    fixed = np.array([0, 0, 1], np.int32)
+    e0 = np.array([[1.0, 0.0], [0.8, 0.05], [1.0, 0.0]], np.float32)
+    exposure = wp.array(e0, dtype=wp.vec2, device=device)
+    m = wp.zeros(3, dtype=wp.vec2, device=device)
+    v = wp.zeros(3, dtype=wp.vec2, device=device)
+    g_wp = wp.array(grads, dtype=wp.vec2d, device=device)
+    f32 = np.float32
+    m_ref, v_ref, e_ref = np.zeros((3, 2), f32), np.zeros((3, 2), f32), e0.copy()
+    for step in (1, 2):
+        wp.launch(
+            km.adam_exposure_step,
+            dim=3,
+            inputs=[g_wp, wp.array(fixed, device=device), step, lr, b1, b2],
+            outputs=[m, v, exposure],
+            device=device,
+        )
+        g = grads.astype(f32)
+        m_ref = f32(b1) * m_ref + (f32(1) - f32(b1)) * g
+        v_ref = f32(b2) * v_ref + (f32(1) - f32(b2)) * g * g
+        c1, c2 = f32(1) - f32(b1) ** f32(step), f32(1) - f32(b2) ** f32(step)
+        upd = e_ref - f32(lr) * (m_ref / c1) / (np.sqrt(v_ref / c2) + f32(1e-8))
+        e_ref = np.where(fixed[:, None] == 1, e_ref, upd)
+    np.testing.assert_allclose(exposure.numpy(), e_ref, rtol=1e-6, atol=1e-8)
+    np.testing.assert_array_equal(exposure.numpy()[2], e0[2])  # the gauge keyframe keeps (1, 0)
+    assert not m.numpy()[2].any()
 
 
 # ---- regularizer ------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.render import Renderer
 from rgs_warp.sampling import CONFIDENCE_LEVELS, compact_mask, poisson_disk_subsample, thin_blue_noise
-from rgs_warp.seeding import PointSeeder
+from rgs_warp.seeding import PointSeeder, Seeder
 from rgs_warp.triangulation import TriangulatedPoints, Triangulator, projection_matrices
 from rgs_warp.types import Camera, GaussianMap
 
@@ -614,3 +614,53 @@ def test_union_alpha(device):
     np.testing.assert_allclose(out.numpy(), 1.0 - (1.0 - a) * (1.0 - b), atol=1e-6)
     wp.launch(ks.union_alpha, dim=(7, 9), inputs=[aw, bw], outputs=[aw], device=device)  # in place
     np.testing.assert_allclose(aw.numpy(), out.numpy(), atol=0)
+
+
+def test_far_layer_depth(device):
+    depth = np.array([[0.0, 1.5], [2.0, 0.0]], np.float32)
+    out = wp.zeros((2, 2), dtype=wp.float32, device=device)
+    wp.launch(
+        ks.far_layer_depth, dim=(2, 2), inputs=[wp.array(depth, device=device), 9.0], outputs=[out], device=device
+    )
+    np.testing.assert_array_equal(out.numpy(), [[9.0, 0.0], [0.0, 9.0]])
+
+
+# ---- the Seeder stage --------------------------------------------------------------------------------
+def _wall_keyframe(device, hole=None):
+    """One keyframe looking at a textured wall at 2 m (identity pose); ``hole``: (rows, cols) slices
+    without measured depth."""
+    rng = np.random.default_rng(8)
+    rgb = rng.uniform(0.2, 0.8, (CAM.height, CAM.width, 3)).astype(np.float32)
+    depth = np.full((CAM.height, CAM.width), 2.0, np.float32)
+    if hole is not None:
+        depth[hole] = 0.0
+    keyframes = KeyframeBuffer(2, CAM.width, CAM.height, device)
+    return keyframes, keyframes.add(0, np.eye(4), rgb, depth)
+
+
+@pytest.mark.parametrize("far_layer_m", [0.0, 8.0])
+def test_seeder_depth_seeds_and_far_layer(device, far_layer_m):
+    # the first keyframe of an empty map gets measured-depth seeds; with a far layer the pixels without
+    # depth get seeds at far_layer_m, and the map then covers them
+    hole = (slice(10, 30), slice(20, 44))
+    keyframes, slot = _wall_keyframe(device, hole)
+    cfg = SeedingConfig(far_layer_m=far_layer_m)
+    renderer = Renderer(device)
+    seeder = Seeder(cfg, CAM, device, mode="rgbd", renderer=renderer)
+    gmap = GaussianMap(16, sh_degree=2, device=device)
+    added = seeder.seed_depth(gmap, keyframes, slot)
+    assert added == len(gmap) > 50
+    z = gmap.to_numpy()["means"][:, 2]
+    near, far = np.isclose(z, 2.0, atol=1e-4), np.isclose(z, far_layer_m, atol=1e-3)
+    assert near.sum() > 50 and (near | far).all()
+    assert (far.sum() > 20) == (far_layer_m > 0)
+    alpha = renderer.forward(gmap, CAM, np.eye(4)).alpha.numpy()
+    inside = alpha[12:28, 22:42]  # the hole, away from its border (the seeds need valid neighbours)
+    measured = alpha[34:46, 4:60]
+    if far_layer_m > 0:  # covered as the measured part is (before any mapping)
+        assert inside.mean() > 0.8 * measured.mean() and inside.min() > 0.25, (inside.mean(), measured.mean())
+    else:
+        assert inside.max() < 0.1, inside.max()
+    # a second keyframe at the same place: covered, nothing new
+    slot2 = keyframes.add(1, np.eye(4), keyframes.rgb[slot].numpy(), keyframes.depth[slot].numpy())
+    assert seeder.seed_depth(gmap, keyframes, slot2) < 0.05 * added

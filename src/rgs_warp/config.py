@@ -181,6 +181,9 @@ class SeedingConfig:
     # the triangulated seeds (plain walls have no matches); the first keyframe always is (mono: at
     # matching.scene_depth_m)
     depth_fill: bool = True
+    # RGB-D: pixels without measured depth that no seed covers (windows, far field, dark surfaces: they
+    # render black) get seeds on a layer at this depth, beyond the sensor's range; 0 = off
+    far_layer_m: float = 0.0
     depth_stride: int = 2  # px between depth seeds (experiments/results/slam.md: 4 -> 2 -> 1)
     # RGB-D: a tracked frame that is not a keyframe also gets measured-depth seeds where the map does
     # not cover it, when more than this fraction of its pixels is uncovered (new surface shows up
@@ -204,6 +207,9 @@ class MappingConfig:
     lr_rotation: float = 1e-3  # Table 1
     lr_scale: float = 1e-3  # not in Table 1: the position/rotation rate (log scale)
     lr_final_factor: float = 0.01  # cosine decay to this fraction of the base rate within a window
+    # Adam on the exposure (g, b) of Eq. 3 of each window keyframe, with the map (the first keyframe's
+    # stays the identity: the gauge of the map's colour); 0: the exposures stay the tracker's
+    lr_exposure: float = 0.0
     adam_beta1: float = 0.9  # Table 1
     adam_beta2: float = 0.999
     lambda_dssim: float = 0.2  # Table 1: L1 + lambda_dssim (1 - SSIM)

@@ -138,42 +138,72 @@ class Mapper:
         """The gradient columns of the map (valid until it grows)."""
         return GaussianGrads(*(self.gmap.column(f"grad.{name}") for name in GaussianMap.PARAMETERS))
 
-    def _upload_window(self, keyframes: KeyframeBuffer, window: list[int]) -> None:
-        """The window's camera-to-world poses as the renderer's float32 device matrices, ``_T_WC[j]``."""
-        k = len(window)
+    def _upload_window(self, keyframes: KeyframeBuffer, window: list[int], fixed_exposure: Sequence[int] = ()) -> None:
+        """The window's camera-to-world poses as the renderer's float32 device matrices, ``_T_WC[j]``,
+        and its keyframes' exposures (g, b) ``_exposure[j]`` (held where ``_exposure_fixed[j]``)."""
+        k, dev = len(window), self.device
         if k > self._window_capacity:
-            self._window_capacity = grown_capacity(self._window_capacity, k, minimum=8)
-            self._T_WC = wp.zeros(self._window_capacity, dtype=wp.mat44, device=self.device)
+            self._window_capacity = cap = grown_capacity(self._window_capacity, k, minimum=8)
+            self._T_WC = wp.zeros(cap, dtype=wp.mat44, device=dev)
+            self._exposure = wp.zeros(cap, dtype=wp.vec2, device=dev)
+            self._exposure_fixed = wp.zeros(cap, dtype=wp.int32, device=dev)
+            self._exposure_grad = wp.zeros(cap, dtype=wp.vec2d, device=dev)
+            self._exposure_m = wp.zeros(cap, dtype=wp.vec2, device=dev)
+            self._exposure_v = wp.zeros(cap, dtype=wp.vec2, device=dev)
         self._T_WC[:k].assign(np.stack([keyframes.poses[s] for s in window]).astype(np.float32))
+        self._exposure[:k].assign(keyframes.exposure[window].astype(np.float32))
+        self._exposure_fixed[:k].assign(np.array([int(s in fixed_exposure) for s in window], dtype=np.int32))
 
     def _view_loss(self, keyframes, slot, j, it, weight, use_depth, blocks) -> RenderResult:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
         loss in ``_d_color``, ``_d_depth``; its loss sums go to row ``it``."""
         cfg, dev = self.cfg, self.device
-        g, b = (float(v) for v in keyframes.exposure[slot])
         res = self.renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1])
         wp.launch_tiled(
             km.mapping_loss,
             dim=blocks,
-            inputs=[keyframes.rgb[slot], keyframes.depth[slot], res.color, res.depth, g, b, cfg.robust_scale]
-            + [use_depth, weight * cfg.depth_weight, weight, it],
+            inputs=[keyframes.rgb[slot], keyframes.depth[slot], res.color, res.depth, self._exposure, j]
+            + [cfg.robust_scale, use_depth, weight * cfg.depth_weight, weight, it],
             outputs=[self._x, self._grad_x, self._d_depth, self._loss],
             block_dim=REDUCE_BLOCK,
             device=dev,
         )
         self.dssim.accumulate_grad(self._x, keyframes.rgb[slot], weight * cfg.lambda_dssim, self._grad_x)
-        wp.launch(km.scale_image_grad, dim=self._x.shape, inputs=[self._grad_x, g], outputs=[self._d_color], device=dev)
+        wp.launch(
+            km.scale_image_grad,
+            dim=self._x.shape,
+            inputs=[self._grad_x, self._exposure, j],
+            outputs=[self._d_color],
+            device=dev,
+        )
+        if cfg.lr_exposure > 0.0:
+            wp.launch_tiled(
+                km.exposure_grad,
+                dim=blocks,
+                inputs=[self._grad_x, res.color, j],
+                outputs=[self._exposure_grad],
+                block_dim=REDUCE_BLOCK,
+                device=dev,
+            )
         return res
 
     # ---- optimisation --------------------------------------------------------------------------
     def optimize(
-        self, keyframes: KeyframeBuffer, window: Sequence[int], iters: int, psnr_every: int = 0
+        self,
+        keyframes: KeyframeBuffer,
+        window: Sequence[int],
+        iters: int,
+        psnr_every: int = 0,
+        fixed_exposure: Sequence[int] = (),
     ) -> MappingResult:
-        """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  ``psnr_every`` > 0:
-        after every iteration whose cumulative count ``total_iters`` is a multiple of it, the mean
-        PSNR of the window (``window_psnr``) goes to ``MappingResult.psnr_curve`` (measured before
-        that iteration's densification, whose fresh clones and split children the following
-        iterations have yet to fit)."""
+        """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  The exposures (g, b)
+        of the window's keyframes are refined with the map (``mapping.lr_exposure``) and written back
+        to ``keyframes.exposure``, except those of the slots in ``fixed_exposure`` (the gauge: the
+        first keyframe's exposure is the map's colour).  ``psnr_every`` > 0: after every iteration
+        whose cumulative count ``total_iters`` is a multiple of it, the mean PSNR of the window
+        (``window_psnr``) goes to ``MappingResult.psnr_curve`` (measured before that iteration's
+        densification, whose fresh clones and split children the following iterations have yet to
+        fit)."""
         dev, gmap = self.device, self.gmap
         window = list(window)
         if not window:
@@ -184,7 +214,9 @@ class Mapper:
         if iters <= 0 or len(gmap) == 0:
             return MappingResult(0, np.zeros(0), np.zeros(0), np.zeros(0))
         k_win = len(window)
-        self._upload_window(keyframes, window)
+        self._upload_window(keyframes, window, fixed_exposure)
+        self._exposure_m.zero_()
+        self._exposure_v.zero_()
         if self._loss.shape[0] < iters:
             self._loss = wp.zeros((iters, km.L_COLUMNS), dtype=wp.float64, device=dev)
         self._loss.zero_()
@@ -205,6 +237,8 @@ class Mapper:
             if self.densifier is not None:
                 self._densify(result)
 
+        if self.cfg.lr_exposure > 0.0:
+            keyframes.exposure[window] = self._exposure[:k_win].numpy()
         loss = self._loss[:iters].numpy()
         pixels = np.maximum(loss[:, km.L_PIXELS], 1.0)
         depth_px = loss[:, km.L_DEPTH_PIXELS]
@@ -219,6 +253,7 @@ class Mapper:
         n = len(gmap)
         share = 1.0 / len(views)
         grads = self.grads()
+        self._exposure_grad.zero_()
         before = gmap.column("grad.opacity_before")
         obs_count, vis_count = gmap.column("obs_count"), gmap.column("vis_count")
         for v, j in enumerate(views):
@@ -249,6 +284,15 @@ class Mapper:
         )
         self.adam.step(grads, lr_factor)
         wp.launch(km.update_ema, dim=n, inputs=[gmap.means, cfg.ema_eta], outputs=[ema_means], device=dev)
+        if cfg.lr_exposure > 0.0:
+            wp.launch(
+                km.adam_exposure_step,
+                dim=len(window),
+                inputs=[self._exposure_grad, self._exposure_fixed, it + 1, cfg.lr_exposure * lr_factor]
+                + [cfg.adam_beta1, cfg.adam_beta2],
+                outputs=[self._exposure_m, self._exposure_v, self._exposure],
+                device=dev,
+            )
 
     def _densify(self, result: MappingResult) -> None:
         """The densifier's step at iteration ``total_iters``: the appended rows got their optimiser
@@ -286,12 +330,11 @@ class Mapper:
         n_pixels = self.camera.width * self.camera.height
         blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
         for j, slot in enumerate(window):
-            g, b = (float(v) for v in keyframes.exposure[slot])
             res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1])
             wp.launch_tiled(
                 km.exposed_squared_error,
                 dim=blocks,
-                inputs=[keyframes.rgb[slot], res.color, g, b, j],
+                inputs=[keyframes.rgb[slot], res.color, self._exposure, j],
                 outputs=[self._squared_error],
                 block_dim=REDUCE_BLOCK,
                 device=self.device,

@@ -267,6 +267,7 @@ class Seeder:
         # measured depth is certain (Eq. 14 at full confidence); a monocular plane is not
         self._depth_confidence = wp.full(n, 1.0 if mode == "rgbd" else 0.0, dtype=wp.float32, device=dev)
         shape = (camera.height, camera.width)
+        # monocular: the first keyframe's plane; RGB-D: the far layer's depth image (far_layer_depth)
         self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
@@ -318,14 +319,24 @@ class Seeder:
 
     def seed_depth(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
         """Measured-depth seeds where the map does not cover keyframe ``slot`` (RGB-D with
-        ``depth_fill``), or the first seeds of an empty map; returns how many."""
+        ``depth_fill``, and the first seeds of an empty map; monocular: the first keyframe's plane at
+        ``scene_depth_m``), then with ``far_layer_m`` a far layer where nothing was measured; returns
+        how many."""
         if len(gmap) == 0:
-            depth = None if self.mode == "rgbd" else self._plane_depth
-            return self._seed_depth(keyframes, slot, self._zero_alpha, depth, gmap)
-        if self.mode == "rgbd" and self.cfg.depth_fill:
+            alpha = self._zero_alpha
+            if self.mode != "rgbd":
+                return self._seed_depth(keyframes, slot, alpha, self._plane_depth, gmap)
+        elif self.mode == "rgbd" and self.cfg.depth_fill:
             alpha = self.renderer.forward(gmap, self.camera, keyframes.poses[slot]).alpha
-            return self._seed_depth(keyframes, slot, alpha, None, gmap)
-        return 0
+        else:
+            return 0
+        added = self._seed_depth(keyframes, slot, alpha, None, gmap)
+        if self.cfg.far_layer_m > 0.0:  # where nothing was measured: not where the depth seeds just went
+            far = self._plane_depth
+            launch_inputs = [keyframes.depth[slot], self.cfg.far_layer_m]
+            wp.launch(ks.far_layer_depth, dim=far.shape, inputs=launch_inputs, outputs=[far], device=self.device)
+            added += self._seed_depth(keyframes, slot, alpha, far, gmap)
+        return added
 
     def fill_frame(self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure, coverage) -> int:
         """Measured-depth seeds into ``pending`` from a tracked frame (``rgb``, ``depth`` on the device)

@@ -29,9 +29,10 @@ def mapping_loss(
     observed_depth: wp.array2d(dtype=wp.float32),
     rendered: wp.array2d(dtype=wp.vec3),
     rendered_depth: wp.array2d(dtype=wp.float32),
-    # in: exposure of the keyframe (Eq. 3), robust scale, depth weight
-    gain: float,
-    bias: float,
+    # in: exposures (g, b) of Eq. 3 of the window's keyframes and this view's position, robust scale,
+    # depth weight
+    exposure: wp.array(dtype=wp.vec2),
+    view: int,
     robust_scale: float,
     use_depth: int,
     depth_weight: float,
@@ -58,7 +59,7 @@ def mapping_loss(
         y = i // width
         x = i - y * width
         inv_n = 1.0 / float(height * width)
-        xv = gain * rendered[y, x] + wp.vec3(bias)
+        xv = exposure[view][0] * rendered[y, x] + wp.vec3(exposure[view][1])
         x_out[y, x] = xv
         r = observed[y, x] - xv
         mean_abs = (wp.abs(r[0]) + wp.abs(r[1]) + wp.abs(r[2])) / 3.0
@@ -91,14 +92,69 @@ def mapping_loss(
 
 @wp.kernel
 def scale_image_grad(
-    # in: dL/dx of x = g I_hat + b
+    # in: dL/dx of x = g I_hat + b, the window's exposures and this view's position
     grad_x: wp.array2d(dtype=wp.vec3),
-    gain: float,
+    exposure: wp.array(dtype=wp.vec2),
+    view: int,
     # out: dL/dI_hat
     d_color_out: wp.array2d(dtype=wp.vec3),
 ):
     y, x = wp.tid()
-    d_color_out[y, x] = gain * grad_x[y, x]
+    d_color_out[y, x] = exposure[view][0] * grad_x[y, x]
+
+
+@wp.kernel
+def exposure_grad(
+    # in: dL/dx of x = g I_hat + b (L1 and SSIM), the render I_hat, this view's position
+    grad_x: wp.array2d(dtype=wp.vec3),
+    rendered: wp.array2d(dtype=wp.vec3),
+    view: int,
+    # out: (dL/dg, dL/db) of the view, added to
+    grad_out: wp.array(dtype=wp.vec2d),
+):
+    # dL/dg = sum over pixels and channels of dL/dx I_hat, dL/db = sum of dL/dx
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    width = grad_x.shape[1]
+    v = wp.vec2(0.0)
+    if i < grad_x.shape[0] * width:
+        y = i // width
+        x = i - y * width
+        g = grad_x[y, x]
+        v = wp.vec2(wp.dot(g, rendered[y, x]), g[0] + g[1] + g[2])
+    total = block_sum(v)
+    if lane == 0:
+        wp.atomic_add(grad_out, view, wp.vec2d(wp.float64(total[0]), wp.float64(total[1])))
+
+
+@wp.kernel
+def adam_exposure_step(
+    # in: (dL/dg, dL/db) of each window view, 1 where its exposure is held (the gauge), step, schedule
+    grad: wp.array(dtype=wp.vec2d),
+    fixed: wp.array(dtype=wp.int32),
+    step: int,
+    lr: float,
+    beta1: float,
+    beta2: float,
+    # in/out: Adam moments and the exposures (g, b)
+    m: wp.array(dtype=wp.vec2),
+    v: wp.array(dtype=wp.vec2),
+    exposure: wp.array(dtype=wp.vec2),
+):
+    j = wp.tid()
+    if fixed[j] != 0:
+        return
+    g = wp.vec2(float(grad[j][0]), float(grad[j][1]))
+    mj = beta1 * m[j] + (1.0 - beta1) * g
+    vj = beta2 * v[j] + (1.0 - beta2) * wp.cw_mul(g, g)
+    m[j] = mj
+    v[j] = vj
+    c1 = 1.0 - wp.pow(beta1, float(step))
+    c2 = 1.0 - wp.pow(beta2, float(step))
+    e = exposure[j]
+    for k in range(2):
+        e[k] = e[k] - lr * (mj[k] / c1) / (wp.sqrt(vj[k] / c2) + 1.0e-8)
+    exposure[j] = e
 
 
 @wp.kernel
@@ -184,11 +240,11 @@ def update_ema(
 
 @wp.kernel
 def exposed_squared_error(
-    # in: keyframe image, render of the map at its pose, its exposure (Eq. 3)
+    # in: keyframe image, render of the map at its pose, the window's exposures (Eq. 3), the view's
+    # position in the window (its exposure and its entry of the sums)
     observed: wp.array2d(dtype=wp.vec3),
     rendered: wp.array2d(dtype=wp.vec3),
-    gain: float,
-    bias: float,
+    exposure: wp.array(dtype=wp.vec2),
     row: int,
     # out: sum over pixels and channels of (clip(g I_hat + b, 0, 1) - I)^2, added to entry `row`
     sums_out: wp.array(dtype=wp.float64),
@@ -200,7 +256,7 @@ def exposed_squared_error(
     if i < observed.shape[0] * width:
         y = i // width
         x = i - y * width
-        c = gain * rendered[y, x] + wp.vec3(bias)
+        c = exposure[row][0] * rendered[y, x] + wp.vec3(exposure[row][1])
         r = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0)) - observed[y, x]
         e = wp.dot(r, r)
     total = block_sum(e)

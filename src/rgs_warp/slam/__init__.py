@@ -207,7 +207,7 @@ class SLAM:
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
-        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every=psnr_every)
+        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, self._gauge_slots())
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
             t0 = time.perf_counter()
@@ -216,6 +216,12 @@ class SLAM:
         else:
             result.pruned = result.mapping.pruned
         self._log_convergence(i, "init" if init else "keyframe", window, result.mapping)
+
+    def _gauge_slots(self) -> list[int]:
+        """The buffer slot of the first keyframe while it is buffered: its exposure is the identity, the
+        gauge of the map's colour (``Mapper.optimize``'s ``fixed_exposure``)."""
+        first = self.keyframe_indices[0] if self.keyframe_indices else -1
+        return [s for s in self.keyframes.slots() if int(self.keyframes.frame_ids[s]) == first]
 
     def _seed(self, slot: int, matches: bool = True) -> int:
         """Dense initialization at keyframe ``slot``: (``matches``) matches with its neighbours,
@@ -284,7 +290,7 @@ class SLAM:
         self.stats["seeding_s"] += time.perf_counter() - tb
         tm = time.perf_counter()
         psnr_every = cfg.eval.convergence_every
-        result.mapping = self.mapper.optimize(self.keyframes, window, cfg.mapping.init_iters, psnr_every=psnr_every)
+        result.mapping = self.mapper.optimize(self.keyframes, window, cfg.mapping.init_iters, psnr_every, [slot0])
         self.stats["mapping_s"] += time.perf_counter() - tm
         self._log_convergence(i, "init", window, result.mapping)
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
