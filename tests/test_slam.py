@@ -409,3 +409,42 @@ def test_mono_bootstrap_falls_back_to_a_plane(device):
     assert "gave up after 2 frames" in results[2].keyframe_reason
     assert slam.keyframe_indices == [0] and len(slam.map) > 100 and results[2].tracking is not None
     assert len(slam.trajectory()[1]) == 3
+
+
+WINDOW_RGB = np.array([0.95, 0.95, 0.9], np.float32)
+
+
+@pytest.mark.slow
+def test_pixels_without_depth_are_covered_by_the_far_layer(device):
+    """A window: the part of the room beyond a plane is overexposed (flat white, so nothing to match)
+    and without depth in every frame.  With the far layer (seeding.far_layer_m) the map covers it after
+    mapping and renders its colour; without it, it stays uncovered or takes its surroundings' colours."""
+    n = 8
+    base = [*OVERRIDES, "mapping.init_iters=40", "mapping.iters=8", f"device={device}"]
+    camera, frames = _frames(load_config(base), n)
+
+    def world_depth(f):
+        """Each pixel's distance beyond frame 0's camera centre along its optical axis, in the world."""
+        v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+        P = np.stack([(u - camera.cx) / camera.fx * f.depth, (v - camera.cy) / camera.fy * f.depth, f.depth], -1)
+        X = P @ f.pose_gt[:3, :3].T + f.pose_gt[:3, 3]
+        T0 = frames[0].pose_gt
+        return (X - T0[:3, 3]) @ T0[:3, 2]
+
+    cut = float(np.percentile(world_depth(frames[0])[frames[0].depth > 0], 60))
+    unmeasured = [(f.depth > 0) & (world_depth(f) > cut) for f in frames]
+    scored = unmeasured[2]
+    coverage, errors = {}, {}
+    for far in (0.0, 8.0):
+        slam = SLAM(load_config([*base, f"seeding.far_layer_m={far}"]), camera, device=device)
+        for f, hole in zip(frames, unmeasured, strict=True):
+            rgb = np.where(hole[..., None], WINDOW_RGB, f.rgb).astype(np.float32)
+            slam.process(rgb, np.where(hole, 0.0, f.depth), f.timestamp, T_WC=f.pose_gt)
+        slam.finish()
+        res = slam.render(frames[2].pose_gt)
+        coverage[far] = float(res.alpha.numpy()[scored].mean())
+        errors[far] = float(np.abs(res.color.numpy()[scored] - WINDOW_RGB).mean())
+    assert scored.mean() > 0.2
+    # measured (CPU): coverage 0.86 -> 0.93 and mean colour error 0.17 -> 0.10: without the layer the
+    # window is covered by whatever mapping stretched over it, in the colours of its surroundings
+    assert coverage[8.0] > 0.9 and errors[8.0] < 0.75 * errors[0.0], (coverage, errors)

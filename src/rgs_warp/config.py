@@ -195,6 +195,9 @@ class SeedingConfig:
 @dataclass
 class MappingConfig:
     iters: int = 60  # K_m, per keyframe (Table 1)
+    # after each frame that is not a keyframe, this many more iterations over the current window: the
+    # map keeps improving between keyframes (with asynchronous mapping this would be free); 0 = off
+    frame_iters: int = 0
     window: int = 5  # keyframes in the sliding window (Table 1)
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)

@@ -173,10 +173,17 @@ class SLAM:
         if is_kf:
             self.selector.accept(T)
             self._add_keyframe(i, T, rgb, depth, exposure, result)
-        elif pose_ok:
-            t1 = time.perf_counter()
-            result.seeded = self.seeder.fill_frame(self.map, i, *self.tracker.frame, T, exposure, decision.coverage)
-            self.stats["seeding_s"] += time.perf_counter() - t1
+        else:
+            if pose_ok:
+                t1 = time.perf_counter()
+                result.seeded = self.seeder.fill_frame(self.map, i, *self.tracker.frame, T, exposure, decision.coverage)
+                self.stats["seeding_s"] += time.perf_counter() - t1
+            if self.cfg.mapping.frame_iters > 0 and len(self.keyframes):
+                t1 = time.perf_counter()
+                window = self.keyframes.slots()[-self.cfg.mapping.window :]
+                iters, held = self.cfg.mapping.frame_iters, self._held_exposures(window)
+                result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held)
+                self.stats["mapping_s"] += time.perf_counter() - t1
         return self._record(result, timestamp, t0)
 
     def _record(self, result: FrameResult, timestamp: float | None, t0: float) -> FrameResult:
@@ -207,7 +214,7 @@ class SLAM:
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
-        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, self._gauge_slots())
+        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, self._held_exposures(window))
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
             t0 = time.perf_counter()
@@ -217,11 +224,15 @@ class SLAM:
             result.pruned = result.mapping.pruned
         self._log_convergence(i, "init" if init else "keyframe", window, result.mapping)
 
-    def _gauge_slots(self) -> list[int]:
-        """The buffer slot of the first keyframe while it is buffered: its exposure is the identity, the
-        gauge of the map's colour (``Mapper.optimize``'s ``fixed_exposure``)."""
-        first = self.keyframe_indices[0] if self.keyframe_indices else -1
-        return [s for s in self.keyframes.slots() if int(self.keyframes.frame_ids[s]) == first]
+    def _held_exposures(self, window: list[int]) -> list[int]:
+        """The window's keyframes whose exposure mapping holds (``Mapper.optimize``'s ``fixed_exposure``):
+        all but the newest, and always the first keyframe's (the identity: the gauge of the map's colour).
+        A keyframe's exposure is refined while it is the newest, against the map and the held exposures
+        of the older ones, then kept; so the map's colour stays in the first keyframe's gauge instead of
+        drifting with exposures that all move."""
+        kf = self.keyframes
+        newest, first = kf.slots()[-1], self.keyframe_indices[0]
+        return [s for s in window if s != newest or int(kf.frame_ids[s]) == first]
 
     def _seed(self, slot: int, matches: bool = True) -> int:
         """Dense initialization at keyframe ``slot``: (``matches``) matches with its neighbours,
