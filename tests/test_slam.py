@@ -56,6 +56,11 @@ def test_small_run_end_to_end(finished_run):
     assert rmse < 8.0, metrics["ate"]
     assert metrics["ate"]["keyframes"]["rmse_cm"] < 4.0, metrics["ate"]
     assert psnr > 15.0, metrics["photometric"]
+    # the exposure-compensated scores and the keyframe fit are reported, named apart from the raw ones
+    photo = metrics["photometric"]
+    assert photo["psnr_compensated_db"] >= psnr - 0.05 and photo["ssim_compensated"] >= photo["ssim"] - 0.01
+    assert photo["keyframe_psnr_compensated_db"] > photo["psnr_compensated_db"] - 1.0
+    assert "psnr_compensated (dB)" in (run_dir / "metrics.md").read_text()
     assert 3 <= metrics["keyframes"] < 20
     # every frame after the first is tracked, none lost; the report says so
     tracking = metrics["tracking"]
@@ -448,3 +453,16 @@ def test_pixels_without_depth_are_covered_by_the_far_layer(device):
     # measured (CPU): coverage 0.86 -> 0.93 and mean colour error 0.17 -> 0.10: without the layer the
     # window is covered by whatever mapping stretched over it, in the colours of its surroundings
     assert coverage[8.0] > 0.9 and errors[8.0] < 0.75 * errors[0.0], (coverage, errors)
+
+
+@pytest.mark.slow
+def test_exposure_drift_compensated_scores(tmp_path, device):
+    """A sequence whose exposure drifts (dataset.exposure_drift): raw PSNR counts the exposure of each
+    scored frame as error, the compensated one does not, and the fitted gains show the drift."""
+    cfg = load_config(
+        [*OVERRIDES, "dataset.exposure_drift=true", f"device={device}", f"output_dir={tmp_path}", "run_name=drift"]
+    )
+    _, metrics = run(cfg, progress=False)
+    photo = metrics["photometric"]
+    assert photo["psnr_compensated_db"] > photo["psnr_db"] + 0.3, photo
+    assert photo["ssim_compensated"] > photo["ssim"], photo
