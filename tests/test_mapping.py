@@ -495,3 +495,21 @@ def test_densification_keeps_map_moments_and_statistics_aligned(device, room):
     gmap.remove(wp.array(mask.astype(np.int32), dtype=wp.int32, device=device))
     np.testing.assert_array_equal(d.grad_norm_sum.numpy()[: len(gmap)], grad_sum[~mask])
     np.testing.assert_array_equal(d.visible_count.numpy()[: len(gmap)], seen[~mask])
+
+
+def test_window_psnr_matches_numpy(device, room):
+    # the convergence curves' number: the mean over the window of the PSNR of clip(g I_hat + b, 0, 1)
+    # against the keyframe image, each keyframe at its own exposure
+    cam = room["camera"]
+    gmap = _room_map(room, device)
+    kf, slots = _keyframes(room, room["frames"], device)
+    kf.exposure[slots[1]] = (1.2, -0.05)
+    renderer = Renderer(device)
+    mapper = Mapper(MappingConfig(), cam, gmap, device, renderer=renderer)
+    expected = []
+    for s in slots:
+        g, b = kf.exposure[s]
+        x = np.clip(g * renderer.forward(gmap, cam, kf.poses[s]).color.numpy().astype(np.float64) + b, 0.0, 1.0)
+        expected.append(psnr(x, kf.rgb[s].numpy()))
+    assert mapper.window_psnr(kf, slots) == pytest.approx(np.mean(expected), abs=1e-3)
+    assert np.ptp(expected) > 0.5  # the exposure of keyframe 1 counts
