@@ -14,9 +14,11 @@ from rgs_warp.eval import (
     depth_l1_cm,
     eval_frame_indices,
     fit_exposure,
+    ms_ssim,
     photometric_metrics,
     psnr,
     ssim,
+    ssim_3dgs,
     write_report,
 )
 
@@ -181,7 +183,7 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     assert loaded["align_T"] == np.eye(4).tolist()
     markdown = md_path.read_text()
     assert (
-        "| psnr (dB) | ssim | psnr_compensated (dB) | ssim_compensated | exposure_gain | lpips | depth_l1 (cm) |"
+        "| psnr (dB) | ssim | psnr_compensated (dB) | ssim_compensated | exposure_gain | ssim_3dgs | ms_ssim | lpips |"
         in markdown
     )
     assert f"n/a ({out['lpips_na_reason']})" in markdown
@@ -218,3 +220,39 @@ def test_exposure_fit_matches_lstsq_and_compensation_scores_the_map(frames):
     assert out["exposure_gain"] == pytest.approx(g)
     # a uniform render does not determine the fit: the identity
     assert fit_exposure(np.full_like(a, 0.5), ref) == (1.0, 0.0)
+
+
+def _ssim_3dgs_torch(img, ref):
+    """The 3DGS training code's SSIM, written out with torch conv2d: an 11x11 Gaussian window (sigma
+    1.5) per channel, zero padding of 5, population statistics, mean over every pixel and channel."""
+    import torch
+    import torch.nn.functional as F
+
+    x = torch.from_numpy(np.asarray(img, np.float64).transpose(2, 0, 1)[None])
+    y = torch.from_numpy(np.asarray(ref, np.float64).transpose(2, 0, 1)[None])
+    g = torch.exp(-((torch.arange(11, dtype=torch.float64) - 5) ** 2) / (2 * 1.5**2))
+    g = g / g.sum()
+    w = (g[:, None] @ g[None, :]).expand(3, 1, 11, 11).contiguous()
+
+    def conv(t):
+        return F.conv2d(t, w, padding=5, groups=3)
+
+    mu_x, mu_y = conv(x), conv(y)
+    sxx, syy, sxy = conv(x * x) - mu_x**2, conv(y * y) - mu_y**2, conv(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    return float((((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))).mean())
+
+
+def test_peer_ssim_variants(frames):
+    # 3DGS's zero-padded SSIM (MonoGS) against torch conv2d; MS-SSIM (SplaTAM's "SSIM") where the image
+    # allows its five scales, n/a with the reason where it does not
+    a, b = frames
+    assert ssim_3dgs(b, a) == pytest.approx(_ssim_3dgs_torch(b, a), abs=1e-10)
+    assert ssim_3dgs(b, a) != pytest.approx(ssim(b, a), abs=1e-4)  # the border counts: a different number
+    assert ssim_3dgs(a, a) == pytest.approx(1.0) and ms_ssim(a, a) == pytest.approx(1.0, abs=1e-6)
+    assert 0.0 < ms_ssim(b, a) < 1.0
+    small = a[:120, :200]
+    assert ms_ssim(small, small) is None
+    out = photometric_metrics([small], [small])
+    assert out["ms_ssim"] is None and "161 px" in out["ms_ssim_na_reason"]
+    assert out["ssim_3dgs"] == pytest.approx(1.0)

@@ -7,9 +7,11 @@ from rgs_warp.eval.photometric import (
     depth_l1_cm,
     eval_frame_indices,
     fit_exposure,
+    ms_ssim,
     photometric_metrics,
     psnr,
     ssim,
+    ssim_3dgs,
 )
 from rgs_warp.eval.reconstruction import mesh_metrics, sample_surface, tsdf_fuse
 from rgs_warp.eval.report import plot_trajectory_topview, write_report
@@ -23,11 +25,13 @@ __all__ = [
     "depth_l1_cm",
     "eval_frame_indices",
     "mesh_metrics",
+    "ms_ssim",
     "photometric_metrics",
     "plot_trajectory_topview",
     "psnr",
     "sample_surface",
     "ssim",
+    "ssim_3dgs",
     "tsdf_fuse",
     "umeyama_alignment",
     "write_report",

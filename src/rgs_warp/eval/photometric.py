@@ -4,8 +4,9 @@ SSIM here is the reference the differentiable Warp SSIM (mapping loss) is tested
 al. 2004 with an 11x11 Gaussian window of sigma 1.5, K1 = 0.01, K2 = 0.03, population covariances,
 computed on the valid region only (no padding: the map is (H-10) x (W-10)), per channel, averaged.
 This equals ``skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
-use_sample_covariance=False, data_range=1)``. It is single-scale SSIM, not MS-SSIM; and not the
-zero-padded 'same' variant of the 3DGS training code, which differs near the border.
+use_sample_covariance=False, data_range=1)``. It is single-scale SSIM; the peers' variants are here
+too, each under its own name: ``ssim_3dgs`` (the zero-padded 'same' variant of the 3DGS training
+code, which MonoGS reports) and ``ms_ssim`` (multi-scale, pytorch-msssim, which SplaTAM reports).
 """
 
 from __future__ import annotations
@@ -67,6 +68,40 @@ def ssim(img: np.ndarray, ref: np.ndarray) -> float:
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
     return float(ssim_map.mean())
+
+
+def ssim_3dgs(img: np.ndarray, ref: np.ndarray) -> float:
+    """SSIM as the 3DGS training code computes it (MonoGS reports this one): the same Gaussian window
+    and constants as ``ssim``, but 'same' filtering with zero padding, so every pixel counts in the
+    mean and the border's statistics take zeros in (it reads a little lower near the border)."""
+    img, ref = _check_pair(img, ref)
+    window = _gaussian_window_1d()
+
+    def same(x: np.ndarray) -> np.ndarray:
+        return correlate1d(correlate1d(x, window, axis=0, mode="constant"), window, axis=1, mode="constant")
+
+    mu_x, mu_y = same(img), same(ref)
+    var_x, var_y, cov_xy = same(img * img) - mu_x**2, same(ref * ref) - mu_y**2, same(img * ref) - mu_x * mu_y
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return float(ssim_map.mean())
+
+
+# pytorch-msssim's five scales halve the image four times and need an 11-pixel window at the last one
+MS_SSIM_MIN_SIDE = (SSIM_WINDOW - 1) * 2**4 + 1
+
+
+def ms_ssim(img: np.ndarray, ref: np.ndarray) -> float | None:
+    """Multi-scale SSIM (Wang et al. 2003) with pytorch-msssim's defaults, data range 1: what SplaTAM
+    reports as "SSIM".  None for images smaller than ``MS_SSIM_MIN_SIDE`` on their shorter side."""
+    import torch
+    from pytorch_msssim import ms_ssim as _ms_ssim
+
+    img, ref = _check_pair(img, ref)
+    if min(img.shape[:2]) < MS_SSIM_MIN_SIDE:
+        return None
+    x, y = (torch.from_numpy(np.atleast_3d(a).transpose(2, 0, 1)[None].astype(np.float32)) for a in (img, ref))
+    return float(_ms_ssim(x, y, data_range=1.0, size_average=True))
 
 
 def depth_l1_cm(depth_m: np.ndarray, ref_m: np.ndarray) -> float:
@@ -230,8 +265,9 @@ def photometric_metrics(
     and depth L1, for ``write_report``: ``psnr_db`` and ``ssim`` of the raw render, and
     ``psnr_compensated_db`` and ``ssim_compensated`` of the render at each frame's exposure
     (``compensate_exposure``, fitted where ``alphas`` >= 0.5), with the mean fitted gain
-    ``exposure_gain`` (1 where the map's colour is the frames' exposure).  A metric that cannot be
-    computed is None with its reason under ``<name>_na_reason``."""
+    ``exposure_gain`` (1 where the map's colour is the frames' exposure); peers' SSIM variants of the
+    raw render, each named: ``ssim_3dgs`` (zero-padded, MonoGS) and ``ms_ssim`` (SplaTAM's "SSIM").
+    A metric that cannot be computed is None with its reason under ``<name>_na_reason``."""
     if len(renders) != len(refs) or not renders:
         raise ValueError(f"need matching non-empty render/reference lists, got {len(renders)}, {len(refs)}")
     alphas = [None] * len(renders) if alphas is None else alphas
@@ -246,7 +282,12 @@ def photometric_metrics(
         "psnr_compensated_db": float(np.mean([psnr(x, y) for x, y in zip(compensated, refs, strict=True)])),
         "ssim_compensated": float(np.mean([ssim(x, y) for x, y in zip(compensated, refs, strict=True)])),
         "exposure_gain": float(np.mean([g for g, _ in exposures])),
+        "ssim_3dgs": float(np.mean([ssim_3dgs(x, y) for x, y in zip(renders, refs, strict=True)])),
     }
+    multi = [ms_ssim(x, y) for x, y in zip(renders, refs, strict=True)]
+    out["ms_ssim"] = None if None in multi else float(np.mean(multi))
+    if out["ms_ssim"] is None:
+        out["ms_ssim_na_reason"] = f"MS-SSIM needs images of at least {MS_SSIM_MIN_SIDE} px on the shorter side"
     if lpips_model is not None and lpips_model.available:
         out["lpips"] = float(np.mean([lpips_model(x, y) for x, y in zip(renders, refs, strict=True)]))
     else:

@@ -100,6 +100,9 @@ METRICS = (
         False,
         2,
     ),
+    # the peers' SSIMs, named apart: MonoGS's (3DGS's zero-padded) and SplaTAM's "SSIM" (MS-SSIM)
+    Metric("ssim_3dgs", ("photometric", "ssim_3dgs"), "SSIM 3DGS zero-padded", "Rendering", False, 3),
+    Metric("ms_ssim", ("photometric", "ms_ssim"), "MS-SSIM", "Rendering", False, 3),
     Metric("lpips", ("photometric", "lpips"), "LPIPS", "Rendering", True, 3),
     Metric("depth_l1_cm", ("photometric", "depth_l1_cm"), "Depth L1 (cm)", "Rendering", True, 2),
     Metric("acc_cm", ("mesh", "acc_cm"), "Acc. (cm)", "Reconstruction", True, 2),
