@@ -319,6 +319,14 @@ class EvalConfig:
 
 
 @dataclass
+class ExportConfig:
+    # mesh.ply in the run folder: the TSDF fusion (voxel_m) of the map's depth and colour rendered at
+    # every keyframe, the surface the mesh metrics score (also: python -m rgs_warp.export RUN_DIR)
+    mesh: bool = False
+    voxel_m: float = 0.01
+
+
+@dataclass
 class Config:
     device: str = "auto"  # auto = cuda:0 when Warp sees a GPU, else cpu
     mode: str = "rgbd"  # rgbd | mono
@@ -341,6 +349,7 @@ class Config:
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     bootstrap: BootstrapConfig = field(default_factory=BootstrapConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    export: ExportConfig = field(default_factory=ExportConfig)
 
     def resolved_data_root(self) -> Path:
         return Path(self.data_root or os.environ.get("RGS_DATA", "") or ".").expanduser()

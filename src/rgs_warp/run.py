@@ -250,33 +250,34 @@ def evaluate_run(
     else:
         metrics["photometric"] = None
         metrics["photometric_na_reason"] = "no non-keyframe frame to score"
-    metrics.update(mesh_section(cfg, ds, slam, est))
+    metrics.update(mesh_section(cfg, ds, slam, run_dir))
     write_report(run_dir, metrics, title=f"rgs_warp {metrics['dataset']} ({cfg.method}, {cfg.mode})")
     return metrics
 
 
-def mesh_section(cfg: Config, ds, slam: SLAM, est: np.ndarray) -> dict:
-    """Acc / Comp / Comp.Ratio of the TSDF fusion of rendered depth along the keyframe trajectory."""
+def mesh_section(cfg: Config, ds, slam: SLAM, run_dir: Path) -> dict:
+    """Acc / Comp / Comp.Ratio of the TSDF fusion of rendered depth and colour at the keyframes
+    (``rgs_warp.export.fuse_keyframes``); with ``export.mesh`` that mesh is also ``mesh.ply``."""
     mesh_path = ground_truth_mesh(cfg, ds)
-    if mesh_path is None:
-        return {"mesh": None, "mesh_na_reason": "no ground-truth mesh for this sequence"}
     if cfg.mode != "rgbd":
         return {"mesh": None, "mesh_na_reason": "monocular run (scale-free map)"}
+    if mesh_path is None and not cfg.export.mesh:
+        return {"mesh": None, "mesh_na_reason": "no ground-truth mesh for this sequence"}
     try:
-        import open3d as o3d
+        from rgs_warp.eval.reconstruction import require_open3d
 
-        from rgs_warp.eval import mesh_metrics, tsdf_fuse
+        o3d = require_open3d()
     except ImportError as e:
         return {"mesh": None, "mesh_na_reason": f"open3d not importable ({e})"}
-    depths, poses = [], []
-    for i in slam.keyframe_indices:
-        res = slam.render(est[i])
-        alpha = res.alpha.numpy()
-        depths.append(np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0).astype(np.float32))
-        poses.append(est[i])
-    rec = tsdf_fuse(depths, poses, slam.camera)
-    gt = o3d.io.read_triangle_mesh(str(mesh_path))
-    return {"mesh": mesh_metrics(rec, gt)}
+    from rgs_warp.eval import mesh_metrics
+    from rgs_warp.export import fuse_keyframes
+
+    rec = fuse_keyframes(slam, voxel_m=cfg.export.voxel_m)
+    if cfg.export.mesh:
+        o3d.io.write_triangle_mesh(str(run_dir / "mesh.ply"), rec, write_vertex_colors=True)
+    if mesh_path is None:
+        return {"mesh": None, "mesh_na_reason": "no ground-truth mesh for this sequence"}
+    return {"mesh": mesh_metrics(rec, o3d.io.read_triangle_mesh(str(mesh_path)))}
 
 
 def keyframe_fit(ds, slam: SLAM, est: np.ndarray) -> dict:

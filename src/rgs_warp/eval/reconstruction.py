@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     import open3d as o3d
 
 
-def _open3d():
+def require_open3d():
     """Open3D, imported when a mesh metric runs: it is heavy (and needs libusb), and nothing else in
     the package uses it, so it is the optional extra ``mesh``."""
     try:
@@ -42,16 +42,19 @@ def tsdf_fuse(
     trunc_m: float = 0.04,
     max_depth_m: float = 5.0,
     min_observations: int = 1,
+    colours: Sequence[np.ndarray] | None = None,
 ) -> o3d.geometry.TriangleMesh:
     """Fuse HxW depth maps (metres, 0 = invalid) seen from camera-to-world poses into a mesh
     (Open3D's VoxelBlockGrid; the legacy ``ScalableTSDFVolume`` returns empty meshes in Open3D 0.20).
 
     Depth beyond ``max_depth_m`` is ignored; ``trunc_m`` is the TSDF truncation distance (a few
     voxels); only voxels observed by at least ``min_observations`` depth maps are meshed.
+    ``colours`` (HxWx3 in [0, 1], one per depth map) are fused too and become the vertex colours;
+    the geometry is the same with or without them.
     """
     if len(depths_m) != len(poses_c2w) or len(depths_m) == 0:
         raise ValueError(f"need as many depth maps as poses (non-empty), got {len(depths_m)}, {len(poses_c2w)}")
-    o3d = _open3d()
+    o3d = require_open3d()
     o3c = o3d.core
     # Open3D's integration reads the depth pixel floor(u), i.e. takes pixel u to span [u, u + 1)
     # with its centre at u + 0.5; ours is at u (types.py). Shifting the principal point by half a
@@ -59,16 +62,19 @@ def tsdf_fuse(
     intrinsic = o3c.Tensor(
         [[camera.fx, 0.0, camera.cx + 0.5], [0.0, camera.fy, camera.cy + 0.5], [0.0, 0.0, 1.0]], o3c.float64
     )
+    if colours is not None and len(colours) != len(depths_m):
+        raise ValueError(f"need one colour image per depth map, got {len(colours)} for {len(depths_m)}")
+    with_colour = colours is not None
     grid = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight"),
-        attr_dtypes=(o3c.float32, o3c.float32),
-        attr_channels=(1, 1),
+        attr_names=("tsdf", "weight", "color") if with_colour else ("tsdf", "weight"),
+        attr_dtypes=(o3c.float32, o3c.float32, o3c.float32) if with_colour else (o3c.float32, o3c.float32),
+        attr_channels=(1, 1, 3) if with_colour else (1, 1),
         voxel_size=voxel_m,
         block_resolution=8,
         block_count=_INITIAL_BLOCK_COUNT,
     )
     trunc_voxels = trunc_m / voxel_m
-    for depth_m, T_wc in zip(depths_m, poses_c2w, strict=True):
+    for k, (depth_m, T_wc) in enumerate(zip(depths_m, poses_c2w, strict=True)):
         depth_m = np.asarray(depth_m, dtype=np.float32)
         if depth_m.shape != (camera.height, camera.width):
             raise ValueError(f"depth shape {depth_m.shape} does not match camera {camera.height}x{camera.width}")
@@ -79,7 +85,14 @@ def tsdf_fuse(
         blocks = grid.compute_unique_block_coordinates(
             depth_image, intrinsic, extrinsic, 1.0, max_depth_m, trunc_voxels
         )
-        grid.integrate(blocks, depth_image, intrinsic, extrinsic, 1.0, max_depth_m, trunc_voxels)
+        if with_colour:
+            colour = o3c.Tensor(np.ascontiguousarray(np.clip(colours[k], 0.0, 1.0), dtype=np.float32))
+            colour_image = o3d.t.geometry.Image(colour)
+            grid.integrate(
+                blocks, depth_image, colour_image, intrinsic, intrinsic, extrinsic, 1.0, max_depth_m, trunc_voxels
+            )
+        else:
+            grid.integrate(blocks, depth_image, intrinsic, extrinsic, 1.0, max_depth_m, trunc_voxels)
     # Each integration adds 1 to a voxel's weight and Open3D keeps weights strictly above the threshold.
     weight_threshold = min_observations - 0.5
     tsdf = grid.attribute("tsdf").numpy().reshape(-1)
@@ -109,7 +122,7 @@ def sample_surface(mesh: o3d.geometry.TriangleMesh, n_samples: int, rng: np.rand
 
 def _distance_to_surface_m(mesh: o3d.geometry.TriangleMesh, points_m: np.ndarray) -> np.ndarray:
     """Unsigned distance (m) of each point to the closest point of any triangle (Open3D, float32)."""
-    o3d = _open3d()
+    o3d = require_open3d()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     return scene.compute_distance(o3d.core.Tensor(points_m.astype(np.float32))).numpy().astype(np.float64)
