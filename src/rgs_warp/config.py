@@ -18,6 +18,8 @@ from pathlib import Path
 
 import yaml
 
+from rgs_warp.io.atomic import write_text_atomic
+
 CONFIG_DIR = Path(__file__).parent / "configs"
 # Groups whose YAML fills one section of the config; ``method`` files are merged at the top level
 # because a method sets values in several stages at once.
@@ -530,6 +532,26 @@ def config_from_dict(data: dict) -> Config:
     return cfg
 
 
+def load_saved_config(path: str | Path) -> Config:
+    """The config of a run folder (``config.yaml`` as ``save_config`` wrote it); every error names the
+    file.  A file cut short (a copy interrupted) lacks its last sections: that is an error too."""
+    path = Path(path)
+    try:
+        data = parse_yaml(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not readable YAML (truncated or damaged?): {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys, got {type(data).__name__} (truncated or damaged?)")
+    sections = [f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(getattr(Config(), f.name))]
+    missing = [name for name in sections if name not in data]
+    if missing:
+        raise ConfigError(f"{path}: sections {', '.join(missing)} missing (truncated?)")
+    try:
+        return config_from_dict(data)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
 def save_config(cfg: Config, path: Path) -> None:
     def plain(x):
         if isinstance(x, dict):
@@ -538,7 +560,7 @@ def save_config(cfg: Config, path: Path) -> None:
             return [plain(v) for v in x]
         return x
 
-    path.write_text(yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
 
 
 def help_text() -> str:

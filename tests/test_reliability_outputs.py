@@ -1,0 +1,132 @@
+"""Issue 20, the output half: a crash, a full disk or a second run never loses or mixes a run's files.
+
+Saves are atomic and complete one file at a time (trajectory first), an empty map saves, ``SLAM.load``
+names a damaged file; run folders are never shared or overwritten unasked; a killed run resumes
+from its last checkpoint to exactly the uninterrupted result (CPU); ``mapping.max_gaussians`` bounds
+the map.  ``experiments/results/reliability.md`` lists which of these fail on 8dc16f7."""
+
+import errno
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rgs_warp.config import load_config
+from rgs_warp.io.ply import load_ply
+from rgs_warp.io.trajectory import read_tum_trajectory
+from rgs_warp.slam import SLAM
+from rgs_warp.types import Camera
+
+SMALL = ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90"]
+CAMERA = Camera(80.0, 80.0, 79.5, 44.5, 160, 90)
+
+
+def _slam(device, gaussians: int = 40, frames: int = 3, keyframes: int = 2) -> SLAM:
+    """A SLAM holding a few random Gaussians, a trajectory and keyframes, without running a frame."""
+    slam = SLAM(load_config([*SMALL, f"device={device}"]), CAMERA, device=device)
+    rng = np.random.default_rng(0)
+    if gaussians:
+        n = gaussians
+        slam.map.append(
+            rng.normal(size=(n, 3)),
+            rng.normal(size=(n, 4)),
+            rng.normal(size=(n, 3)) - 3.0,
+            rng.normal(size=n),
+            rng.normal(size=(n, 9, 3)),
+        )
+    for i in range(frames):
+        T = np.eye(4)
+        T[:3, 3] = [0.1 * i, 0.0, 0.0]
+        slam.poses.append(T)
+        slam.timestamps.append(0.1 * i)
+    for i in range(keyframes):
+        slam.keyframes.add(i, slam.poses[i], rng.random((90, 160, 3)), rng.random((90, 160)))
+        slam.keyframe_indices.append(i)
+    return slam
+
+
+# ---- 1. saves --------------------------------------------------------------------------------------
+def test_atomic_write_leaves_the_old_file_when_writing_fails(tmp_path):
+    from rgs_warp.io.atomic import atomic_write
+
+    path = tmp_path / "a.txt"
+    path.write_text("old")
+    with pytest.raises(RuntimeError), atomic_write(path, text=True) as f:
+        f.write("half of the new")
+        raise RuntimeError("killed mid-write")
+    assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+    with atomic_write(path, text=True) as f:
+        f.write("new")
+    assert path.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_empty_map_saves_and_loads_back(tmp_path, device):
+    """8dc16f7: save_ply crashes on 0 Gaussians ("cannot reshape array of size 0"), after which no
+    trajectory is written."""
+    slam = _slam(device, gaussians=0)
+    slam.save(tmp_path)
+    loaded = SLAM.load(tmp_path, device=device)
+    assert len(loaded.map) == 0 and len(load_ply(tmp_path / "map.ply")) == 0
+    np.testing.assert_allclose(loaded.trajectory()[1], slam.trajectory()[1], atol=1e-12)
+    assert loaded.keyframe_indices == [0, 1]
+
+
+def test_a_failing_file_loses_no_other_and_the_error_says_what_was_saved(tmp_path, device, monkeypatch):
+    """8dc16f7 writes map.ply first: a full disk there leaves no trajectory."""
+    import rgs_warp.slam as slam_module
+
+    def disk_full(path, gmap):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+    monkeypatch.setattr(slam_module, "save_ply", disk_full)
+    slam = _slam(device)
+    with pytest.raises(OSError) as e:
+        slam.save(tmp_path)
+    message = str(e.value)
+    assert "map.ply" in message and "No space left on device" in message
+    assert "saved: trajectory.txt, keyframes.npz, config.yaml" in message
+    stamps, poses = read_tum_trajectory(tmp_path / "trajectory.txt")
+    assert len(poses) == 3 and not (tmp_path / "map.ply").exists()
+    assert set(np.load(tmp_path / "keyframes.npz").files) >= {"poses", "rgb"}
+
+
+def test_a_failed_rename_keeps_the_previous_file_whole(tmp_path, device, monkeypatch):
+    """A full disk while a newer map is written (here: at its rename) leaves the previous map.ply
+    whole, and every other file is updated; 8dc16f7 writes in place, so it raises nothing here."""
+    slam = _slam(device)
+    slam.save(tmp_path)
+    slam.map.remove(np.arange(len(slam.map)) % 2 == 0)  # the map changes: 20 of the 40 Gaussians left
+    slam.poses.append(np.eye(4))
+    slam.timestamps.append(0.3)
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if Path(dst).name == "map.ply":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(OSError, match="map.ply.*No space left.*saved: trajectory.txt, keyframes.npz, config.yaml"):
+        slam.save(tmp_path)
+    assert len(load_ply(tmp_path / "map.ply")) == 40  # the previous map, whole
+    assert len(read_tum_trajectory(tmp_path / "trajectory.txt")[1]) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml", "keyframes.npz", "map.ply", "trajectory.txt"]
+
+
+@pytest.mark.parametrize("name", ["map.ply", "keyframes.npz", "config.yaml", "trajectory.txt"])
+def test_load_names_a_truncated_file(tmp_path, device, name):
+    """A copy cut short: the error names the file and says what is wrong.  8dc16f7: plyfile's and
+    zipfile's errors name no file, a half config.yaml loads with defaults for the lost keys, and a
+    trajectory cut at a line end loads with frames missing."""
+    slam = _slam(device)
+    slam.save(tmp_path)
+    path = tmp_path / name
+    data = path.read_bytes()
+    if name == "trajectory.txt":  # at a line end: every remaining line is valid
+        path.write_bytes(b"".join(data.splitlines(keepends=True)[:-1]))
+    else:
+        path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError) as e:
+        SLAM.load(tmp_path, device=device)
+    assert str(path) in str(e.value) and "truncated" in str(e.value)
