@@ -130,3 +130,30 @@ def test_load_names_a_truncated_file(tmp_path, device, name):
     with pytest.raises(ValueError) as e:
         SLAM.load(tmp_path, device=device)
     assert str(path) in str(e.value) and "truncated" in str(e.value)
+
+
+def test_load_of_a_checkpoint_restores_every_state(tmp_path, device):
+    """``save(..., state=True)``: the optimiser's columns and clocks, the selector's reference and the
+    motion model come back exactly (what makes a resumed run equal to an uninterrupted one)."""
+    slam = _slam(device)
+    n = len(slam.map)
+    rng = np.random.default_rng(5)
+    slam.map.column("adam_m.means").assign(rng.normal(size=(slam.map.capacity, 3)).astype(np.float32))
+    slam.map.column("vis_count").assign(rng.random(slam.map.capacity).astype(np.float32))
+    slam.mapper.adam.t, slam.mapper.total_iters = 17, 42
+    slam.mapper.rng.random(3)
+    slam.tracker.reset(slam.poses[-1], slam.poses[0])
+    slam.stats["tracking_s"] = 1.5
+    slam.save(tmp_path, state=True)
+    loaded = SLAM.load(tmp_path, device=device)
+    for name in ("adam_m.means", "vis_count", "ema_means"):
+        np.testing.assert_array_equal(loaded.map.column(name).numpy()[:n], slam.map.column(name).numpy()[:n])
+    assert (loaded.mapper.adam.t, loaded.mapper.total_iters) == (17, 42)
+    assert loaded.mapper.rng.random() == slam.mapper.rng.random()
+    np.testing.assert_array_equal(loaded.tracker.predict(), slam.tracker.predict())
+    assert loaded.stats["tracking_s"] == 1.5 and loaded.keyframes.slots() == slam.keyframes.slots()
+    for key, value in slam.selector.state_dict().items():
+        np.testing.assert_array_equal(loaded.selector.state_dict()[key], value)
+    # a plain save into the same folder removes the state: it would belong to another SLAM
+    slam.save(tmp_path)
+    assert not (tmp_path / "state.npz").exists()

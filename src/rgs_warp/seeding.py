@@ -96,6 +96,13 @@ class PointSeeder:
         self._capacity = 0
         self._ensure(1024)
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The running cell size (sum, count) of the hash grid; ``load_state_dict`` restores it."""
+        return {"cell_radius": np.array([self._radius_sum, self._radius_count])}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self._radius_sum, self._radius_count = (float(v) for v in state["cell_radius"])
+
     def _ensure(self, n: int) -> None:
         if n <= self._capacity:
             return
@@ -271,6 +278,21 @@ class Seeder:
         self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The seeds waiting in ``pending`` and the two point seeders' cell sizes; ``load_state_dict``
+        restores them."""
+        state = {f"pending.{name}": value for name, value in self.pending.to_numpy().items()}
+        for prefix, seeder in (("matches.", self._from_matches), ("depth.", self._from_depth)):
+            state.update({prefix + k: v for k, v in seeder.state_dict().items()})
+        return state
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.pending.count = 0
+        if len(state["pending.means"]):
+            self.pending.append(*(state[f"pending.{name}"] for name in GaussianMap.PARAMETERS))
+        for prefix, seeder in (("matches.", self._from_matches), ("depth.", self._from_depth)):
+            seeder.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
 
     def seed_points(
         self,
