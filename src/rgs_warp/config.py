@@ -331,7 +331,11 @@ class Config:
     seed: int = 0
     data_root: str = ""  # default: $RGS_DATA, else the current directory
     output_dir: str = "runs"
-    run_name: str = ""  # default: <dataset>-<date>-<time>
+    run_name: str = ""  # default: <dataset>-<date>-<time>; a folder of that name that exists gets -2, -3, ...
+    overwrite: bool = False  # true: an existing run folder of run_name is cleared and reused instead
+    # a checkpoint every this many keyframes (the SLAM.save files and the run's state, written
+    # atomically), from which `python -m rgs_warp.slam resume=RUN_DIR` continues a stopped run; 0 = off
+    checkpoint_every: int = 10
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
