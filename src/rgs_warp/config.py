@@ -235,6 +235,11 @@ class MappingConfig:
     min_visibility_ratio: float = 0.1  # ... of which fewer than this fraction contributed to a pixel
     merge_footprint_px: float = 0.5  # merge: projected centres and radii closer than this
     merge_color_diff: float = 0.05  # ... and colours closer than this (per channel)
+    # at most this many Gaussians (bounded memory; 0 = no cap): seedings that would exceed it keep their
+    # most confident seeds, and the maintenance drops the least visible Gaussians down to
+    # cap_headroom x the cap, leaving room for the next keyframe's seeds
+    max_gaussians: int = 0
+    cap_headroom: float = 0.9
 
 
 @dataclass

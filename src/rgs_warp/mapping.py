@@ -104,6 +104,7 @@ class Mapper:
                 cull_opacity=cfg.opacity_cull,
                 prune_scale_fraction=densify.prune_scale_fraction,
                 seed=seed,
+                max_gaussians=cfg.max_gaussians,
             )
         self.device = wp.get_device(device)
         self.renderer = renderer or Renderer(self.device)

@@ -75,6 +75,12 @@ class SLAM:
         if cfg.keyframes.buffer_size < 2:
             n_kf = cfg.keyframes.buffer_size
             raise ValueError(f"keyframes.buffer_size must be >= 2 (triangulation needs pairs), got {n_kf}")
+        if cfg.mapping.max_gaussians < 0 or not 0.0 < cfg.mapping.cap_headroom <= 1.0:
+            m = cfg.mapping
+            raise ValueError(
+                f"need mapping.max_gaussians >= 0 (0 = no cap) and 0 < mapping.cap_headroom <= 1, "
+                f"got {m.max_gaussians} and {m.cap_headroom}"
+            )
         self.cfg, self.camera, self.mode = cfg, camera, cfg.mode
         self.device = dev = wp.get_device(resolve_device(cfg.device) if device is None else device)
         self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
@@ -94,6 +100,7 @@ class SLAM:
             scene_depth_m=cfg.matching.scene_depth_m,
             sh_degree=cfg.render.sh_degree,
             renderer=self.renderer,
+            max_gaussians=cfg.mapping.max_gaussians,
         )
         baseline = cfg.method == "baseline"
         self.mapper = Mapper(
