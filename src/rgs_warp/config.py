@@ -18,6 +18,8 @@ from pathlib import Path
 
 import yaml
 
+from rgs_warp.io.atomic import write_text_atomic
+
 CONFIG_DIR = Path(__file__).parent / "configs"
 # Groups whose YAML fills one section of the config; ``method`` files are merged at the top level
 # because a method sets values in several stages at once.
@@ -233,6 +235,11 @@ class MappingConfig:
     min_visibility_ratio: float = 0.1  # ... of which fewer than this fraction contributed to a pixel
     merge_footprint_px: float = 0.5  # merge: projected centres and radii closer than this
     merge_color_diff: float = 0.05  # ... and colours closer than this (per channel)
+    # at most this many Gaussians (bounded memory; 0 = no cap): seedings that would exceed it keep their
+    # most confident seeds, and the maintenance drops the least visible Gaussians down to
+    # cap_headroom x the cap, leaving room for the next keyframe's seeds
+    max_gaussians: int = 0
+    cap_headroom: float = 0.9
 
 
 @dataclass
@@ -337,7 +344,11 @@ class Config:
     seed: int = 0
     data_root: str = ""  # default: $RGS_DATA, else the current directory
     output_dir: str = "runs"
-    run_name: str = ""  # default: <dataset>-<date>-<time>
+    run_name: str = ""  # default: <dataset>-<date>-<time>; a folder of that name that exists gets -2, -3, ...
+    overwrite: bool = False  # true: an existing run folder of run_name is cleared and reused instead
+    # a checkpoint every this many keyframes (the SLAM.save files and the run's state, written
+    # atomically), from which `python -m rgs_warp.slam resume=RUN_DIR` continues a stopped run; 0 = off
+    checkpoint_every: int = 10
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -539,6 +550,26 @@ def config_from_dict(data: dict) -> Config:
     return cfg
 
 
+def load_saved_config(path: str | Path) -> Config:
+    """The config of a run folder (``config.yaml`` as ``save_config`` wrote it); every error names the
+    file.  A file cut short (a copy interrupted) lacks its last sections: that is an error too."""
+    path = Path(path)
+    try:
+        data = parse_yaml(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not readable YAML (truncated or damaged?): {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys, got {type(data).__name__} (truncated or damaged?)")
+    sections = [f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(getattr(Config(), f.name))]
+    missing = [name for name in sections if name not in data]
+    if missing:
+        raise ConfigError(f"{path}: sections {', '.join(missing)} missing (truncated?)")
+    try:
+        return config_from_dict(data)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+
+
 def save_config(cfg: Config, path: Path) -> None:
     def plain(x):
         if isinstance(x, dict):
@@ -547,7 +578,7 @@ def save_config(cfg: Config, path: Path) -> None:
             return [plain(v) for v in x]
         return x
 
-    path.write_text(yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
 
 
 def help_text() -> str:

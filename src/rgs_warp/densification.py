@@ -89,6 +89,9 @@ class Densifier:
       left out here as in gsplat's default strategy).  0 disables it.
     * ``seed=0``: seeds the split children's sampling (``wp.rand_init(seed', gaussian)``, with seed'
       derived from ``seed`` and the iteration), so runs are deterministic.
+    * ``max_gaussians=0``: a densification that would take the map over this many rows (clones and
+      split children counted before their parents and the culled go) is skipped, its culling kept
+      (``mapping.max_gaussians``: bounded memory; 0 = no cap).
 
     Statistics are map columns ``densify.grad_norm_sum`` (float32, running sum of gradient norms)
     and ``densify.visible_count`` (int32), zero for new rows; ``densify.new_rows``, ``.offsets`` and
@@ -110,6 +113,7 @@ class Densifier:
         cull_opacity: float = 0.05,
         prune_scale_fraction: float = 0.1,
         seed: int = 0,
+        max_gaussians: int = 0,
     ):
         if interval <= 0:
             raise ValueError(f"interval must be positive, got {interval}")
@@ -129,6 +133,7 @@ class Densifier:
         self.cull_opacity = cull_opacity
         self.prune_scale_fraction = prune_scale_fraction
         self.seed = seed
+        self.max_gaussians = max_gaussians
         self.gmap = gmap
         gmap.add_column("densify.grad_norm_sum", wp.float32)
         gmap.add_column("densify.visible_count", wp.int32)
@@ -222,6 +227,9 @@ class Densifier:
         wp.utils.array_scan(new_rows[:n], offsets[:n], inclusive=False)
         result.cloned, result.split = (int(c) for c in self._counts.numpy())
         added = result.cloned + 2 * result.split
+        if 0 < self.max_gaussians < n + added:  # at the cap: no growth, culling only
+            new_rows[:n].zero_()
+            result.cloned = result.split = added = 0
         if added:
             gmap.reserve(n + added)
             seed = (self.seed * 1_000_003 + iteration) % (2**31)

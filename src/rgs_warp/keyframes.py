@@ -73,6 +73,19 @@ class KeyframeSelector:
         self._last_pose = np.array(T_WC, dtype=np.float64)
         self._loss_ref = None
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """What the selector carries from frame to frame: the reference keyframe's visibility mask and
+        pose (none before the first), and the loss reference (NaN: none); ``load_state_dict`` restores it."""
+        pose = np.zeros((0, 4, 4)) if self._last_pose is None else self._last_pose[None]
+        loss_ref = np.nan if self._loss_ref is None else self._loss_ref
+        return {"last_mask": self._last_mask.numpy().copy(), "last_pose": pose, "loss_ref": np.array(loss_ref)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self._last_mask.assign(np.asarray(state["last_mask"], dtype=np.uint8))
+        self._last_pose = np.array(state["last_pose"][0], dtype=np.float64) if len(state["last_pose"]) else None
+        loss_ref = float(state["loss_ref"])
+        self._loss_ref = None if np.isnan(loss_ref) else loss_ref
+
 
 class KeyframeBuffer:
     """Bounded buffer of the most recent keyframes (§4.3: 8-12), in preallocated device slots.
@@ -102,9 +115,16 @@ class KeyframeBuffer:
         """Occupied slots, oldest first."""
         return list(self._order)
 
-    def add(self, frame_id: int, T_WC: np.ndarray, rgb, depth=None, exposure=(1.0, 0.0)) -> int:
-        """Store a keyframe (rgb HxWx3 / depth HxW as NumPy or device arrays); returns its slot."""
-        if len(self._order) == self.capacity:
+    def add(
+        self, frame_id: int, T_WC: np.ndarray, rgb, depth=None, exposure=(1.0, 0.0), slot: int | None = None
+    ) -> int:
+        """Store a keyframe (rgb HxWx3 / depth HxW as NumPy or device arrays); returns its slot:
+        ``slot`` if given (a free one: restoring a saved buffer as it was), else a free slot or the
+        oldest keyframe's."""
+        if slot is not None:
+            if not 0 <= slot < self.capacity or slot in self._order:
+                raise ValueError(f"slot {slot} is not a free slot of a buffer of {self.capacity}")
+        elif len(self._order) == self.capacity:
             slot = self._order.pop(0)
         else:
             slot = next(s for s in range(self.capacity) if s not in self._order)

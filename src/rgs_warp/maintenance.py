@@ -222,12 +222,32 @@ def merge_duplicates(
     return out, scratch.n_merged
 
 
+def least_visible_mask(gmap: GaussianMap, keep: int) -> np.ndarray:
+    """Removal mask (bool, ``len(gmap)``) of all but the ``keep`` Gaussians that matter most to the
+    renders: score = opacity x (v_i + 1) / (m_i + 1), the opacity weighted by the fraction of the
+    views it was inside in which it contributed to a pixel (the mapper's ``vis_count`` v_i and
+    ``obs_count`` m_i; 1 without them, and for Gaussians not seen yet: fresh seeds are kept for their
+    first mapping to judge).  Ties keep the older rows.  Reads the columns back to the host."""
+    n = len(gmap)
+    score = 1.0 / (1.0 + np.exp(-gmap.opacity_logits.numpy()[:n].astype(np.float64)))
+    if gmap.has_column("obs_count") and gmap.has_column("vis_count"):
+        obs, vis = gmap.column("obs_count").numpy()[:n], gmap.column("vis_count").numpy()[:n]
+        score *= (vis.astype(np.float64) + 1.0) / (obs.astype(np.float64) + 1.0)
+    mask = np.ones(n, dtype=bool)
+    mask[np.argsort(-score, kind="stable")[: max(keep, 0)]] = False
+    return mask
+
+
 class Maintainer:
     """The maintenance stage after each keyframe's mapping (§4.5): prune the Gaussians that violate
     the bounds of ``prune_mask`` (reading the mapper's statistics columns ``obs_count`` and
     ``vis_count`` of the map when it has them), then merge near-duplicates seen from the keyframe among
     the survivors, and remove both from the map (its every column compacts with it).  The masks
-    combine on the device; one read of the two counts."""
+    combine on the device; one read of the two counts.
+
+    Bounded memory (``mapping.max_gaussians`` > 0): when the map is still above ``cap_headroom`` x the
+    cap after that, the least visible Gaussians go too (``least_visible_mask``), down to that level, so
+    the next keyframe's seeds have room (the Seeder keeps a seeding under the cap itself)."""
 
     def __init__(self, cfg: MappingConfig, camera: Camera, device=None):
         self.cfg, self.camera = cfg, camera
@@ -235,7 +255,8 @@ class Maintainer:
         self._scratch = MergeScratch(self.device)
 
     def maintain(self, gmap: GaussianMap, T_WC: np.ndarray) -> tuple[int, int]:
-        """Prune and merge (seen from camera-to-world ``T_WC``); returns (pruned, merged)."""
+        """Prune and merge (seen from camera-to-world ``T_WC``), then ``cap``; returns (pruned with the
+        capped, merged)."""
         cfg = self.cfg
         if len(gmap) == 0:
             return 0, 0
@@ -262,4 +283,14 @@ class Maintainer:
         merged = int(n_merged.numpy()[0])
         if pruned + merged:
             gmap.remove(remove)
-        return pruned, merged
+        return pruned + self.cap(gmap), merged
+
+    def cap(self, gmap: GaussianMap) -> int:
+        """Above ``cap_headroom`` x ``max_gaussians``: remove the least visible Gaussians down to it;
+        returns how many (0 without a cap)."""
+        target = int(self.cfg.cap_headroom * self.cfg.max_gaussians)
+        if self.cfg.max_gaussians <= 0 or len(gmap) <= target:
+            return 0
+        removed = len(gmap) - target
+        gmap.remove(least_visible_mask(gmap, target))
+        return removed

@@ -18,6 +18,7 @@ read of its squared errors).
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -103,6 +104,7 @@ class Mapper:
                 cull_opacity=cfg.opacity_cull,
                 prune_scale_fraction=densify.prune_scale_fraction,
                 seed=seed,
+                max_gaussians=cfg.max_gaussians,
             )
         self.device = wp.get_device(device)
         self.renderer = renderer or Renderer(self.device)
@@ -133,6 +135,17 @@ class Mapper:
         self._squared_error = wp.zeros(1, dtype=wp.float64, device=dev)
         self._window_capacity = 0
         self.total_iters = 0
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The optimiser's clocks besides the map's columns: Adam's step count (bias correction), the
+        view-order generator and the cumulative iterations; ``load_state_dict`` restores them."""
+        rng = json.dumps(self.rng.bit_generator.state)
+        return {"adam_t": np.array(self.adam.t), "rng": np.array(rng), "total_iters": np.array(self.total_iters)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.adam.t = int(state["adam_t"])
+        self.rng.bit_generator.state = json.loads(str(state["rng"]))
+        self.total_iters = int(state["total_iters"])
 
     def grads(self) -> GaussianGrads:
         """The gradient columns of the map (valid until it grows)."""

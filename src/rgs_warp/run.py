@@ -6,9 +6,13 @@ report and figures.
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
+import shutil
 import sys
 import time
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
@@ -16,7 +20,15 @@ import numpy as np
 import warp as wp
 from tqdm import tqdm
 
-from rgs_warp.config import Config, ConfigError, help_text, load_config, resolve_device, save_config
+from rgs_warp.config import (
+    Config,
+    ConfigError,
+    help_text,
+    load_config,
+    load_saved_config,
+    resolve_device,
+    save_config,
+)
 from rgs_warp.datasets import DatasetError, open_dataset
 from rgs_warp.eval import (
     LPIPS,
@@ -28,22 +40,73 @@ from rgs_warp.eval import (
     psnr,
     write_report,
 )
+from rgs_warp.io.atomic import SaveError, write_text_atomic
 from rgs_warp.slam import SLAM
 
 USAGE = """usage: python -m rgs_warp.slam [group=option ...] [key=value ...]
+       python -m rgs_warp.slam resume=RUN_DIR [device=...] [data_root=...]
 
 examples:
   python -m rgs_warp.slam                                  # generated synthetic room (CPU-sized)
   python -m rgs_warp.slam method=baseline                  # the same with the dense initialization baseline
   python -m rgs_warp.slam dataset=replica/office0 data_root=/data tracking.iters=40
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen
+  python -m rgs_warp.slam run_name=office overwrite=true  # reuse runs/office (else runs/office-2, ...)
+  python -m rgs_warp.slam resume=runs/office               # continue a stopped run from its checkpoint
 """
 
 
+class OutputError(OSError):
+    """The run folder cannot be made, cleared or written; the message names it."""
+
+
 def make_run_dir(cfg: Config) -> Path:
+    """A new folder for a run, ``output_dir/run_name`` (default ``<dataset>-<date>-<time>``), never
+    one another run uses: a name that exists gets ``-2``, ``-3``, ... (``mkdir`` fails on an existing
+    folder, so two runs started in the same second cannot share one), unless ``overwrite`` is set with
+    a ``run_name``: then the old run folder is cleared and reused.  Raises ``OutputError``."""
+    base = Path(cfg.output_dir)
     name = cfg.run_name or f"{cfg.dataset.type}-{cfg.dataset.name}-{datetime.now():%Y%m%d-%H%M%S}"
-    run_dir = Path(cfg.output_dir) / name
-    run_dir.mkdir(parents=True, exist_ok=True)
+    path = base / name
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+        if cfg.overwrite and cfg.run_name:
+            if path.exists():
+                _clear_run_dir(path)
+            path.mkdir(exist_ok=True)
+            return path
+        for k in itertools.count(2):
+            try:
+                path.mkdir()
+                return path
+            except FileExistsError:
+                path = base / f"{name}-{k}"
+    except OSError as e:
+        raise OutputError(f"cannot create the run folder {path}: {e.strerror or e}") from e
+    raise AssertionError("unreachable")
+
+
+def _clear_run_dir(path: Path) -> None:
+    """Empty an old run folder for ``overwrite=true``, so no file of the old run (metrics, renders,
+    checkpoints) sits beside the new one's; a folder that is not a run's is refused, not emptied."""
+    if not path.is_dir():
+        raise OutputError(f"cannot reuse {path} for the run: it is not a folder")
+    children = list(path.iterdir())
+    if children and not (path / "config.yaml").is_file():
+        raise OutputError(f"overwrite=true refused: {path} is not a run folder (no config.yaml); remove it yourself")
+    for child in children:
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
+
+
+def _own_run_dir(run_dir: Path) -> Path:
+    """A run folder the caller chose (``run(cfg, run_dir=...)``, the eval suite): made if needed."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create the run folder {run_dir}: {e.strerror or e}") from e
     return run_dir
 
 
@@ -78,72 +141,253 @@ def peak_memory_mib(device) -> float | None:
     return wp.get_mempool_used_mem_high(device) / 2**20
 
 
+@dataclass
+class RunState:
+    """What a run gathers besides the SLAM, checkpointed with it (``run_state.json``): the next frame
+    to process (of ``frames_total``), the ground-truth poses of the frames so far (None where the
+    dataset has none), their tracking losses and lost frames, the seconds spent, and the keyframe
+    count at the last checkpoint."""
+
+    next_frame: int = 0
+    frames_total: int = 0
+    gt_poses: list = field(default_factory=list)
+    frame_losses: list[float] = field(default_factory=list)
+    lost: list[tuple[int, str]] = field(default_factory=list)
+    elapsed_s: float = 0.0
+    checkpoint_keyframes: int = 0
+
+    def to_json(self) -> dict:
+        data = dataclasses.asdict(self)
+        data["gt_poses"] = [None if T is None else np.asarray(T).tolist() for T in self.gt_poses]
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict) -> RunState:
+        state = cls(**data)
+        state.gt_poses = [None if T is None else np.array(T, dtype=np.float64) for T in state.gt_poses]
+        state.lost = [(int(i), str(reason)) for i, reason in state.lost]
+        return state
+
+
+CHECKPOINT = "checkpoint.json"  # in the run folder: the latest complete checkpoint's folder
+
+
 def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tuple[Path, dict]:
     """Run SLAM on the configured sequence and evaluate it; returns (run folder, metrics).
 
-    The folder gets: ``config.yaml``, ``dataset.json``, ``trajectory.txt`` (TUM, readable by evo),
-    ``map.ply`` (3DGS layout), ``keyframes.npz``, ``metrics.json`` + ``metrics.md``,
-    ``trajectory_topview.png``, ``renders/*.png`` (render | ground truth side by side),
-    ``log.jsonl`` (one line per frame) and ``convergence.json`` + ``convergence.png`` (``SLAM.convergence``:
-    window PSNR against the cumulative mapping iterations).  If the run stops early (error, Ctrl-C),
-    what was tracked so far is still saved, and the error is re-raised.
+    The folder (``make_run_dir``; made once the dataset opened, its first frame was read and the SLAM
+    was built, so a run failing at start-up leaves none) gets: ``config.yaml``, ``dataset.json``,
+    ``trajectory.txt`` (TUM, readable by evo), ``map.ply`` (3DGS layout), ``keyframes.npz``,
+    ``metrics.json`` + ``metrics.md``, ``trajectory_topview.png``, ``renders/*.png`` (render | ground
+    truth side by side), ``log.jsonl`` (one line per frame) and ``convergence.json`` +
+    ``convergence.png`` (``SLAM.convergence``: window PSNR against the cumulative mapping iterations).
+    While it runs, a checkpoint every ``checkpoint_every`` keyframes (``write_checkpoint``), removed
+    when the run finished.  If the run stops early (error, Ctrl-C, SIGTERM), what was tracked so far is
+    still saved, and the error is re-raised; ``resume(run_dir)`` continues it from its last checkpoint.
     """
+    if cfg.checkpoint_every < 0:
+        raise ValueError(f"checkpoint_every must be >= 0 (0 = no checkpoints), got {cfg.checkpoint_every}")
     device = resolve_device(cfg.device)
     ds = open_dataset(cfg, device=device)
-    run_dir = run_dir or make_run_dir(cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, run_dir / "config.yaml")
-    (run_dir / "dataset.json").write_text(json.dumps(dataset_summary(ds), indent=2))
     first = ds[0]
     slam = SLAM(cfg, ds.camera, device=device, T_first_WC=first.pose_gt)
-    gt_poses, frame_losses, lost = [], [], []  # lost: (frame, reason) of each frame whose tracking was lost
-    t_start = time.perf_counter()
-    bar = tqdm(total=len(ds), desc=f"{cfg.dataset.type}/{cfg.dataset.name}", unit="frame", disable=not progress)
-    log = (run_dir / "log.jsonl").open("w", encoding="utf-8", buffering=1)  # a line per frame, readable while it runs
+    run_dir = make_run_dir(cfg) if run_dir is None else _own_run_dir(Path(run_dir))
+    if progress and cfg.run_name and run_dir.name != cfg.run_name:
+        print(f"note: {Path(cfg.output_dir) / cfg.run_name} exists; this run writes {run_dir}", file=sys.stderr)
     try:
-        for frame in ds:
+        save_config(cfg, run_dir / "config.yaml")
+        write_text_atomic(run_dir / "dataset.json", json.dumps(dataset_summary(ds), indent=2))
+    except OSError as e:
+        raise OutputError(f"cannot write into the run folder {run_dir}: {e.strerror or e}") from e
+    return _run_frames(cfg, ds, slam, run_dir, RunState(frames_total=len(ds)), progress)
+
+
+def _run_frames(cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, progress: bool) -> tuple[Path, dict]:
+    """Frames ``state.next_frame`` .. the end through ``slam`` (checkpoints on the way), then the final
+    save and the evaluation; what ``run`` and ``resume`` share."""
+    t_start = time.perf_counter() - state.elapsed_s
+    name = f"{cfg.dataset.type}/{cfg.dataset.name}"
+    bar = tqdm(total=len(ds), initial=state.next_frame, desc=name, unit="frame", disable=not progress)
+    # a line per frame, readable while it runs; a resumed run appends to the lines up to its checkpoint
+    log = (run_dir / "log.jsonl").open("a" if state.next_frame else "w", encoding="utf-8", buffering=1)
+    frames = iter(ds) if state.next_frame == 0 else (ds[i] for i in range(state.next_frame, len(ds)))
+    try:
+        for frame in frames:
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
-            gt_poses.append(frame.pose_gt)
-            entry = {
-                "frame": result.index,
-                "keyframe": result.keyframe,
-                "reason": result.keyframe_reason,
-                "seconds": round(result.seconds, 4),
-                "gaussians": len(slam.map),
-            }
-            if result.tracking is not None:
-                entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
-                frame_losses.append(result.tracking.loss)
-                if result.tracking.lost:
-                    entry["lost_reason"] = result.tracking.reason
-                    lost.append((result.index, result.tracking.reason))
-            if result.keyframe:
-                entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
-                if result.mapping is not None and result.mapping.iters:
-                    entry["mapping_l1"] = result.mapping.final_l1
-                if cfg.method == "baseline" and result.mapping is not None:
-                    entry.update(cloned=result.mapping.cloned, split=result.mapping.split)
-            elif result.seeded:  # frame fill: seeds waiting for the next keyframe
-                entry["seeded"] = result.seeded
-            log.write(json.dumps(entry) + "\n")
+            state.gt_poses.append(frame.pose_gt)
+            state.next_frame = result.index + 1
+            log.write(json.dumps(_log_entry(cfg, slam, result, state)) + "\n")
+            if result.keyframe and 0 < cfg.checkpoint_every <= len(slam.keyframe_indices) - state.checkpoint_keyframes:
+                state.checkpoint_keyframes = len(slam.keyframe_indices)
+                state.elapsed_s = time.perf_counter() - t_start
+                write_checkpoint(run_dir, slam, state, warn=bar.write)
             elapsed = time.perf_counter() - t_start
             bar.set_postfix(
                 fps=f"{(result.index + 1) / elapsed:.2f}",
                 kf=len(slam.keyframe_indices),
                 gaussians=len(slam.map),
-                loss=f"{frame_losses[-1]:.4f}" if frame_losses else "-",
-                lost=len(lost),
+                loss=f"{state.frame_losses[-1]:.4f}" if state.frame_losses else "-",
+                lost=len(state.lost),
             )
             bar.update(1)
-    finally:
+    except BaseException:  # an error, Ctrl-C or SIGTERM: save what was tracked, then stop as asked
         bar.close()
         log.close()
-        slam.finish()
-        slam.save(run_dir)
-        write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
+        try:
+            _save_run(cfg, slam, run_dir)
+        except Exception as e:  # noqa: BLE001 (the error that stopped the run is the one raised)
+            print(f"error: the run stopped, and saving what it tracked failed: {e}", file=sys.stderr)
+        raise
+    bar.close()
+    log.close()
+    _save_run(cfg, slam, run_dir)
     wall = time.perf_counter() - t_start
-    metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall, tracking_section(len(frame_losses), lost))
+    try:
+        tracking = tracking_section(len(state.frame_losses), state.lost)
+        metrics = evaluate_run(cfg, ds, slam, state.gt_poses, run_dir, wall, tracking)
+    except OSError as e:
+        saved = "trajectory.txt, keyframes.npz, map.ply, config.yaml, convergence.json"
+        raise OutputError(f"{run_dir}: writing the report failed ({e}); saved before it: {saved}") from e
+    remove_checkpoints(run_dir)
     return run_dir, metrics
+
+
+def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
+    """A frame's line of ``log.jsonl``; records its tracking loss and loss of tracking in ``state``."""
+    entry = {
+        "frame": result.index,
+        "keyframe": result.keyframe,
+        "reason": result.keyframe_reason,
+        "seconds": round(result.seconds, 4),
+        "gaussians": len(slam.map),
+    }
+    if result.tracking is not None:
+        entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
+        state.frame_losses.append(result.tracking.loss)
+        if result.tracking.lost:
+            entry["lost_reason"] = result.tracking.reason
+            state.lost.append((result.index, result.tracking.reason))
+    if result.keyframe:
+        entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
+        if result.mapping is not None and result.mapping.iters:
+            entry["mapping_l1"] = result.mapping.final_l1
+        if cfg.method == "baseline" and result.mapping is not None:
+            entry.update(cloned=result.mapping.cloned, split=result.mapping.split)
+    elif result.seeded:  # frame fill: seeds waiting for the next keyframe
+        entry["seeded"] = result.seeded
+    return entry
+
+
+def _save_run(cfg: Config, slam: SLAM, run_dir: Path) -> None:
+    """The end of a run: the waiting frame-fill seeds join the map, then ``SLAM.save`` and the
+    convergence files; one ``SaveError`` names what failed and what was saved."""
+    slam.finish()
+    saved, failed = ["trajectory.txt", "keyframes.npz", "map.ply", "config.yaml"], {}
+    try:
+        slam.save(run_dir)
+    except SaveError as e:
+        saved, failed = e.saved, e.failed
+    try:
+        write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
+    except OSError as e:
+        failed["convergence.json"] = e
+    else:
+        saved.append("convergence.json")
+    if failed:
+        raise SaveError(run_dir, saved, failed)
+
+
+def write_checkpoint(run_dir: Path, slam: SLAM, state: RunState, warn=None) -> Path | None:
+    """A checkpoint of the run in ``run_dir``: ``checkpoints/frameNNNNNN/`` gets the files of
+    ``SLAM.save(..., state=True)`` and ``run_state.json`` (``RunState``), then ``checkpoint.json`` is
+    replaced to name it (each file written atomically), then the older checkpoints go.  A kill at any
+    moment leaves ``checkpoint.json`` naming a complete checkpoint.  Saving reads the SLAM and changes
+    nothing in it, so a run with checkpoints computes what one without computes.  A checkpoint that
+    cannot be written (full disk) is reported through ``warn`` and the run goes on; returns its
+    folder or None."""
+    folder = run_dir / "checkpoints" / f"frame{state.next_frame:06d}"
+    try:
+        if folder.exists():  # the leftover of a checkpoint that failed before its pointer was written
+            shutil.rmtree(folder)
+        slam.save(folder, state=True)
+        write_text_atomic(folder / "run_state.json", json.dumps(state.to_json(), default=_plain))
+        pointer = {"folder": str(folder.relative_to(run_dir)), "next_frame": state.next_frame}
+        write_text_atomic(run_dir / CHECKPOINT, json.dumps(pointer) + "\n")
+    except OSError as e:
+        shutil.rmtree(folder, ignore_errors=True)
+        (warn or print)(f"warning: checkpoint at frame {state.next_frame} not written ({e}); the run goes on")
+        return None
+    for old in (run_dir / "checkpoints").iterdir():
+        if old != folder:
+            shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
+def _plain(value):
+    """NumPy scalars as Python numbers for ``json.dumps`` (which keeps NaN and inf, unlike strict JSON:
+    a lost frame's loss may be either)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def remove_checkpoints(run_dir: Path) -> None:
+    """A finished run's checkpoints go (its folder holds the final state): the pointer first, so it
+    never names a folder that is gone."""
+    (run_dir / CHECKPOINT).unlink(missing_ok=True)
+    shutil.rmtree(run_dir / "checkpoints", ignore_errors=True)
+
+
+class ResumeError(ValueError):
+    """A run folder that cannot be resumed; the message says why."""
+
+
+# what `resume=RUN_DIR` lets the command line change: where the run computes and where its data is,
+# never what it computes (docs/decisions.md, "Resuming a run")
+RESUME_OVERRIDES = ("device", "data_root")
+
+
+def resume(
+    run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True
+) -> tuple[Path, dict]:
+    """Continue a stopped run (killed, out of time) from its last checkpoint in ``run_dir``, with the
+    config of ``run_dir/config.yaml``; ``overrides`` may set only ``RESUME_OVERRIDES``.  The frames
+    after the checkpoint are processed again (their lines in ``log.jsonl`` are replaced); the run then
+    ends as ``run`` does, in the same folder.  The checkpoint holds the whole SLAM state (optimiser
+    included), so on the same device the run goes on as if it had not stopped."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "config.yaml").is_file():
+        raise ResumeError(f"{run_dir}: not a run folder (no config.yaml)")
+    pointer = run_dir / CHECKPOINT
+    if not pointer.is_file():
+        why = "the run finished" if (run_dir / "metrics.json").is_file() else "no checkpoint"
+        raise ResumeError(
+            f"{run_dir}: nothing to resume ({why}; a run writes a checkpoint every checkpoint_every keyframes)"
+        )
+    cfg = load_saved_config(run_dir / "config.yaml")
+    for item in overrides:
+        key, _, value = item.partition("=")
+        if key.strip() not in RESUME_OVERRIDES or not value:
+            raise ConfigError(
+                f"resume: {item!r} refused; a resumed run keeps its config.yaml and may only set "
+                f"{', '.join(k + '=...' for k in RESUME_OVERRIDES)}"
+            )
+        setattr(cfg, key.strip(), value.strip())
+    try:
+        folder = run_dir / json.loads(pointer.read_text(encoding="utf-8"))["folder"]
+        state = RunState.from_json(json.loads((folder / "run_state.json").read_text(encoding="utf-8")))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ResumeError(f"{pointer}: the checkpoint it names cannot be read: {type(e).__name__}: {e}") from e
+    device = resolve_device(cfg.device)
+    ds = open_dataset(cfg, device=device)
+    if len(ds) != state.frames_total:
+        raise ResumeError(f"{run_dir}: the dataset has {len(ds)} frames now, the run had {state.frames_total}")
+    slam = SLAM.load(folder, device=device)
+    if len(slam.poses) != state.next_frame:
+        raise ResumeError(f"{folder}: {len(slam.poses)} poses, run_state.json says {state.next_frame} frames")
+    lines = (run_dir / "log.jsonl").read_text(encoding="utf-8").splitlines(keepends=True)
+    write_text_atomic(run_dir / "log.jsonl", "".join(lines[: state.next_frame]))
+    return _run_frames(cfg, ds, slam, run_dir, state, progress)
 
 
 def tracking_section(tracked: int, lost: list[tuple[int, str]]) -> dict:
@@ -315,17 +559,23 @@ def main(argv: list[str] | None = None) -> int:
         print(USAGE)
         print(help_text())
         return 0
+    resume_dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
     try:
-        cfg = load_config(argv)
+        cfg = None if resume_dirs else load_config(argv)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     try:
-        run_dir, metrics = run(cfg)
-    except DatasetError as e:
+        if resume_dirs:
+            if len(resume_dirs) > 1 or not resume_dirs[0]:
+                raise ResumeError("give one run folder: resume=RUN_DIR")
+            run_dir, metrics = resume(resume_dirs[0], [a for a in argv if not a.startswith("resume=")])
+        else:
+            run_dir, metrics = run(cfg)
+    except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
-        return 1
-    except ValueError as e:
+        return 2
+    except (DatasetError, ValueError, OSError) as e:  # OSError: OutputError, SaveError, a full disk
         print(f"error: {e}", file=sys.stderr)
         return 1
     ate = (metrics.get("ate") or {}).get("all_frames", {})

@@ -96,6 +96,13 @@ class PointSeeder:
         self._capacity = 0
         self._ensure(1024)
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The running cell size (sum, count) of the hash grid; ``load_state_dict`` restores it."""
+        return {"cell_radius": np.array([self._radius_sum, self._radius_count])}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self._radius_sum, self._radius_count = (float(v) for v in state["cell_radius"])
+
     def _ensure(self, n: int) -> None:
         if n <= self._capacity:
             return
@@ -238,6 +245,8 @@ class Seeder:
 
     ``match_spacing_px``: image pixels between thinned matches (the Poisson radius and tangential
     scale of triangulated seeds are in these units, those of depth seeds in ``depth_stride``).
+    ``max_gaussians`` (``mapping.max_gaussians``, 0 = none): a seeding that would take the map (with
+    the waiting seeds) over it keeps only its most confident seeds (``_within_cap``).
     """
 
     def __init__(
@@ -251,8 +260,10 @@ class Seeder:
         scene_depth_m: float = 2.0,
         sh_degree: int = 2,
         renderer: Renderer | None = None,
+        max_gaussians: int = 0,
     ):
         self.cfg, self.camera, self.mode = cfg, camera, mode
+        self.max_gaussians = max_gaussians
         self.device = dev = wp.get_device(device)
         self.renderer = renderer or Renderer(dev)
         radius = cfg.poisson_radius_px
@@ -272,6 +283,21 @@ class Seeder:
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The seeds waiting in ``pending`` and the two point seeders' cell sizes; ``load_state_dict``
+        restores them."""
+        state = {f"pending.{name}": value for name, value in self.pending.to_numpy().items()}
+        for prefix, seeder in (("matches.", self._from_matches), ("depth.", self._from_depth)):
+            state.update({prefix + k: v for k, v in seeder.state_dict().items()})
+        return state
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.pending.count = 0
+        if len(state["pending.means"]):
+            self.pending.append(*(state[f"pending.{name}"] for name in GaussianMap.PARAMETERS))
+        for prefix, seeder in (("matches.", self._from_matches), ("depth.", self._from_depth)):
+            seeder.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
+
     def seed_points(
         self,
         gmap: GaussianMap,
@@ -282,7 +308,9 @@ class Seeder:
     ) -> int:
         """Gaussians from triangulated ``points`` (reference view first in ``view_slots``) with their
         aggregated ``confidence``, as they are; returns how many."""
-        return self._from_matches.seed(points, confidence, keyframes, view_slots, gmap)
+        row0 = len(gmap)
+        added = self._from_matches.seed(points, confidence, keyframes, view_slots, gmap)
+        return self._within_cap(gmap, row0, added, self.max_gaussians)
 
     def seed_matches(
         self,
@@ -325,17 +353,17 @@ class Seeder:
         if len(gmap) == 0:
             alpha = self._zero_alpha
             if self.mode != "rgbd":
-                return self._seed_depth(keyframes, slot, alpha, self._plane_depth, gmap)
+                return self._seed_depth(keyframes, slot, alpha, self._plane_depth, gmap, self.max_gaussians)
         elif self.mode == "rgbd" and self.cfg.depth_fill:
             alpha = self.renderer.forward(gmap, self.camera, keyframes.poses[slot]).alpha
         else:
             return 0
-        added = self._seed_depth(keyframes, slot, alpha, None, gmap)
+        added = self._seed_depth(keyframes, slot, alpha, None, gmap, self.max_gaussians)
         if self.cfg.far_layer_m > 0.0:  # where nothing was measured: not where the depth seeds just went
             far = self._plane_depth
             launch_inputs = [keyframes.depth[slot], self.cfg.far_layer_m]
             wp.launch(ks.far_layer_depth, dim=far.shape, inputs=launch_inputs, outputs=[far], device=self.device)
-            added += self._seed_depth(keyframes, slot, alpha, far, gmap)
+            added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
         return added
 
     def fill_frame(self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure, coverage) -> int:
@@ -356,20 +384,50 @@ class Seeder:
             alpha = self._alpha
             pending = self.renderer.forward(self.pending, self.camera, T_WC).alpha
             wp.launch(ks.union_alpha, dim=alpha.shape, inputs=[alpha, pending], outputs=[alpha], device=dev)
-        return self._seed_depth(self._fill_frame, 0, alpha, None, self.pending)
+        limit = self.max_gaussians - len(gmap) if self.max_gaussians > 0 else 0
+        if self.max_gaussians > 0 and limit <= len(self.pending):
+            return 0  # the map and the waiting seeds are at the cap already
+        return self._seed_depth(self._fill_frame, 0, alpha, None, self.pending, limit)
 
     def join_pending(self, gmap: GaussianMap) -> None:
-        """The seeds of ``fill_frame`` since the last keyframe join the map."""
+        """The seeds of ``fill_frame`` since the last keyframe join the map (those that fit under
+        ``max_gaussians``: the map may have changed since)."""
+        if self.max_gaussians > 0 and len(self.pending):
+            self._within_cap(self.pending, 0, len(self.pending), max(self.max_gaussians - len(gmap), 0))
         p, n = self.pending, len(self.pending)
         if n:
             gmap.append(p.means[:n], p.rotations[:n], p.log_scales[:n], p.opacity_logits[:n], p.sh[:n])
             p.count = 0
 
+    def _within_cap(self, target: GaussianMap, row0: int, added: int, limit: int) -> int:
+        """Keep at most ``limit`` rows in ``target`` (0 = no limit) by dropping some of the ``added``
+        rows just seeded from ``row0``: the least confident (lowest opacity, Eq. 14), ties spread
+        evenly over the seeds' order (a golden-ratio sequence: dropped seeds do not gather in one part
+        of the image).  Returns how many of the added rows stay.  Reads the new opacities back to the
+        host, only when the cap is reached."""
+        if limit <= 0 or len(target) <= limit:
+            return added
+        keep = max(limit - row0, 0)
+        logits = target.opacity_logits.numpy()[row0 : row0 + added]
+        spread = (np.arange(added) * 0.6180339887498949) % 1.0
+        order = np.lexsort((spread, -logits))  # most confident first, then the low-discrepancy order
+        mask = np.zeros(len(target), dtype=bool)
+        mask[row0 + order[keep:]] = True
+        target.remove(mask)
+        return keep
+
     def _seed_depth(
-        self, frames: KeyframeBuffer, slot: int, alpha: wp.array, depth: wp.array | None, target: GaussianMap
+        self,
+        frames: KeyframeBuffer,
+        slot: int,
+        alpha: wp.array,
+        depth: wp.array | None,
+        target: GaussianMap,
+        limit: int = 0,
     ) -> int:
         """Seeds from the measured depth of ``frames`` slot ``slot`` (``depth`` in its place, e.g. the
-        monocular plane) where ``alpha`` is below ``covered_alpha``, appended to ``target``."""
+        monocular plane) where ``alpha`` is below ``covered_alpha``, appended to ``target`` (at most
+        ``limit`` rows in all, ``_within_cap``)."""
         cfg, cam = self.cfg, self.camera
         p = self._depth_points
         wp.launch(
@@ -381,4 +439,6 @@ class Seeder:
             outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
             device=self.device,
         )
-        return self._from_depth.seed(p, self._depth_confidence, frames, [slot], target)
+        row0 = len(target)
+        added = self._from_depth.seed(p, self._depth_confidence, frames, [slot], target)
+        return self._within_cap(target, row0, added, limit)

@@ -136,6 +136,14 @@ class Tracker:
         poses = [T_prev_WC, T_WC] if T_prev_WC is not None and T_WC is not None else [T_WC]
         self._poses = [np.array(T, dtype=np.float64) for T in poses if T is not None]
 
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The motion model's poses (the last two tracked, or a lost frame's start pose in its place),
+        which ``reset`` alone cannot tell; ``load_state_dict`` restores them."""
+        return {"motion_poses": np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self._poses = [np.array(T, dtype=np.float64) for T in state["motion_poses"]]
+
     @property
     def alpha(self) -> wp.array:
         """Accumulated opacity of the last render of the last ``track`` (tracking resolution), for

@@ -213,6 +213,10 @@ class GaussianMap:
     def has_column(self, name: str) -> bool:
         return name in self._columns
 
+    def column_names(self, scratch: bool = False) -> list[str]:
+        """Names of the registered columns, parameters first; scratch columns only with ``scratch``."""
+        return [name for name, c in self._columns.items() if scratch or not c.scratch]
+
     # ---- rows --------------------------------------------------------------------------------
     @property
     def count(self) -> int:

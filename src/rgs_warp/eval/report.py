@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rgs_warp.eval.ate import Alignment, umeyama_alignment  # noqa: E402
+from rgs_warp.io.atomic import write_text_atomic  # noqa: E402
 
 NA_SUFFIX = "_na_reason"
 # Unit suffix of a metric name -> unit shown in the column header.
@@ -95,7 +96,7 @@ def write_report(run_dir: str | Path, metrics: dict, title: str = "rgs_warp eval
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     json_path, md_path = run_dir / "metrics.json", run_dir / "metrics.md"
-    json_path.write_text(json.dumps(to_json(metrics), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    write_text_atomic(json_path, json.dumps(to_json(metrics), indent=2, allow_nan=False) + "\n")
 
     lines = [f"# {title}", ""]
     summary = {k: v for k, v in metrics.items() if not isinstance(v, dict)}

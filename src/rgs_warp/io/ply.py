@@ -3,7 +3,9 @@
 Vertex properties (all float32): x y z, nx ny nz (zeros), f_dc_0..2, f_rest_0..3(K-1)-1
 (channel-major: f_rest[c * (K-1) + k - 1] is coefficient k of channel c, as 3DGS flattens its
 (N, 3, K-1) tensor), opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z: 3DGS's order; the map
-holds x, y, z, w).  Values are float32 on both sides, so a round trip is lossless.
+holds x, y, z, w).  Values are float32 on both sides, so a round trip is lossless.  A map without
+Gaussians is a PLY with 0 vertices.  ``save_ply`` writes atomically (``rgs_warp.io.atomic``);
+``load_ply`` names the file in every error (``PlyFormatError``).
 """
 
 from __future__ import annotations
@@ -11,9 +13,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 
+from rgs_warp.io.atomic import atomic_write
 from rgs_warp.types import GaussianMap
+
+
+class PlyFormatError(ValueError):
+    """A PLY file that is not a readable map (truncated, not PLY, properties missing); the message
+    names the file."""
 
 
 def _property_names(num_sh: int) -> list[str]:
@@ -32,7 +40,7 @@ def save_ply(path: str | Path, gmap: GaussianMap) -> None:
         fields["means"],
         np.zeros((n, 3), np.float32),
         sh[:, 0, :],
-        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1),
+        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (gmap.num_sh - 1)),
         fields["opacity_logits"][:, None],
         fields["log_scales"],
         np.concatenate([q[:, 3:4], q[:, :3]], axis=1),
@@ -41,14 +49,23 @@ def save_ply(path: str | Path, gmap: GaussianMap) -> None:
     vertex = np.empty(n, dtype=[(name, "f4") for name in _property_names(gmap.num_sh)])
     for j, name in enumerate(vertex.dtype.names):
         vertex[name] = data[:, j]
-    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    with atomic_write(path) as f:
+        PlyData([PlyElement.describe(vertex, "vertex")]).write(f)
 
 
 def load_ply(path: str | Path, device=None, requires_grad: bool = False) -> GaussianMap:
-    v = PlyData.read(str(path))["vertex"]
+    try:
+        v = PlyData.read(str(path))["vertex"]
+    except (PlyParseError, KeyError, ValueError, UnicodeDecodeError) as e:
+        what = "no 'vertex' element" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
+        raise PlyFormatError(f"{path}: not a readable PLY map (truncated or damaged?): {what}") from e
     names = v.data.dtype.names
     num_rest = sum(1 for name in names if name.startswith("f_rest_"))
     num_sh = num_rest // 3 + 1
+    missing = [name for name in _property_names(num_sh) if name not in names and name not in ("nx", "ny", "nz")]
+    if missing or num_rest % 3 or round(num_sh**0.5) ** 2 != num_sh:
+        detail = f"properties {', '.join(missing)} missing" if missing else f"{num_rest} f_rest_ properties"
+        raise PlyFormatError(f"{path}: not a 3DGS map: {detail}")
     n = len(v.data)
 
     def cols(prefix: str, count: int) -> np.ndarray:

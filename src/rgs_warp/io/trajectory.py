@@ -2,7 +2,8 @@
 
 Poses are camera-to-world 4x4 float64 (the project's convention), so ``evo`` reads what we write.
 Numbers are written with 17 significant digits, enough for every float64 to read back bit-exact;
-the rotation still passes through a quaternion, so it comes back to ~1e-16, not bit-exact.
+the rotation still passes through a quaternion, so it comes back to ~1e-16, not bit-exact.  Files are
+written atomically (``rgs_warp.io.atomic``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from rgs_warp.geometry import matrix_to_quat, pose_from_tq
+from rgs_warp.io.atomic import write_text_atomic
 
 # A rotation further than this from orthonormal is a caller's bug: its quaternion would silently
 # describe a different rotation.
@@ -79,4 +81,4 @@ def write_tum_trajectory(path: str | Path, timestamps_s: np.ndarray, poses_c2w: 
     for t_s, T in zip(timestamps_s, poses_c2w, strict=True):
         values = [t_s, *T[:3, 3], *matrix_to_quat(T[:3, :3])]
         lines.append(" ".join(f"{v:.17g}" for v in values))
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_text_atomic(path, "\n".join(lines) + "\n")
