@@ -1,0 +1,140 @@
+"""Issue 20, the input half: bad input never reaches the map.  Frames are checked at SLAM.process (the
+first one included), a pose that diverged never enters the map or the trajectory, intrinsics and
+config values are checked where they enter, TUM says which frames it drops, the eval suite refuses
+unknown methods; fuzzing of the config parser and of the frame check.  experiments/results/
+reliability.md has the table of cases, before (8dc16f7) and now.
+
+The tests that are not fuzz tests use only what 8dc16f7 had as well (SLAM, load_config, the loaders,
+the command lines), importing anything newer inside the test, so that each can be run against it."""
+
+import numpy as np
+import pytest
+
+from rgs_warp.config import load_config
+from rgs_warp.types import Camera
+
+W, H = 64, 48
+CAMERA = Camera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=W, height=H)
+SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters=2", "tracking.iters=3"]
+# whole-SLAM tests: the CPU-sized office of test_slam.py, shortened
+OFFICE = [
+    "dataset=synthetic/office0",
+    "dataset.width=160",
+    "dataset.height=90",
+    "dataset.max_frames=6",
+    "mapping.init_iters=20",
+    "mapping.iters=3",
+    "mapping.window=3",
+    "mapping.init_window=2",
+    "tracking.iters=6",
+]
+
+
+def _frame(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return rng.random((H, W, 3), dtype=np.float32), np.full((H, W), 2.0, np.float32)
+
+
+def _office(device, n: int, extra=()):
+    from rgs_warp.datasets import open_dataset
+
+    cfg = load_config([*OFFICE, f"device={device}", *extra])
+    ds = open_dataset(cfg, device="cpu")
+    return cfg, ds.camera, [ds[i] for i in range(n)]
+
+
+# ---- 2. intrinsics where they enter --------------------------------------------------------------
+@pytest.mark.parametrize(
+    "values, message",
+    [
+        (dict(fx=-60.0), "fx = -60.0: a focal length must be a positive"),
+        (dict(fy=0.0), "fy = 0.0: a focal length"),
+        (dict(fx=float("nan")), "fx = nan"),
+        (dict(cx=64.0), r"cx = 64.0: the principal point must lie inside the 64x48 image \(-0.5 .. 63.5"),
+        (dict(cy=-3.0), "cy = -3.0: the principal point"),
+        (dict(width=0), "width = 0: the image size"),
+    ],
+)
+def test_camera_refuses_bad_intrinsics(values, message):
+    args = dict(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=W, height=H) | values
+    with pytest.raises(ValueError, match=message):
+        Camera(**args)
+
+
+def _tiny_tum(root, n_rgb=4, n_depth=4, camera=None):
+    """A TUM-layout folder of n_rgb colour frames (64x48) and the first n_depth depth images."""
+    import cv2
+
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rgb, depth = _frame()
+    rgb_lines, depth_lines = [], []
+    for k in range(n_rgb):
+        t = 100.0 + k / 30
+        cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), (np.roll(rgb, k, axis=1) * 255).astype(np.uint8))
+        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        if k < n_depth:
+            cv2.imwrite(str(root / "depth" / f"{t:.6f}.png"), (depth * 1000).astype(np.uint16))
+            depth_lines.append(f"{t:.6f} depth/{t:.6f}.png")
+    (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    cam = {"w": W, "h": H, "fx": 60.0, "fy": 60.0, "cx": 31.5, "cy": 23.5, "scale": 1000} | (camera or {})
+    import json
+
+    (root / "cam_params.json").write_text(json.dumps({"camera": cam}))
+    return root
+
+
+@pytest.mark.parametrize(
+    "camera, message",
+    [
+        ({"fx": -60.0}, "fx = -60.0: a focal length"),
+        ({"fx": 0.0}, "fx = 0.0: a focal length"),
+        ({"fy": float("nan")}, "fy = nan"),
+        ({"cx": 640.0}, "cx = 640.0: the principal point"),
+        ({"scale": 0}, "scale = 0.0: the depth scale"),
+    ],
+)
+def test_cam_params_errors_name_the_file(tmp_path, camera, message):
+    """TUM (your own data) and Replica read cam_params.json; on 8dc16f7 these ran, or ended in a
+    ZeroDivisionError or an empty trajectory."""
+    from rgs_warp.datasets import DatasetError, ReplicaDataset, TUMDataset
+
+    tum = _tiny_tum(tmp_path / "tum", camera=camera)
+    with pytest.raises(DatasetError, match=rf"{tum / 'cam_params.json'}: {message}"):
+        TUMDataset(tum, require_pose=False)
+    replica = tmp_path / "replica"
+    (replica / "results").mkdir(parents=True)
+    (replica / "results" / "frame000000.jpg").write_bytes(b"")
+    (replica / "cam_params.json").write_text((tum / "cam_params.json").read_text())
+    with pytest.raises(DatasetError, match=rf"{replica / 'cam_params.json'}: {message}"):
+        ReplicaDataset(replica)
+
+
+def test_sevenscenes_intrinsics_are_checked(tmp_path):
+    """A negative focal length in 7-Scenes' camera-intrinsics.txt ran silently on 8dc16f7."""
+    from rgs_warp.datasets import DatasetError, SevenScenesDataset
+
+    (tmp_path / "frame-000000.color.png").write_bytes(b"")
+    (tmp_path / "frame-000000.pose.txt").write_text(" ".join(map(str, np.eye(4).ravel())))
+    (tmp_path / "camera-intrinsics.txt").write_text("-585 0 320\n0 585 240\n0 0 1\n")
+    with pytest.raises(DatasetError, match=r"camera-intrinsics.txt: fx = -585.0: a focal length"):
+        SevenScenesDataset(tmp_path, register_depth=False)
+    (tmp_path / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n0 0 1\n")
+    with pytest.raises(DatasetError, match=r"dataset.colour_intrinsics \(526.0, 526.0, 900.0, 238.0\): cx = 900.0"):
+        SevenScenesDataset(tmp_path, colour_intrinsics=(526.0, 526.0, 900.0, 238.0))
+
+
+def test_cli_bad_intrinsics_one_error_no_run_folder(tmp_path, capsys):
+    try:
+        from rgs_warp.run import main
+    except ImportError:  # 8dc16f7
+        from rgs_warp.slam import main
+
+    root = _tiny_tum(tmp_path / "mine", camera={"fx": 0.0})
+    out = tmp_path / "runs"
+    argv = ["dataset.type=tum", f"dataset.path={root}", "dataset.require_pose=false", f"output_dir={out}"]
+    assert main([*argv, "device=cpu", "mapping.init_iters=10", "dataset.max_frames=3"]) == 1
+    err = capsys.readouterr().err
+    assert f"error: {root / 'cam_params.json'}: fx = 0.0: a focal length" in err and "Traceback" not in err
+    assert not out.exists()
