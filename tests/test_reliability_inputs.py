@@ -7,6 +7,8 @@ reliability.md has the table of cases, before (8dc16f7) and now.
 The tests that are not fuzz tests use only what 8dc16f7 had as well (SLAM, load_config, the loaders,
 the command lines), importing anything newer inside the test, so that each can be run against it."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -138,3 +140,29 @@ def test_cli_bad_intrinsics_one_error_no_run_folder(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"error: {root / 'cam_params.json'}: fx = 0.0: a focal length" in err and "Traceback" not in err
     assert not out.exists()
+
+
+# ---- 4. TUM: frames without depth ----------------------------------------------------------------
+def test_tum_says_how_many_frames_it_drops_and_why(tmp_path):
+    from rgs_warp.datasets import TUMDataset
+
+    root = _tiny_tum(tmp_path / "mine", n_rgb=5, n_depth=3)
+    with pytest.warns(UserWarning, match=r"2 of 5 colour frames in rgb.txt dropped: 2 without a depth image"):
+        ds = TUMDataset(root, require_pose=False)
+    assert len(ds) == 3 and "2 of 5 colour frames in rgb.txt dropped" in repr(ds)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing dropped: no warning
+        ds = TUMDataset(_tiny_tum(tmp_path / "whole", n_rgb=3, n_depth=3), require_pose=False)
+    assert "dropped" not in repr(ds)
+
+
+# ---- 5. eval suite: unknown methods --------------------------------------------------------------
+def test_suite_refuses_unknown_methods_before_any_run(tmp_path, capsys, monkeypatch):
+    from rgs_warp.eval import suite
+
+    def no_runs(*args, **kwargs):
+        raise AssertionError("runs were started")
+
+    monkeypatch.setattr(suite, "run_suite", no_runs)
+    assert suite.main(["--methods", "rgs,foo", "--device", "cpu", "--out", str(tmp_path)]) == 2
+    assert "error: unknown method(s) foo; valid: rgs, baseline" in capsys.readouterr().err

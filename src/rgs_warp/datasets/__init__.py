@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from rgs_warp.datasets.base import DatasetError, RGBDDataset
+from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset
 from rgs_warp.datasets.replica import ReplicaDataset
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
 from rgs_warp.datasets.synthetic import SyntheticDataset
@@ -12,6 +12,7 @@ from rgs_warp.datasets.tum import TUMDataset
 
 __all__ = [
     "DatasetError",
+    "DatasetWarning",
     "RGBDDataset",
     "ReplicaDataset",
     "SevenScenesDataset",
