@@ -7,12 +7,16 @@ reliability.md has the table of cases, before (8dc16f7) and now.
 The tests that are not fuzz tests use only what 8dc16f7 had as well (SLAM, load_config, the loaders,
 the command lines), importing anything newer inside the test, so that each can be run against it."""
 
+import os
+import subprocess
+import sys
 import warnings
 
 import numpy as np
 import pytest
 
-from rgs_warp.config import load_config
+from rgs_warp.config import ConfigError, load_config
+from rgs_warp.slam import SLAM
 from rgs_warp.types import Camera
 
 W, H = 64, 48
@@ -140,6 +144,65 @@ def test_cli_bad_intrinsics_one_error_no_run_folder(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"error: {root / 'cam_params.json'}: fx = 0.0: a focal length" in err and "Traceback" not in err
     assert not out.exists()
+
+
+# ---- 3. config values where they enter -----------------------------------------------------------
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("tracking.lr=-1", r"tracking.lr: -1.0 is out of range: it must be > 0"),
+        ("mapping.init_iters=-5", r"mapping.init_iters: -5 is out of range: it must be >= 1"),
+        ("dataset.downscale=1000", r"dataset.downscale = 1000 shrinks the 240x136 images to 0x0.*at least 16 px"),
+        ("tracking.downscale=40", r"tracking.downscale = 40 shrinks the 240x136 images to 6x3 for tracking"),
+        ("tracking.iters=0", r"tracking.iters: 0 is out of range"),
+        ("tracking.lr=.nan", r"tracking.lr: nan is not a finite number"),
+        ("mapping.lr_position=-1e-3", r"mapping.lr_position: -0.001 is out of range: it must be >= 0"),
+        ("tracking.adam_beta2=1", r"tracking.adam_beta2: 1.0 is out of range: it must be in \[0, 1\)"),
+        ("keyframes.buffer_size=1", r"keyframes.buffer_size: 1 is out of range: it must be >= 2"),
+        ("render.background=[0,0,2]", r"render.background: \(0.0, 0.0, 2.0\) is out of range"),
+        ("dataset.stride=0", r"dataset.stride: 0 is out of range"),
+        ("matching.min_depth_m=20", r"matching.min_depth_m \(20.0\) must not exceed matching.max_depth_m \(10.0\)"),
+        ("seed=-1", r"seed: -1 is out of range: it must be in \[0, 2147483647\]"),
+    ],
+)
+def test_config_values_are_checked(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config([override])
+
+
+def test_constraints_name_real_keys_and_pass_every_shipped_config():
+    from rgs_warp.config import CONSTRAINTS, ORDERED_KEYS, Config, _config_value, group_options
+
+    for key in [*CONSTRAINTS, *(k for pair in ORDERED_KEYS for k in pair[:2])]:
+        _config_value(Config(), key)  # AttributeError for a key that does not exist
+    for option in group_options("dataset"):
+        for method in group_options("method"):
+            load_config([f"dataset={option}", f"method={method}", "mode=mono"])
+
+
+def test_downscale_of_a_loaded_dataset_is_checked(tmp_path):
+    """The native size of a real dataset is known once it is open: still before any run folder."""
+    from rgs_warp.datasets import open_dataset
+
+    root = _tiny_tum(tmp_path / "mine")
+    base = ["dataset.type=tum", f"dataset.path={root}", "dataset.require_pose=false"]
+    with pytest.raises(ConfigError, match=r"dataset.downscale = 4 shrinks the 64x48 images to 16x12"):
+        open_dataset(load_config([*base, "dataset.downscale=4"]))
+    with pytest.raises(ValueError, match=r"the camera is 64x12"):
+        SLAM(load_config(SMALL), Camera(60.0, 60.0, 31.5, 5.5, 64, 12), device="cpu")
+
+
+def test_cli_config_error_is_one_line_and_exit_2(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "rgs_warp.slam", "tracking.lr=-1", f"output_dir={tmp_path / 'runs'}"],
+        capture_output=True,
+        text=True,
+        env=os.environ.copy(),
+        timeout=120,
+    )
+    lines = [line for line in proc.stderr.splitlines() if not line.startswith("Warp")]
+    assert proc.returncode == 2 and lines == ["error: tracking.lr: -1.0 is out of range: it must be > 0"], proc.stderr
+    assert not (tmp_path / "runs").exists()
 
 
 # ---- 4. TUM: frames without depth ----------------------------------------------------------------

@@ -24,7 +24,15 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
-from rgs_warp.config import Config, config_from_dict, parse_yaml, resolve_device, save_config
+from rgs_warp.config import (
+    Config,
+    check_config,
+    check_image_size,
+    config_from_dict,
+    parse_yaml,
+    resolve_device,
+    save_config,
+)
 from rgs_warp.io.ply import load_ply, save_ply
 from rgs_warp.io.trajectory import read_tum_trajectory, write_tum_trajectory
 from rgs_warp.keyframes import KeyframeBuffer, KeyframeSelector
@@ -68,9 +76,8 @@ class SLAM:
     def __init__(self, cfg: Config, camera: Camera, device=None, T_first_WC: np.ndarray | None = None):
         if cfg.method not in METHODS:
             raise ValueError(f"unknown method {cfg.method!r}: SLAM implements {', '.join(METHODS)}")
-        if cfg.keyframes.buffer_size < 2:
-            n_kf = cfg.keyframes.buffer_size
-            raise ValueError(f"keyframes.buffer_size must be >= 2 (triangulation needs pairs), got {n_kf}")
+        check_config(cfg)  # a Config changed in code after load_config (which checks it) too
+        check_image_size(camera.width, camera.height, cfg)
         self.cfg, self.camera, self.mode = cfg, camera, cfg.mode
         self.device = dev = wp.get_device(resolve_device(cfg.device) if device is None else device)
         self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
