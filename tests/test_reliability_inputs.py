@@ -49,6 +49,187 @@ def _office(device, n: int, extra=()):
     return cfg, ds.camera, [ds[i] for i in range(n)]
 
 
+# ---- 1. frames at the library's boundary ---------------------------------------------------------
+def _transposed(rgb, depth):
+    return np.ascontiguousarray(rgb.transpose(1, 0, 2)), depth
+
+
+@pytest.mark.parametrize(
+    "name, bad, message",
+    [
+        ("rgb transposed", _transposed, r"rgb: expected shape \(48, 64, 3\).*got \(64, 48, 3\): transposed"),
+        ("rgb half-size", lambda r, d: (r[::2, ::2], d), r"32x24 images need a Camera of that size"),
+        ("rgb uint8", lambda r, d: ((r * 255).astype(np.uint8), d), r"uint8 is not converted.*/ 255"),
+        ("rgb 0-255 floats", lambda r, d: (r * 255, d), r"expected \[0, 1\] \(8-bit values\? divide by 255\)"),
+        ("rgb RGBA", lambda r, d: (np.dstack([r, r[..., :1]]), d), r"drop the alpha channel"),
+        ("depth transposed", lambda r, d: (r, np.ascontiguousarray(d.T)), r"depth: expected shape.*transposed"),
+        ("depth uint16 mm", lambda r, d: (r, (d * 1000).astype(np.uint16)), r"uint16 is not converted.*metres"),
+        ("depth negative", lambda r, d: (r, -d), r"3072 pixels are negative"),
+        ("depth all zero", lambda r, d: (r, 0 * d), r"frame 0 cannot start the map: depth at 0 of 3072 pixels"),
+        ("depth all NaN", lambda r, d: (r, np.full_like(d, np.nan)), r"frame 0 cannot start the map: depth at 0"),
+        ("rgb 10 % NaN", lambda r, d: (np.where(np.arange(H)[:, None, None] < 5, np.nan, r), d), r"not finite"),
+    ],
+)
+def test_first_frame_is_checked(name, bad, message):
+    """8dc16f7 checked frames in the tracker only, which the first frame skips: a transposed, half-size
+    or uint8 first frame built a map.  Now each is refused with what to do, and nothing changes."""
+    slam = SLAM(load_config(SMALL), CAMERA, device="cpu")
+    rgb, depth = bad(*_frame())
+    with pytest.raises(ValueError, match=message):
+        slam.process(rgb, depth)
+    assert len(slam.poses) == 0 and len(slam.map) == 0 and len(slam.keyframes) == 0
+
+
+def test_frame_check_masks_and_counts_nonfinite_pixels():
+    from rgs_warp.frame_check import MAX_NONFINITE_RGB, MIN_VALID_DEPTH, FrameChecker
+
+    check = FrameChecker(CAMERA, "cpu").check
+    rgb, depth = _frame()
+    clean = check(rgb, depth)
+    assert clean.rgb is rgb and clean.depth is depth and not clean.unusable  # valid input: untouched
+    assert (clean.nonfinite_rgb, clean.nonfinite_depth) == (0, 0)
+
+    patch = rgb.copy()
+    patch[10:12, 20:22] = np.nan  # the issue's 2x2 patch
+    patch[30, 5, 1] = np.inf
+    depth_holes = depth.copy()
+    depth_holes[0, :7] = np.nan
+    depth_holes[1, 0] = -np.inf
+    out = check(patch, depth_holes)
+    assert (out.nonfinite_rgb, out.nonfinite_depth, out.unusable) == (5, 8, "")
+    assert np.isfinite(out.rgb).all() and np.isfinite(out.depth).all()
+    # the nearest finite pixel's colour, and no depth there; the rest as given
+    assert np.array_equal(out.rgb[30, 5], rgb[29, 5]) or np.array_equal(out.rgb[30, 5], rgb[30, 4])
+    assert {tuple(out.rgb[10, 20])} <= {tuple(rgb[9, 20]), tuple(rgb[10, 19])}
+    assert (out.depth[10:12, 20:22] == 0).all() and out.depth[30, 5] == 0 and (out.depth[:2, :7][0] == 0).all()
+    untouched = np.ones((H, W), bool)
+    untouched[10:12, 20:22] = untouched[30, 5] = untouched[0, :7] = untouched[1, 0] = False
+    assert np.array_equal(out.rgb[untouched], rgb[untouched]) and np.array_equal(out.depth[untouched], depth[untouched])
+
+    too_many = rgb.copy()
+    too_many[: int(np.ceil(MAX_NONFINITE_RGB * H)) + 1] = np.nan
+    assert "colour pixels" in check(too_many, depth).unusable
+    sparse = np.zeros_like(depth)
+    sparse.flat[: int(MIN_VALID_DEPTH * H * W) - 1] = 1.0
+    assert "depth at 29 of 3072 pixels" in check(rgb, sparse).unusable
+    assert not FrameChecker(CAMERA, "cpu", mode="mono").check(rgb, sparse).unusable  # mono ignores depth
+
+
+def test_frame_check_device_arrays_agree_with_host():
+    """wp.array frames are counted by a kernel and only copied to the host when something is off:
+    the same outcome as the host check."""
+    import warp as wp
+
+    from rgs_warp.frame_check import FrameChecker
+
+    check = FrameChecker(CAMERA, "cpu").check
+    rgb, depth = _frame()
+    as_wp = (wp.array(rgb, dtype=wp.vec3, device="cpu"), wp.array(depth, dtype=wp.float32, device="cpu"))
+    out = check(*as_wp)
+    assert out.rgb is as_wp[0] and out.depth is as_wp[1] and not out.unusable
+    rgb[3, 3] = np.nan
+    depth[4, 4] = np.inf
+    host, device = check(rgb, depth), check(wp.array(rgb, dtype=wp.vec3), wp.array(depth, dtype=wp.float32))
+    assert (host.nonfinite_rgb, host.nonfinite_depth) == (device.nonfinite_rgb, device.nonfinite_depth) == (1, 1)
+    assert np.array_equal(host.rgb, device.rgb) and np.array_equal(host.depth, device.depth)
+    with pytest.raises(ValueError, match="8-bit values"):
+        check(wp.array(rgb * 255, dtype=wp.vec3), wp.array(depth, dtype=wp.float32))
+    with pytest.raises(ValueError, match=r"expected a \(48, 64\) wp.array of vec3f?.*got \(64, 48\)"):
+        check(wp.zeros((W, H), dtype=wp.vec3), as_wp[1])
+    with pytest.raises(ValueError, match="depth at 0 of 3072"):
+        SLAM(load_config(SMALL), CAMERA, device="cpu").process(as_wp[0], wp.zeros((H, W), dtype=wp.float32))
+
+
+@pytest.mark.slow
+def test_nan_patch_is_masked_and_counted(device):
+    """The issue's 2x2 NaN patch in an initial-window frame: on 8dc16f7 a NaN pose made a keyframe
+    and the next frame raised LinAlgError.  Now the patch is filled and counted, and the run goes on
+    with finite poses and a finite map."""
+    cfg, camera, frames = _office(device, 4)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = []
+    for k, f in enumerate(frames):
+        rgb = f.rgb.copy()
+        if k == 1:
+            rgb[40:42, 70:72] = np.nan
+        results.append(slam.process(rgb, f.depth, f.timestamp))
+    assert results[1].nonfinite_rgb == 4 and results[1].keyframe and not results[1].lost
+    assert all(np.isfinite(r.T_WC).all() and not r.lost for r in results)
+    assert all(np.isfinite(v).all() for v in slam.map.to_numpy().values())
+    assert np.abs(results[1].T_WC[:3, 3] - frames[1].pose_gt[:3, 3]).max() < 0.06  # 4.1 cm without the patch
+
+
+@pytest.mark.slow
+def test_unusable_later_frame_is_lost_at_the_last_good_pose(device):
+    """Depth all zeros, then 20 % of the colour NaN, after the start: each frame is lost with its
+    reason, keeps the last good pose, is neither tracked nor mapped; the frames after it track (from
+    the motion model's prediction, as after a lost frame)."""
+    cfg, camera, frames = _office(device, 6, ["tracking.iters=20"])
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = []
+    for k, f in enumerate(frames):
+        rgb, depth = f.rgb, f.depth
+        if k == 2:
+            depth = np.zeros_like(depth)
+        if k == 3:
+            rgb = rgb.copy()
+            rgb[:18] = np.nan
+        before = (len(slam.map), len(slam.keyframes))
+        results.append(slam.process(rgb, depth, f.timestamp))
+        if k in (2, 3):
+            assert (len(slam.map), len(slam.keyframes)) == before
+    lost = [r for r in results if getattr(r, "lost", False)]
+    assert [r.index for r in lost] == [2, 3]
+    assert "depth at 0 of 14400 pixels" in lost[0].lost_reason and "colour pixels (20.0%)" in lost[1].lost_reason
+    assert all(r.tracking is None and not r.keyframe for r in lost)
+    assert np.array_equal(results[2].T_WC, results[1].T_WC) and np.array_equal(results[3].T_WC, results[1].T_WC)
+    assert results[4].tracking is not None and not results[4].tracking.lost
+    assert np.abs(results[5].T_WC[:3, 3] - frames[5].pose_gt[:3, 3]).max() < 0.06  # 4.3 cm without the gap
+
+
+@pytest.mark.slow
+def test_diverged_pose_never_enters_map_or_trajectory(device):
+    """tracking.lr = 50 throws the pose 100 m away within one frame; on 8dc16f7 it became an
+    initial-window keyframe.  Now the frame is lost with the reason, keeps the last good pose, and the
+    map stays the first keyframe's."""
+    cfg, camera, frames = _office(device, 3, ["tracking.lr=50"])
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    first = slam.process(frames[0].rgb, frames[0].depth, frames[0].timestamp)
+    n_first = len(slam.map)
+    for f in frames[1:]:
+        r = slam.process(f.rgb, f.depth, f.timestamp)
+        assert not r.keyframe and np.array_equal(r.T_WC, first.T_WC)
+        assert r.lost and "diverged: the pose moved" in r.lost_reason
+    assert len(slam.map) == n_first and slam.keyframe_indices == [0]
+    _, poses = slam.trajectory()
+    assert np.allclose(poses, frames[0].pose_gt)
+
+
+def test_tracker_discards_a_nonfinite_estimate():
+    """A NaN in what the tracker is given (the SLAM masks them; the Tracker is public too) gives a
+    non-finite loss: the estimate is discarded, the start pose returned, the frame lost."""
+    from rgs_warp.tracking import Tracker
+    from rgs_warp.types import GaussianMap
+
+    cfg = load_config(SMALL)
+    tracker = Tracker(cfg.tracking, CAMERA, "cpu")
+    rgb, depth = _frame()
+    rgb[5, 5] = np.nan
+    T0 = np.eye(4)
+    T0[:3, 3] = (1.0, 2.0, 3.0)
+    result = tracker.track(rgb, depth, GaussianMap(16, device="cpu"), T0)
+    assert result.lost and result.diverged and "non-finite" in result.reason
+    assert np.array_equal(result.T_WC, T0) and np.array_equal(tracker.predict(), T0)
+
+
+def test_given_poses_must_be_rigid():
+    slam = SLAM(load_config(SMALL), CAMERA, device="cpu")
+    with pytest.raises(ValueError, match="T_WC: the rotation is not orthonormal"):
+        slam.process(*_frame(), T_WC=np.diag([2.0, 1.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="T_first_WC: expected a finite 4x4"):
+        SLAM(load_config(SMALL), CAMERA, device="cpu", T_first_WC=np.full((4, 4), np.nan))
+
+
 # ---- 2. intrinsics where they enter --------------------------------------------------------------
 @pytest.mark.parametrize(
     "values, message",

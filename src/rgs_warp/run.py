@@ -97,6 +97,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
     first = ds[0]
     slam = SLAM(cfg, ds.camera, device=device, T_first_WC=first.pose_gt)
     gt_poses, frame_losses, lost = [], [], []  # lost: (frame, reason) of each frame whose tracking was lost
+    tracked = 0  # frames tracked or lost (the first frame and the monocular bootstrap's waiting ones are not)
     t_start = time.perf_counter()
     bar = tqdm(total=len(ds), desc=f"{cfg.dataset.type}/{cfg.dataset.name}", unit="frame", disable=not progress)
     log = (run_dir / "log.jsonl").open("w", encoding="utf-8", buffering=1)  # a line per frame, readable while it runs
@@ -114,9 +115,13 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
             if result.tracking is not None:
                 entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
                 frame_losses.append(result.tracking.loss)
-                if result.tracking.lost:
-                    entry["lost_reason"] = result.tracking.reason
-                    lost.append((result.index, result.tracking.reason))
+            tracked += result.tracking is not None or result.lost
+            if result.lost:  # tracking lost, or the frame's input unusable (then not tracked)
+                entry.update(lost=True, lost_reason=result.lost_reason)
+                lost.append((result.index, result.lost_reason))
+            for key in ("nonfinite_rgb", "nonfinite_depth"):
+                if getattr(result, key):
+                    entry[key] = getattr(result, key)
             if result.keyframe:
                 entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
                 if result.mapping is not None and result.mapping.iters:
@@ -142,7 +147,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
         slam.save(run_dir)
         write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
     wall = time.perf_counter() - t_start
-    metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall, tracking_section(len(frame_losses), lost))
+    metrics = evaluate_run(cfg, ds, slam, gt_poses, run_dir, wall, tracking_section(tracked, lost))
     return run_dir, metrics
 
 

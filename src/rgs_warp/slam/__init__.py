@@ -33,6 +33,7 @@ from rgs_warp.config import (
     resolve_device,
     save_config,
 )
+from rgs_warp.frame_check import CheckedFrame, FrameChecker
 from rgs_warp.io.ply import load_ply, save_ply
 from rgs_warp.io.trajectory import read_tum_trajectory, write_tum_trajectory
 from rgs_warp.keyframes import KeyframeBuffer, KeyframeSelector
@@ -63,6 +64,15 @@ class FrameResult:
     mapping: MappingResult | None = None
     seconds: float = 0.0
     tracking_seconds: float = 0.0
+    # lost: the frame gave no pose, its input unusable or its tracking lost (lost_reason says which);
+    # T_WC is then the last good pose where the input was unusable or tracking diverged, else the
+    # tracker's estimate
+    lost: bool = False
+    lost_reason: str = ""
+    # pixels the frame check masked (rgs_warp.frame_check): colour pixels that were not finite
+    # (filled from the nearest finite pixel, without depth) and depth values that were not (set to 0)
+    nonfinite_rgb: int = 0
+    nonfinite_depth: int = 0
 
 
 class SLAM:
@@ -80,6 +90,7 @@ class SLAM:
         check_image_size(camera.width, camera.height, cfg)
         self.cfg, self.camera, self.mode = cfg, camera, cfg.mode
         self.device = dev = wp.get_device(resolve_device(cfg.device) if device is None else device)
+        self.frame_check = FrameChecker(camera, dev, self.mode)
         self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
         self.renderer = Renderer(dev)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=Renderer(dev))
@@ -109,7 +120,7 @@ class SLAM:
             self.bootstrap = MonoBootstrap(cfg.bootstrap, camera, dev, self.matcher.backbone, cfg.matching)
         self._boot_frames: list[tuple[np.ndarray, float]] = []  # (rgb, timestamp) while it waits
         self._init_window_end = cfg.mapping.init_window  # frames below are keyframes of the initial window
-        self.T_first = np.eye(4) if T_first_WC is None else np.asarray(T_first_WC, dtype=np.float64)
+        self.T_first = np.eye(4) if T_first_WC is None else _checked_pose(T_first_WC, "T_first_WC")
         self.poses: list[np.ndarray] = []  # camera-to-world of every processed frame
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
@@ -138,23 +149,31 @@ class SLAM:
         constant-velocity prediction.  ``T_WC``: the frame's pose is known (motion capture, another
         odometry): tracking is skipped and the frame goes to keyframe selection and mapping at that
         pose.  Both are 4x4 camera-to-world, in the SLAM's world frame.  The first frame is not
-        tracked: its pose is ``T_WC`` if given, else ``T_first_WC``."""
+        tracked: its pose is ``T_WC`` if given, else ``T_first_WC``.
+
+        Every frame is checked first (``rgs_warp.frame_check``): a shape other than the camera's, a
+        dtype that is not floating point, colour outside [0, 1] or negative depth raise ValueError
+        and change nothing; pixels that are not finite are masked and counted (``nonfinite_rgb``,
+        ``nonfinite_depth``); a frame with too few usable pixels is refused as the first frame and
+        lost (``lost_reason``) later, at the last good pose, as is one whose tracking diverged."""
         if isinstance(rgb, Frame):
             rgb, depth, timestamp = rgb.rgb, rgb.depth, rgb.timestamp
         if T_init_WC is not None and T_WC is not None:
             raise ValueError("give T_init_WC (where tracking starts) or T_WC (the known pose), not both")
-        for name, T_given in (("T_init_WC", T_init_WC), ("T_WC", T_WC)):
-            if T_given is not None and (np.shape(T_given) != (4, 4) or not np.all(np.isfinite(T_given))):
-                raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got {np.shape(T_given)}")
-        if self.mode == "rgbd" and depth is None:
-            raise ValueError("mode 'rgbd' needs a depth image for every frame (or set mode=mono)")
-        depth = depth if self.mode == "rgbd" else None
+        T_init_WC = None if T_init_WC is None else _checked_pose(T_init_WC, "T_init_WC")
+        T_WC = None if T_WC is None else _checked_pose(T_WC, "T_WC")
         t0 = time.perf_counter()
         i = len(self.poses)
+        if self.bootstrap is not None and (T_init_WC is not None or T_WC is not None):
+            raise ValueError("the monocular bootstrap finds its own poses: no T_init_WC / T_WC before it ends")
+        frame = self.frame_check.check(rgb, depth)  # ValueError for the caller's mistakes
+        if frame.unusable and i == 0:
+            raise ValueError(f"frame 0 cannot start the map: {frame.unusable}")
+        rgb, depth = frame.rgb, frame.depth
         if self.bootstrap is not None:
-            if T_init_WC is not None or T_WC is not None:
-                raise ValueError("the monocular bootstrap finds its own poses: no T_init_WC / T_WC before it ends")
-            return self._process_bootstrap(rgb, timestamp, t0)
+            return self._process_bootstrap(rgb, timestamp, t0, frame)
+        if frame.unusable:
+            return self._skip(i, frame, T_WC, timestamp, t0)
         tracking, given = None, T_WC is not None
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
@@ -171,12 +190,16 @@ class SLAM:
             tr0 = time.perf_counter()
             tracking = self.tracker.track(rgb, depth, self.map, T_init_WC)
             self.stats["tracking_s"] += time.perf_counter() - tr0
+            if tracking.diverged:  # neither the map nor the trajectory gets the estimate
+                result = FrameResult(i, self.poses[-1].copy(), tracking, False, "not mapped: tracking diverged")
+                return self._record(self._counted(result, frame, tracking.reason), timestamp, t0)
             T, exposure, pose_ok = tracking.T_WC, (tracking.gain, tracking.bias), not tracking.lost
             decision = self.selector.should_add(tracking.alpha, T, None if tracking.lost else tracking.loss)
         is_kf, reason = decision.is_keyframe, decision.reason + (" (pose given)" if given and i else "")
         if 0 < i < self._init_window_end:
             is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}{', pose given' if given else ''})"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
+        self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
             self.selector.accept(T)
             self._add_keyframe(i, T, rgb, depth, exposure, result)
@@ -192,6 +215,21 @@ class SLAM:
                 result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held)
                 self.stats["mapping_s"] += time.perf_counter() - t1
         return self._record(result, timestamp, t0)
+
+    def _skip(self, i: int, frame: CheckedFrame, T_WC, timestamp: float | None, t0: float) -> FrameResult:
+        """A frame whose input is unusable: neither tracked nor mapped; its pose is ``T_WC`` if given
+        (the frame is then not lost), else the last good one, and the motion model goes on."""
+        self.tracker.skip(T_WC)
+        T = self.poses[-1].copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
+        result = FrameResult(i, T, None, False, f"not used: {frame.unusable}")
+        return self._record(self._counted(result, frame, frame.unusable if T_WC is None else ""), timestamp, t0)
+
+    @staticmethod
+    def _counted(result: FrameResult, frame: CheckedFrame, lost_reason: str) -> FrameResult:
+        """``result`` with the frame check's counts, and lost with ``lost_reason`` unless it is empty."""
+        result.nonfinite_rgb, result.nonfinite_depth = frame.nonfinite_rgb, frame.nonfinite_depth
+        result.lost, result.lost_reason = bool(lost_reason), lost_reason
+        return result
 
     def _record(self, result: FrameResult, timestamp: float | None, t0: float) -> FrameResult:
         self.poses.append(result.T_WC)
@@ -266,17 +304,24 @@ class SLAM:
             psnr_db = float(psnr_db) if np.isfinite(psnr_db) else None
             self.convergence.append({"iteration": it, "frame": i, "phase": phase, "psnr_db": psnr_db, "gaussians": n})
 
-    def _process_bootstrap(self, rgb, timestamp: float | None, t0: float) -> FrameResult:
+    def _process_bootstrap(self, rgb, timestamp: float | None, t0: float, frame: CheckedFrame) -> FrameResult:
         """Monocular start (``bootstrap.py``): frame 0 waits for a frame k with enough parallax; then
         keyframes 0 and k are seeded from their triangulated matches and mapped together
         (``mapping.init_iters``), and the frames in between are tracked against that map.  After
         ``bootstrap.max_wait_frames`` frames without success the start falls back to frame 0 alone
-        on a plane at ``matching.scene_depth_m`` (the frames since are then tracked against it)."""
+        on a plane at ``matching.scene_depth_m`` (the frames since are then tracked against it).  A
+        frame whose input is unusable waits with frame 0's pose and is never tracked."""
         cfg, i = self.cfg, len(self.poses)
-        rgb_host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
-        self._boot_frames.append((rgb_host, float(i) if timestamp is None else float(timestamp)))
+        stamp = float(i) if timestamp is None else float(timestamp)
         T0 = self.T_first.copy()
+        if frame.unusable:
+            self._boot_frames.append((None, stamp))
+            result = FrameResult(i, T0, None, False, f"monocular bootstrap: frame not used: {frame.unusable}")
+            return self._record(self._counted(result, frame, frame.unusable), stamp, t0)
+        rgb_host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
+        self._boot_frames.append((rgb_host, stamp))
         result = FrameResult(i, T0, None, False, "monocular bootstrap: first frame, waiting for parallax")
+        self._counted(result, frame, "")
         boot = None
         if i > 0:
             tb = time.perf_counter()
@@ -313,13 +358,19 @@ class SLAM:
         self._log_convergence(i, "init", window, result.mapping)
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
         for j in retrack:
+            if frames[j][0] is None:  # its input was unusable: the last good pose
+                self.tracker.skip()
+                self.poses[j] = self.poses[j - 1].copy()
+                continue
             tr0 = time.perf_counter()
             tracking = self.tracker.track(frames[j][0], None, self.map)
             self.stats["tracking_s"] += time.perf_counter() - tr0
+            T = self.poses[j - 1].copy() if tracking.diverged else tracking.T_WC
             if j < i:
-                self.poses[j] = tracking.T_WC
+                self.poses[j] = T
             else:
-                result.tracking, result.T_WC = tracking, tracking.T_WC
+                result.tracking, result.T_WC = tracking, T
+                self._counted(result, frame, tracking.reason if tracking.lost else "")
         if boot is not None:
             self.tracker.reset(result.T_WC, self.poses[i - 1] if i > 1 else T0)
         self.selector.should_add(self._alpha_at(result.T_WC), result.T_WC)
@@ -401,3 +452,20 @@ class SLAM:
             slam.selector.should_add(slam._alpha_at(T_kf), T_kf)
             slam.selector.accept(T_kf)
         return slam
+
+
+def _checked_pose(T, name: str) -> np.ndarray:
+    """``T`` as a float64 4x4 if it is a finite rigid transform (rotation orthonormal to 1e-3, last row
+    0 0 0 1, as the loaders' ``check_pose``), else a ValueError."""
+    try:
+        T = np.array(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a 4x4 camera-to-world matrix of numbers") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
+        raise ValueError(f"{name}: the rotation is not orthonormal (det {np.linalg.det(R):.4f})")
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise ValueError(f"{name}: last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    return T
