@@ -14,6 +14,9 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from rgs_warp.config import ConfigError, load_config
 from rgs_warp.slam import SLAM
@@ -410,3 +413,140 @@ def test_suite_refuses_unknown_methods_before_any_run(tmp_path, capsys, monkeypa
     monkeypatch.setattr(suite, "run_suite", no_runs)
     assert suite.main(["--methods", "rgs,foo", "--device", "cpu", "--out", str(tmp_path)]) == 2
     assert "error: unknown method(s) foo; valid: rgs, baseline" in capsys.readouterr().err
+
+
+# ---- 6. fuzzing -----------------------------------------------------------------------------------
+def _keys() -> list[str]:
+    import dataclasses
+
+    from rgs_warp.config import Config
+
+    def walk(obj, prefix):
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            yield from walk(v, prefix + f.name + ".") if dataclasses.is_dataclass(v) else [prefix + f.name]
+
+    return list(walk(Config(), ""))
+
+
+VALUES = st.one_of(
+    st.text(max_size=12),
+    st.integers(-(2**40), 2**40).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["null", "[]", "[1, 2]", "[0, 0, 0]", "{a: 1}", "true", "1e-3", ".inf", "-.nan", "!!int 3", "'"]),
+)
+OVERRIDES = st.lists(
+    st.one_of(
+        st.tuples(st.sampled_from(_keys()), VALUES).map("=".join),
+        st.tuples(st.sampled_from(["dataset", "method", "mode", "tracking", ""]), VALUES).map("=".join),
+        st.text(max_size=30),
+    ),
+    max_size=4,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(OVERRIDES)
+def test_fuzz_config_overrides(overrides):
+    """Any list of override strings either loads into a config whose values all pass the constraints,
+    or fails with a ConfigError; never another exception."""
+    from rgs_warp.config import check_config
+
+    try:
+        cfg = load_config(overrides)
+    except ConfigError as e:
+        assert str(e)
+        return
+    assert check_config(cfg) is cfg
+
+
+DTYPES = st.sampled_from([np.float32, np.float64, np.float16, np.uint8, np.uint16, np.int32, np.bool_, np.complex64])
+SHAPES = st.one_of(
+    st.just((H, W, 3)),
+    st.just((W, H, 3)),
+    hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=70),
+)
+
+
+def _image(shape, dtype):
+    floats = st.one_of(st.floats(0, 1, width=32), st.sampled_from([np.nan, np.inf, -np.inf, -0.5, 255.0, 1.0005]))
+    elements = floats if np.dtype(dtype).kind == "f" else None
+    return hnp.arrays(dtype, shape, elements=elements)
+
+
+@st.composite
+def frames(draw):
+    """Mostly (3 in 4) frames of the right shape and dtype with patches of NaN, inf, out-of-range and
+    valid values, the others of any shape and dtype."""
+    right = draw(st.sampled_from([True, True, True, False]))
+    rgb_shape = (H, W, 3) if right else draw(SHAPES)
+    depth_shape = (H, W) if right or draw(st.booleans()) else draw(SHAPES)
+    rgb_dtype = np.float32 if right else draw(DTYPES)
+    depth_dtype = np.float32 if right else draw(DTYPES)
+    if right:
+        rgb = np.full(rgb_shape, 0.5, np.float32)
+        depth = np.full(depth_shape, draw(st.sampled_from([2.0, 2.0, 2.0, 0.0])), np.float32)
+        for _ in range(draw(st.integers(0, 6))):  # patches of a special value, mostly small
+            y, x = draw(st.integers(0, H - 1)), draw(st.integers(0, W - 1))
+            h, w = (draw(st.sampled_from([1, 2, 3, 8, n])) for n in (H, W))
+            target = draw(st.sampled_from(["rgb", "depth"]))
+            value = draw(st.sampled_from([np.nan, np.nan, np.inf, -np.inf, 0.0, 0.0, 0.7, 2.0, -1.0, 1.5, 1e30]))
+            (rgb if target == "rgb" else depth)[y : y + h, x : x + w] = value
+        return rgb, depth
+    return draw(_image(rgb_shape, rgb_dtype)), draw(_image(depth_shape, depth_dtype))
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(frames())
+def test_fuzz_frame_check(frame):
+    """Whatever the frame, the check raises ValueError (a message, no other exception) or returns a
+    frame of the camera's shape, float32, finite, colour in [0, 1], depth >= 0, with its counts; a
+    usable one has more than 1 % of its pixels with depth and at most 1 % of its colour filled.  Given
+    as wp.arrays (where they can be), the frame gets the same answer from the device check."""
+    import warp as wp
+
+    from rgs_warp.frame_check import RANGE_TOL, FrameChecker
+
+    def check(rgb, depth):
+        try:
+            return FrameChecker(CAMERA, "cpu").check(rgb, depth)
+        except ValueError as e:
+            return str(e)
+
+    rgb, depth = frame
+    out = check(rgb, depth)
+    if rgb.shape == (H, W, 3) and depth.shape == (H, W) and rgb.dtype == depth.dtype == np.float32:
+        on_device = check(wp.array(rgb, dtype=wp.vec3, device="cpu"), wp.array(depth, dtype=wp.float32, device="cpu"))
+        if isinstance(out, str):
+            assert on_device == out
+        else:
+            assert (on_device.nonfinite_rgb, on_device.nonfinite_depth) == (out.nonfinite_rgb, out.nonfinite_depth)
+            assert on_device.unusable == out.unusable
+            as_host = [a.numpy() if isinstance(a, wp.array) else a for a in (on_device.rgb, on_device.depth)]
+            assert np.array_equal(as_host[0], out.rgb, equal_nan=True) and np.array_equal(as_host[1], out.depth)
+    if isinstance(out, str):
+        assert out.startswith(("rgb:", "depth:")), out
+        return
+    assert out.rgb.shape == (H, W, 3) and out.depth.shape == (H, W)
+    assert out.rgb.dtype == np.float32 and out.depth.dtype == np.float32
+    assert out.depth.min() >= 0 and np.isfinite(out.depth).all()
+    if not out.unusable:
+        assert np.isfinite(out.rgb).all() and -RANGE_TOL <= out.rgb.min() and out.rgb.max() <= 1 + RANGE_TOL
+        assert np.count_nonzero(out.depth) >= 0.01 * H * W and out.nonfinite_rgb <= 0.01 * H * W
+    assert out.nonfinite_rgb == np.count_nonzero(~np.isfinite(np.asarray(rgb, np.float32)).all(axis=2))
+
+
+@pytest.mark.slow
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(frames(), min_size=2, max_size=3))
+def test_fuzz_slam_process(frame_list):
+    """Frames from the same generator through a whole SLAM: ValueError or a result with a finite pose;
+    the map stays finite."""
+    slam = SLAM(load_config([*SMALL, "mapping.init_window=2"]), CAMERA, device="cpu")
+    for rgb, depth in frame_list:
+        try:
+            result = slam.process(rgb, depth)
+        except ValueError:
+            continue
+        assert np.isfinite(result.T_WC).all()
+    assert all(np.isfinite(v).all() for v in slam.map.to_numpy().values())
