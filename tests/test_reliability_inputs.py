@@ -67,6 +67,7 @@ def _transposed(rgb, depth):
         ("rgb RGBA", lambda r, d: (np.dstack([r, r[..., :1]]), d), r"drop the alpha channel"),
         ("depth transposed", lambda r, d: (r, np.ascontiguousarray(d.T)), r"depth: expected shape.*transposed"),
         ("depth uint16 mm", lambda r, d: (r, (d * 1000).astype(np.uint16)), r"uint16 is not converted.*metres"),
+        ("depth HxWx3", lambda r, d: (r, np.dstack([d] * 3)), r"depth: expected shape \(48, 64\) .*got \(48, 64, 3\)"),
         ("depth negative", lambda r, d: (r, -d), r"3072 pixels are negative"),
         ("depth all zero", lambda r, d: (r, 0 * d), r"frame 0 cannot start the map: depth at 0 of 3072 pixels"),
         ("depth all NaN", lambda r, d: (r, np.full_like(d, np.nan)), r"frame 0 cannot start the map: depth at 0"),
