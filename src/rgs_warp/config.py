@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import os
 import re
 import typing
@@ -381,6 +382,244 @@ CHOICES = {
 }
 
 
+@dataclass(frozen=True)
+class Bound:
+    """The range a numeric key must lie in: ``lo`` / ``hi`` (None: unbounded), inclusive unless
+    ``lo_open`` / ``hi_open``.  A tuple-valued key is checked element by element."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def holds(self, v: float) -> bool:
+        lo_ok = self.lo is None or (v > self.lo if self.lo_open else v >= self.lo)
+        hi_ok = self.hi is None or (v < self.hi if self.hi_open else v <= self.hi)
+        return bool(lo_ok and hi_ok)
+
+    def __str__(self) -> str:
+        lo, hi = (f"{v:g}" if isinstance(v, float) else str(v) for v in (self.lo, self.hi))
+        if self.hi is None:
+            return f"{'>' if self.lo_open else '>='} {lo}"
+        if self.lo is None:
+            return f"{'<' if self.hi_open else '<='} {hi}"
+        return f"in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
+
+
+POSITIVE = Bound(lo=0, lo_open=True)
+NON_NEGATIVE = Bound(lo=0)
+AT_LEAST_1 = Bound(lo=1)
+FRACTION = Bound(0, 1)
+ADAM_BETA = Bound(0, 1, hi_open=True)  # beta = 1 divides by zero in Adam's bias correction
+SEED = Bound(0, 2**31 - 1)  # NumPy's generators refuse negative seeds
+
+# Checked after every load (``check_config``), before anything runs: a key out of its range fails with
+# its name instead of a ZeroDivisionError, an SSIM error or a run at 35 m ATE.  Every float must also be
+# finite.  Keys not listed are free (e.g. tracking.tau_grad and seeding.frame_fill_min_uncovered, where
+# <= 0 means off; tracking.min_valid_ratio > 1 loses every frame on purpose in a test).  Rates may be 0
+# in mapping (that parameter stays fixed; mapping.lr_exposure = 0 is off) but not in tracking.
+CONSTRAINTS: dict[str, Bound] = {
+    "seed": SEED,
+    "dataset.stride": AT_LEAST_1,
+    "dataset.start": NON_NEGATIVE,
+    "dataset.max_frames": AT_LEAST_1,
+    "dataset.downscale": AT_LEAST_1,
+    "dataset.prefetch": NON_NEGATIVE,
+    "dataset.colour_intrinsics": POSITIVE,
+    "dataset.max_dt": POSITIVE,
+    "dataset.width": AT_LEAST_1,
+    "dataset.height": AT_LEAST_1,
+    "dataset.n_frames": AT_LEAST_1,
+    "dataset.depth_noise_m": NON_NEGATIVE,
+    "dataset.seed": SEED,
+    "render.sh_degree": Bound(0, 3),
+    "render.background": FRACTION,
+    "tracking.iters": AT_LEAST_1,
+    "tracking.lr": POSITIVE,
+    "tracking.adam_beta1": ADAM_BETA,
+    "tracking.adam_beta2": ADAM_BETA,
+    "tracking.adam_eps": POSITIVE,
+    "tracking.tau_alpha": FRACTION,
+    "tracking.depth_weight": NON_NEGATIVE,
+    "tracking.depth_slope_tau": NON_NEGATIVE,
+    "tracking.brightness_min_alpha": FRACTION,
+    "tracking.downscale": AT_LEAST_1,
+    "tracking.min_valid_ratio": NON_NEGATIVE,
+    "tracking.max_residual": POSITIVE,
+    "tracking.depth_edge_spread": NON_NEGATIVE,
+    "keyframes.iou_threshold": FRACTION,
+    "keyframes.alpha_threshold": FRACTION,
+    "keyframes.min_translation_m": NON_NEGATIVE,
+    "keyframes.min_rotation_deg": NON_NEGATIVE,
+    "keyframes.buffer_size": Bound(lo=2),  # triangulation needs pairs
+    "keyframes.max_loss_ratio": NON_NEGATIVE,
+    "matching.classic_stride": AT_LEAST_1,
+    "matching.n_neighbours": AT_LEAST_1,
+    "matching.max_view_angle_deg": POSITIVE,
+    "matching.target_parallax_deg": POSITIVE,
+    "matching.scene_depth_m": POSITIVE,
+    "matching.min_depth_m": POSITIVE,
+    "matching.max_depth_m": POSITIVE,
+    "matching.depth_rel_tol": NON_NEGATIVE,
+    "matching.min_search_radius": NON_NEGATIVE,
+    "matching.band": NON_NEGATIVE,
+    "matching.max_steps": AT_LEAST_1,
+    "matching.refine_radius": NON_NEGATIVE,
+    "matching.patch_radius_px": NON_NEGATIVE,
+    "matching.w_sim": NON_NEGATIVE,
+    "matching.w_fb": NON_NEGATIVE,
+    "matching.w_epi": NON_NEGATIVE,
+    "matching.sigma_fb_px": POSITIVE,
+    "matching.sigma_epi_px": POSITIVE,
+    "matching.thin_spacing": POSITIVE,
+    "triangulation.min_parallax_deg": NON_NEGATIVE,
+    "triangulation.max_reproj_px": POSITIVE,
+    "seeding.alpha_min": FRACTION,
+    "seeding.alpha_max": FRACTION,
+    "seeding.poisson_radius_px": POSITIVE,
+    "seeding.tangential_scale": POSITIVE,
+    "seeding.plane_radius_px": POSITIVE,
+    "seeding.plane_min_neighbours": Bound(lo=3),  # three points define a plane
+    "seeding.min_residual_px": NON_NEGATIVE,
+    "seeding.axial_min_ratio": POSITIVE,
+    "seeding.axial_max_ratio": POSITIVE,
+    "seeding.covered_alpha": FRACTION,
+    "seeding.covered_depth_tol": NON_NEGATIVE,
+    "seeding.depth_consistency_tol": NON_NEGATIVE,
+    "seeding.far_layer_m": NON_NEGATIVE,
+    "seeding.depth_stride": AT_LEAST_1,
+    "seeding.depth_max_rel_jump": NON_NEGATIVE,
+    "mapping.iters": NON_NEGATIVE,
+    "mapping.frame_iters": NON_NEGATIVE,
+    "mapping.window": AT_LEAST_1,
+    "mapping.init_iters": AT_LEAST_1,
+    "mapping.init_window": AT_LEAST_1,
+    "mapping.lr_color": NON_NEGATIVE,
+    "mapping.lr_color_rest_factor": NON_NEGATIVE,
+    "mapping.lr_opacity": NON_NEGATIVE,
+    "mapping.lr_position": NON_NEGATIVE,
+    "mapping.lr_rotation": NON_NEGATIVE,
+    "mapping.lr_scale": NON_NEGATIVE,
+    "mapping.lr_final_factor": NON_NEGATIVE,
+    "mapping.lr_exposure": NON_NEGATIVE,
+    "mapping.max_gaussians": NON_NEGATIVE,  # 0 = no cap
+    "mapping.cap_headroom": Bound(0, 1, lo_open=True),
+    "checkpoint_every": NON_NEGATIVE,  # 0 = no checkpoints
+    "export.voxel_m": POSITIVE,
+    "mapping.adam_beta1": ADAM_BETA,
+    "mapping.adam_beta2": ADAM_BETA,
+    "mapping.lambda_dssim": NON_NEGATIVE,
+    "mapping.grad_clip": POSITIVE,
+    "mapping.depth_weight": NON_NEGATIVE,
+    "mapping.reg_elongation": NON_NEGATIVE,
+    "mapping.max_anisotropy": AT_LEAST_1,
+    "mapping.reg_opacity": NON_NEGATIVE,
+    "mapping.max_abs_opacity_logit": POSITIVE,
+    "mapping.reg_anchor": NON_NEGATIVE,
+    "mapping.ema_eta": FRACTION,
+    "mapping.opacity_cull": FRACTION,
+    "mapping.max_scale_m": POSITIVE,
+    "mapping.min_obs": NON_NEGATIVE,
+    "mapping.min_visibility_ratio": FRACTION,
+    "mapping.merge_footprint_px": NON_NEGATIVE,
+    "mapping.merge_color_diff": NON_NEGATIVE,
+    "densify.grad_threshold": POSITIVE,
+    "densify.start": NON_NEGATIVE,
+    "densify.stop": NON_NEGATIVE,
+    "densify.interval": AT_LEAST_1,
+    "densify.opacity_reset_interval": NON_NEGATIVE,
+    "densify.opacity_reset_value": Bound(0, 1, lo_open=True, hi_open=True),  # an opacity logit must exist
+    "densify.percent_dense": POSITIVE,
+    "densify.prune_scale_fraction": POSITIVE,
+    "densify.scene_extent_m": POSITIVE,
+    "bootstrap.coarse_step": NON_NEGATIVE,
+    "bootstrap.search_radius": AT_LEAST_1,
+    "bootstrap.ratio_exclusion": NON_NEGATIVE,
+    "bootstrap.max_ratio": POSITIVE,
+    "bootstrap.max_fb_px": NON_NEGATIVE,
+    "bootstrap.refine_radius_px": NON_NEGATIVE,
+    "bootstrap.patch_radius_px": NON_NEGATIVE,
+    "bootstrap.ransac_iters": AT_LEAST_1,
+    "bootstrap.ransac_confidence": Bound(0, 1, lo_open=True, hi_open=True),
+    "bootstrap.ransac_threshold_px": POSITIVE,
+    "bootstrap.min_inliers": Bound(lo=5),  # the five-point essential matrix
+    "bootstrap.min_inlier_ratio": FRACTION,
+    "bootstrap.min_cheirality_ratio": FRACTION,
+    "bootstrap.min_parallax_deg": NON_NEGATIVE,
+    "bootstrap.max_reproj_px": POSITIVE,
+    "bootstrap.min_point_parallax_deg": NON_NEGATIVE,
+    "bootstrap.max_wait_frames": AT_LEAST_1,
+    "eval.every": AT_LEAST_1,
+    "eval.convergence_every": NON_NEGATIVE,
+}
+# Pairs of keys whose first must not exceed the second, and why (appended to the message)
+ORDERED_KEYS = (
+    ("matching.min_depth_m", "matching.max_depth_m", ": they bound the epipolar search"),
+    ("seeding.alpha_min", "seeding.alpha_max", ": Eq. 14's opacity range"),
+    ("seeding.axial_min_ratio", "seeding.axial_max_ratio", ": the clip of Eq. 13's axial scale"),
+    ("mapping.init_window", "mapping.init_iters", ": each initial frame gets init_iters // init_window iterations"),
+)
+# The smallest images the pipeline runs on: mapping's SSIM has an 11x11 window (DSSIMLoss refuses
+# 11 px and less; at 20x11 the office's map stayed empty, 22x12 ran: measured on CPU); tracking
+# needs neighbours for its image gradients (Eq. 8).
+MIN_IMAGE_PX = 16
+MIN_TRACKING_PX = 4
+
+
+def _config_value(cfg: Config, key: str):
+    node = cfg
+    for part in key.split("."):
+        node = getattr(node, part)
+    return node
+
+
+def check_config(cfg: Config) -> Config:
+    """``cfg`` if its values are usable (``CONSTRAINTS``, every float finite, and the relations
+    between keys), else a ConfigError naming the key, its value and the range."""
+
+    def walk(obj, prefix):
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if dataclasses.is_dataclass(v):
+                yield from walk(v, prefix + f.name + ".")
+            else:
+                yield prefix + f.name, v
+
+    for key, value in walk(cfg, ""):
+        items = value if isinstance(value, tuple) else (value,)
+        numbers = [v for v in items if isinstance(v, int | float) and not isinstance(v, bool)]
+        if any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
+            raise ConfigError(f"{key}: {value!r} is not a finite number")
+        bound = CONSTRAINTS.get(key)
+        if bound is not None and not all(bound.holds(v) for v in numbers):
+            raise ConfigError(f"{key}: {value!r} is out of range: it must be {bound}")
+    for small, large, why in ORDERED_KEYS:
+        a, b = _config_value(cfg, small), _config_value(cfg, large)
+        if a > b:
+            raise ConfigError(f"{small} ({a!r}) must not exceed {large} ({b!r}){why}")
+    if cfg.dataset.type == "synthetic":
+        check_image_size(cfg.dataset.width, cfg.dataset.height, cfg, native=True)
+    return cfg
+
+
+def check_image_size(width: int, height: int, cfg: Config, native: bool = False) -> None:
+    """ConfigError unless images of ``width`` x ``height`` (the camera's; ``native``: before
+    ``dataset.downscale``) stay at least ``MIN_IMAGE_PX`` after the downscaling and ``MIN_TRACKING_PX``
+    at the tracking resolution."""
+    factor = cfg.dataset.downscale if native else 1
+    w, h = width // factor, height // factor
+    key, got = ("dataset.downscale", f"{width}x{height} images to {w}x{h}") if native else ("the camera", f"{w}x{h}")
+    if min(w, h) < MIN_IMAGE_PX:
+        what = f"{key} = {factor} shrinks the {got}" if native else f"{key} is {got}"
+        raise ConfigError(f"{what}: the pipeline needs at least {MIN_IMAGE_PX} px a side (mapping's 11x11 SSIM)")
+    t = cfg.tracking.downscale
+    if min(w // t, h // t) < MIN_TRACKING_PX:
+        raise ConfigError(
+            f"tracking.downscale = {t} shrinks the {w}x{h} images to {w // t}x{h // t} for tracking: it needs at "
+            f"least {MIN_TRACKING_PX} px a side"
+        )
+
+
 def group_options(group: str) -> list[str]:
     """Names of the YAML files of a group, e.g. ``['replica/office0', 'synthetic/room0', ...]``."""
     base = CONFIG_DIR / group
@@ -540,14 +779,14 @@ def load_config(overrides: list[str] | tuple[str, ...] = ()) -> Config:
             node = node.setdefault(p, {})
         node[parts[-1]] = value
         _set_tree(cfg, tree)
-    return cfg
+    return check_config(cfg)
 
 
 def config_from_dict(data: dict) -> Config:
     """A Config from a nested dict (e.g. a saved ``config.yaml``), keys and types checked."""
     cfg = Config()
     _set_tree(cfg, data)
-    return cfg
+    return check_config(cfg)
 
 
 def load_saved_config(path: str | Path) -> Config:

@@ -144,4 +144,6 @@ class KeyframeBuffer:
 def _copy_into(dst: wp.array, slot: int, src, dtype) -> None:
     if isinstance(src, np.ndarray):
         src = wp.array(np.ascontiguousarray(src, dtype=np.float32), dtype=dtype, device=dst.device)
+    if src.shape != dst.shape[1:]:  # wp.copy would copy the overlap of any two sizes silently
+        raise ValueError(f"keyframe image of shape {src.shape}, the buffer holds {dst.shape[1:]}")
     wp.copy(dst[slot], src)

@@ -325,6 +325,30 @@ class Mapper:
         result.pruned += before - len(self.gmap) - step.split
 
     # ---- convergence ---------------------------------------------------------------------------
+    def convergence(
+        self, keyframes: KeyframeBuffer, window: Sequence[int], mapping: MappingResult, frame: int, phase: str
+    ) -> list[dict]:
+        """The convergence points of one mapping call (``SLAM.convergence``): its ``psnr_curve`` samples,
+        then the window's PSNR now (after the maintenance too), which replaces a sample at the same
+        iteration; each {"iteration", "frame", "phase", "psnr_db" (None for an empty map),
+        "gaussians"}.  None without mapping."""
+        if mapping.iters == 0:
+            return []
+        points = list(mapping.psnr_curve)
+        if points and points[-1][0] == self.total_iters:
+            points.pop()
+        points.append((self.total_iters, self.window_psnr(keyframes, window), len(self.gmap)))
+        return [
+            {
+                "iteration": it,
+                "frame": frame,
+                "phase": phase,
+                "psnr_db": float(p) if np.isfinite(p) else None,
+                "gaussians": n,
+            }
+            for it, p, n in points
+        ]
+
     def window_psnr(self, keyframes: KeyframeBuffer, window: Sequence[int]) -> float:
         """Mean over the keyframes of ``window`` (slots) of the PSNR (dB) of the exposure-corrected
         render clip(g I_hat + b, 0, 1) at the keyframe's pose against the keyframe image."""

@@ -152,6 +152,7 @@ class RunState:
     frames_total: int = 0
     gt_poses: list = field(default_factory=list)
     frame_losses: list[float] = field(default_factory=list)
+    tracked: int = 0  # frames tracked or lost (the first frame and the monocular bootstrap's waiting ones are not)
     lost: list[tuple[int, str]] = field(default_factory=list)
     elapsed_s: float = 0.0
     checkpoint_keyframes: int = 0
@@ -243,7 +244,7 @@ def _run_frames(cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, pro
     _save_run(cfg, slam, run_dir)
     wall = time.perf_counter() - t_start
     try:
-        tracking = tracking_section(len(state.frame_losses), state.lost)
+        tracking = tracking_section(state.tracked, state.lost)
         metrics = evaluate_run(cfg, ds, slam, state.gt_poses, run_dir, wall, tracking)
     except OSError as e:
         saved = "trajectory.txt, keyframes.npz, map.ply, config.yaml, convergence.json"
@@ -264,9 +265,13 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     if result.tracking is not None:
         entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
         state.frame_losses.append(result.tracking.loss)
-        if result.tracking.lost:
-            entry["lost_reason"] = result.tracking.reason
-            state.lost.append((result.index, result.tracking.reason))
+    state.tracked += result.tracking is not None or result.lost
+    if result.lost:  # tracking lost, or the frame's input unusable (then not tracked)
+        entry.update(lost=True, lost_reason=result.lost_reason)
+        state.lost.append((result.index, result.lost_reason))
+    for key in ("nonfinite_rgb", "nonfinite_depth"):
+        if getattr(result, key):
+            entry[key] = getattr(result, key)
     if result.keyframe:
         entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
         if result.mapping is not None and result.mapping.iters:

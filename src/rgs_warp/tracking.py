@@ -21,6 +21,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.config import TrackingConfig
+from rgs_warp.frame_check import as_float_image
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.kernels.math import REDUCE_BLOCK
@@ -39,7 +40,9 @@ class TrackingResult:
     Eq. 3-4 at the last iteration; converged: over the last quarter of the steps the twist
     gradient kept flipping sign (Adam's |m_hat| / sqrt(v_hat) below ``CONVERGED_CONSISTENCY``) and
     the frame is not lost; lost: the map does not
-    explain the frame (too little coverage, too large a residual, or non-finite values); reason: why;
+    explain the frame (too little coverage, too large a residual) or the estimate diverged; reason: why;
+    diverged: the estimate was not finite, or moved implausibly far from the start pose
+    (``MAX_CORRECTION_M``, ``MAX_CORRECTION_DEG``): it is discarded and ``T_WC`` is the start pose;
     iters: Adam steps taken; residual: weighted mean |I - g I_hat - b| per channel; loss_history:
     loss per iteration; alpha: the accumulated opacity of the last render (tracking resolution), for
     the keyframe selector, valid until the tracker's renderer renders again.
@@ -57,11 +60,17 @@ class TrackingResult:
     residual: float
     loss_history: np.ndarray
     alpha: wp.array
+    diverged: bool = False
 
 
 # Converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps its
 # sign, the pose is still travelling; ~0.25 = it flips around the minimum) averages below this.
 CONVERGED_CONSISTENCY = 0.4
+# Diverged: tracking corrects the start pose (the motion model's prediction) by millimetres to
+# centimetres (experiments/results/tracking.md); a correction of a metre or 45 deg within one frame's
+# Adam steps is an optimisation that ran away (e.g. a far too high tracking.lr), not camera motion.
+MAX_CORRECTION_M = 1.0
+MAX_CORRECTION_DEG = 45.0
 BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
 
 
@@ -160,6 +169,13 @@ class Tracker:
             raise RuntimeError("no frame tracked yet")
         return self._frame
 
+    def skip(self, T_WC: np.ndarray | None = None) -> None:
+        """A frame that is not tracked (its input unusable): the motion model goes on as after a lost
+        frame, with the prediction as its latest pose, or ``T_WC`` when that is known."""
+        T = self.predict() if T_WC is None else np.array(T_WC, dtype=np.float64)
+        if T is not None:
+            self._poses = (self._poses + [T])[-2:]
+
     def predict(self) -> np.ndarray | None:
         """Constant-velocity prediction T_k = T_{k-1} T_{k-2}^-1 T_{k-1} (the last relative motion
         repeated in the camera frame); the last pose when only one is known; None before any."""
@@ -253,10 +269,8 @@ class Tracker:
                     f"got {image.shape} {image.dtype.__name__} on {image.device}"
                 )
             return image
-        image = np.asarray(image, dtype=np.float32)
         expected = shape + ((3,) if dtype is wp.vec3 else ())
-        if image.shape != expected:
-            raise ValueError(f"{name}: expected shape {expected} (the tracker's camera), got {image.shape}")
+        image = as_float_image(image, expected, name)
         np.copyto(host.numpy().reshape(expected), image)
         wp.copy(dst, host)
         return dst
@@ -335,9 +349,16 @@ class Tracker:
         consistency = float(hist[-tail:, tk.H_CONSISTENCY].mean())
         before = invert_pose(poses_CW[-1 - tail]) if cfg.iters > tail else T_init_WC
         moved_m, moved_deg = pose_error(T_WC, before)
-        lost, converged = True, False
+        lost, converged, diverged = True, False, False
+        correction_m, correction_deg = pose_error(T_WC, T_init_WC)
         if not (np.all(np.isfinite(T_WC)) and np.isfinite(last[tk.H_LOSS])):
-            reason = "non-finite pose or loss"
+            diverged, reason = True, "diverged: non-finite pose or loss; the estimate is discarded"
+        elif not (correction_m <= MAX_CORRECTION_M and correction_deg <= MAX_CORRECTION_DEG):
+            diverged = True
+            reason = (
+                f"diverged: the pose moved {correction_m:.3g} m, {correction_deg:.3g} deg from its start (more than "
+                f"{MAX_CORRECTION_M:g} m or {MAX_CORRECTION_DEG:g} deg); the estimate is discarded"
+            )
         elif valid_ratio < cfg.min_valid_ratio:
             reason = f"map covers {valid_ratio:.1%} of the view (< {cfg.min_valid_ratio:.0%})"
         elif residual > cfg.max_residual:
@@ -350,6 +371,8 @@ class Tracker:
                 f": gradient consistency {consistency:.2f} over the last {tail} steps, "
                 f"which moved the pose {1e3 * moved_m:.2f} mm, {moved_deg:.3f} deg"
             )
+        if diverged:
+            T_WC = np.array(T_init_WC, dtype=np.float64)
         self._poses = (self._poses + [T_init_WC.copy() if lost else T_WC])[-2:]
         return TrackingResult(
             T_WC=T_WC,
@@ -364,6 +387,7 @@ class Tracker:
             residual=residual,
             loss_history=hist[:, tk.H_LOSS].copy(),
             alpha=self._last_render.alpha,
+            diverged=diverged,
         )
 
 

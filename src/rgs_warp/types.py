@@ -27,6 +27,14 @@ def grown_capacity(current: int, needed: int, minimum: int = 1) -> int:
     return capacity
 
 
+def _is_finite(v) -> bool:
+    """A real number that is finite (False for strings, None, NaN and infinities)."""
+    try:
+        return bool(np.isfinite(float(v)))
+    except (TypeError, ValueError):
+        return False
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole intrinsics (OpenCV convention) and image size; ``distortion`` is OpenCV's
@@ -40,6 +48,24 @@ class Camera:
     height: int
     distortion: tuple[float, ...] = field(default=())
 
+    def __post_init__(self) -> None:
+        """Refuse intrinsics that would divide by zero or mirror the image (the loaders add the file)."""
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise ValueError(f"{name} = {v}: the image size must be a positive integer number of pixels")
+        for name in ("fx", "fy"):
+            v = getattr(self, name)
+            if not (_is_finite(v) and v > 0):
+                raise ValueError(f"{name} = {v}: a focal length must be a positive finite number of pixels")
+        for name, size in (("cx", self.width), ("cy", self.height)):
+            v = getattr(self, name)
+            if not (_is_finite(v) and -0.5 <= v <= size - 0.5):
+                raise ValueError(
+                    f"{name} = {v}: the principal point must lie inside the {self.width}x{self.height} image "
+                    f"(-0.5 .. {size - 0.5}, pixel centres at integers)"
+                )
+
     @property
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
@@ -52,6 +78,8 @@ class Camera:
         """
         if factor == 1:
             return self
+        if self.width // factor < 1 or self.height // factor < 1:
+            raise ValueError(f"downscaling the {self.width}x{self.height} image by {factor} leaves no pixel")
         s = float(factor)
         return replace(
             self,

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import os
 
-from rgs_warp.datasets.base import DatasetError, RGBDDataset
+from rgs_warp.config import check_image_size
+from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset
 from rgs_warp.datasets.replica import ReplicaDataset
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
 from rgs_warp.datasets.synthetic import SyntheticDataset
@@ -12,6 +13,7 @@ from rgs_warp.datasets.tum import TUMDataset
 
 __all__ = [
     "DatasetError",
+    "DatasetWarning",
     "RGBDDataset",
     "ReplicaDataset",
     "SevenScenesDataset",
@@ -23,7 +25,15 @@ __all__ = [
 
 def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
     """The dataset named by a ``Config`` (its ``dataset`` section and ``data_root``); ``device`` is
-    where a synthetic sequence is rendered if it is not cached yet."""
+    where a synthetic sequence is rendered if it is not cached yet.  Images that ``dataset.downscale``
+    or ``tracking.downscale`` would shrink below what the pipeline needs are a ``ConfigError``."""
+    ds = _open(cfg, device)
+    camera = ds.native_camera
+    check_image_size(camera.width, camera.height, cfg, native=True)
+    return ds
+
+
+def _open(cfg, device: str | None) -> RGBDDataset:
     d = cfg.dataset
     if d.type != "synthetic":
         path = cfg.dataset_path()

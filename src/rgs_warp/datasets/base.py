@@ -3,6 +3,7 @@ readers that fail with a clear message, integer downscaling, selection by start/
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -16,6 +17,10 @@ from rgs_warp.types import Camera, Frame
 
 class DatasetError(RuntimeError):
     """A dataset that is missing or malformed; the message names the file and the problem."""
+
+
+class DatasetWarning(UserWarning):
+    """A dataset that loads but not as a whole (e.g. frames dropped); also in the dataset's repr."""
 
 
 def read_rgb(path: Path) -> np.ndarray:
@@ -143,6 +148,12 @@ class RGBDDataset:
         self.downscale, self.prefetch = downscale, prefetch
         self._items: list = []
         self._native_camera: Camera | None = None
+        self.notes: list[str] = []  # what the loader left out and why (``note``); shown in the repr
+
+    def note(self, message: str) -> None:
+        """Record and warn (``DatasetWarning``) that part of the sequence is left out, and why."""
+        self.notes.append(message)
+        warnings.warn(f"{self.root}: {message}", DatasetWarning, stacklevel=3)
 
     def _select(self) -> None:
         """Called by subclasses once ``_items`` and ``_native_camera`` are set."""
@@ -154,6 +165,11 @@ class RGBDDataset:
             self._indices = self._indices[: self.max_frames]
         if not self._indices:
             raise DatasetError(f"{self.root}: start={self.start} is past the last of {n_all} frames")
+
+    @property
+    def native_camera(self) -> Camera:
+        """The files' camera, before ``downscale``."""
+        return self._native_camera
 
     @property
     def camera(self) -> Camera:
@@ -214,7 +230,8 @@ class RGBDDataset:
 
     def __repr__(self) -> str:
         c = self.camera
+        notes = "".join(f"; {n}" for n in self.notes)
         return (
             f"{type(self).__name__}({str(self.root)!r}, {len(self)} frames, {c.width}x{c.height}, "
-            f"fx={c.fx:g} fy={c.fy:g} cx={c.cx:g} cy={c.cy:g})"
+            f"fx={c.fx:g} fy={c.fy:g} cx={c.cx:g} cy={c.cy:g}{notes})"
         )

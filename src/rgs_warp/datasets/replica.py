@@ -44,17 +44,18 @@ def read_cam_params(path: Path, default_scale: float = REPLICA_DEPTH_SCALE) -> t
     """Camera and depth scale from a NICE-SLAM style ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}``."""
     try:
         c = json.loads(path.read_text())["camera"]
-        cam = Camera(
-            fx=float(c["fx"]),
-            fy=float(c["fy"]),
-            cx=float(c["cx"]),
-            cy=float(c["cy"]),
-            width=int(c["w"]),
-            height=int(c["h"]),
-        )
-        return cam, float(c.get("scale", default_scale))
-    except (ValueError, KeyError, TypeError) as e:
+        values = {k: float(c[k]) for k in ("fx", "fy", "cx", "cy")}
+        values.update(width=int(c["w"]), height=int(c["h"]))
+        scale = float(c.get("scale", default_scale))
+    except (ValueError, KeyError, TypeError, OverflowError) as e:
         raise DatasetError(f"{path}: malformed camera parameters ({type(e).__name__}: {e})") from None
+    try:
+        cam = Camera(**values)
+    except ValueError as e:
+        raise DatasetError(f"{path}: {e}") from None
+    if not (np.isfinite(scale) and scale > 0):
+        raise DatasetError(f"{path}: scale = {scale!r}: the depth scale (raw units per metre) must be positive")
+    return cam, scale
 
 
 class ReplicaDataset(RGBDDataset):

@@ -67,7 +67,10 @@ class SevenScenesDataset(RGBDDataset):
                     f"{colour_intrinsics} and {depth_to_colour_m}"
                 )
             fx, fy, cx, cy = (float(v) for v in colour_intrinsics)
-            self._native_camera = Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=640, height=480)
+            try:
+                self._native_camera = Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=640, height=480)
+            except ValueError as e:
+                raise DatasetError(f"dataset.colour_intrinsics {tuple(colour_intrinsics)}: {e}") from None
             self._offset = np.asarray(depth_to_colour_m, dtype=np.float64)
         self._items = [(colour[k], self._read_pose(colour[k])) for k in sorted(colour)]
         self._select()
@@ -82,7 +85,10 @@ class SevenScenesDataset(RGBDDataset):
             raise DatasetError(f"{path}: malformed intrinsics ({e})") from None
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise DatasetError(f"{path}: expected a finite 3x3 matrix, got shape {K.shape}")
-        return Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
+        try:
+            return Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
+        except ValueError as e:
+            raise DatasetError(f"{path}: {e}") from None
 
     @staticmethod
     def _sibling(colour_path, suffix: str):

@@ -141,8 +141,10 @@ class TUMDataset(RGBDDataset):
         i_dep = associate(t_rgb, t_dep, max_dt)
         i_gt = associate(t_rgb, t_gt, max_dt)
         self._items = []
+        no_depth = require_depth & (i_dep < 0)
+        no_pose = require_pose & (i_gt < 0)
         for k in range(len(t_rgb)):
-            if (require_depth and i_dep[k] < 0) or (require_pose and i_gt[k] < 0):
+            if no_depth[k] or no_pose[k]:
                 continue
             self._items.append(
                 (
@@ -156,6 +158,15 @@ class TUMDataset(RGBDDataset):
             raise DatasetError(
                 f"{self.root}: none of {len(t_rgb)} colour frames has depth and ground truth within "
                 f"{max_dt} s (dataset.max_dt)"
+            )
+        if len(self._items) < len(t_rgb):
+            why = [f"{int(no_depth.sum())} without a depth image"] if no_depth.any() else []
+            why += [f"{int(no_pose.sum())} without a ground-truth pose"] if no_pose.any() else []
+            listed = f"depth.txt lists {len(t_dep)} images"
+            listed += f", groundtruth.txt {len(t_gt)} poses" if gt_rows else ""
+            self.note(
+                f"{len(t_rgb) - len(self._items)} of {len(t_rgb)} colour frames in rgb.txt dropped: "
+                f"{' and '.join(why)} within dataset.max_dt = {max_dt} s ({listed})"
             )
         self._select()
 

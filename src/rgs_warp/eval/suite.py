@@ -40,6 +40,7 @@ from tqdm import tqdm  # noqa: E402
 from rgs_warp.config import ConfigError, group_options, load_config  # noqa: E402
 from rgs_warp.eval.report import NA_SUFFIX, to_json  # noqa: E402
 from rgs_warp.run import run  # noqa: E402
+from rgs_warp.slam import METHODS  # noqa: E402
 
 # runner(cfg, run_dir=..., progress=...) -> (run folder, metrics): the signature of rgs_warp.run.run
 Runner = Callable[..., tuple[Path, dict]]
@@ -755,6 +756,10 @@ def main(argv: list[str] | None = None) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if repeats < 1 or not methods:
         print("error: need --repeats >= 1 and at least one method", file=sys.stderr)
+        return 2
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        print(f"error: unknown method(s) {', '.join(unknown)}; valid: {', '.join(METHODS)}", file=sys.stderr)
         return 2
     device = _device_of([f"device={args.device}"])
     extra = [f"device={device}", *args.overrides]

@@ -16,10 +16,7 @@ densification cannot reach regions no Gaussian sees.  Everything else is shared.
 
 from __future__ import annotations
 
-import json
 import time
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,16 +24,15 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
-from rgs_warp.config import Config, load_saved_config, resolve_device, save_config
-from rgs_warp.io.atomic import SaveError, atomic_write
-from rgs_warp.io.ply import load_ply, save_ply
-from rgs_warp.io.trajectory import read_tum_trajectory, write_tum_trajectory
+from rgs_warp.config import Config, check_config, check_image_size, resolve_device
+from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
 from rgs_warp.keyframes import KeyframeBuffer, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
+from rgs_warp.slam.storage import load_slam, save_slam
 from rgs_warp.tracking import Tracker, TrackingResult
 from rgs_warp.triangulation import Triangulator
 from rgs_warp.types import Camera, Frame, GaussianMap
@@ -59,6 +55,15 @@ class FrameResult:
     mapping: MappingResult | None = None
     seconds: float = 0.0
     tracking_seconds: float = 0.0
+    # lost: the frame gave no pose, its input unusable or its tracking lost (lost_reason says which);
+    # T_WC is then the last good pose where the input was unusable or tracking diverged, else the
+    # tracker's estimate
+    lost: bool = False
+    lost_reason: str = ""
+    # pixels the frame check masked (rgs_warp.frame_check): colour pixels that were not finite
+    # (filled from the nearest finite pixel, without depth) and depth values that were not (set to 0)
+    nonfinite_rgb: int = 0
+    nonfinite_depth: int = 0
 
 
 class SLAM:
@@ -72,17 +77,11 @@ class SLAM:
     def __init__(self, cfg: Config, camera: Camera, device=None, T_first_WC: np.ndarray | None = None):
         if cfg.method not in METHODS:
             raise ValueError(f"unknown method {cfg.method!r}: SLAM implements {', '.join(METHODS)}")
-        if cfg.keyframes.buffer_size < 2:
-            n_kf = cfg.keyframes.buffer_size
-            raise ValueError(f"keyframes.buffer_size must be >= 2 (triangulation needs pairs), got {n_kf}")
-        if cfg.mapping.max_gaussians < 0 or not 0.0 < cfg.mapping.cap_headroom <= 1.0:
-            m = cfg.mapping
-            raise ValueError(
-                f"need mapping.max_gaussians >= 0 (0 = no cap) and 0 < mapping.cap_headroom <= 1, "
-                f"got {m.max_gaussians} and {m.cap_headroom}"
-            )
+        check_config(cfg)  # a Config changed in code after load_config (which checks it) too
+        check_image_size(camera.width, camera.height, cfg)
         self.cfg, self.camera, self.mode = cfg, camera, cfg.mode
         self.device = dev = wp.get_device(resolve_device(cfg.device) if device is None else device)
+        self.frame_check = FrameChecker(camera, dev, self.mode)
         self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
         self.renderer = Renderer(dev)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=Renderer(dev))
@@ -113,7 +112,7 @@ class SLAM:
             self.bootstrap = MonoBootstrap(cfg.bootstrap, camera, dev, self.matcher.backbone, cfg.matching)
         self._boot_frames: list[tuple[np.ndarray, float]] = []  # (rgb, timestamp) while it waits
         self._init_window_end = cfg.mapping.init_window  # frames below are keyframes of the initial window
-        self.T_first = np.eye(4) if T_first_WC is None else np.asarray(T_first_WC, dtype=np.float64)
+        self.T_first = np.eye(4) if T_first_WC is None else checked_pose(T_first_WC, "T_first_WC")
         self.poses: list[np.ndarray] = []  # camera-to-world of every processed frame
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
@@ -142,23 +141,31 @@ class SLAM:
         constant-velocity prediction.  ``T_WC``: the frame's pose is known (motion capture, another
         odometry): tracking is skipped and the frame goes to keyframe selection and mapping at that
         pose.  Both are 4x4 camera-to-world, in the SLAM's world frame.  The first frame is not
-        tracked: its pose is ``T_WC`` if given, else ``T_first_WC``."""
+        tracked: its pose is ``T_WC`` if given, else ``T_first_WC``.
+
+        Every frame is checked first (``rgs_warp.frame_check``): a shape other than the camera's, a
+        dtype that is not floating point, colour outside [0, 1] or negative depth raise ValueError
+        and change nothing; pixels that are not finite are masked and counted (``nonfinite_rgb``,
+        ``nonfinite_depth``); a frame with too few usable pixels is refused as the first frame and
+        lost (``lost_reason``) later, at the last good pose, as is one whose tracking diverged."""
         if isinstance(rgb, Frame):
             rgb, depth, timestamp = rgb.rgb, rgb.depth, rgb.timestamp
         if T_init_WC is not None and T_WC is not None:
             raise ValueError("give T_init_WC (where tracking starts) or T_WC (the known pose), not both")
-        for name, T_given in (("T_init_WC", T_init_WC), ("T_WC", T_WC)):
-            if T_given is not None and (np.shape(T_given) != (4, 4) or not np.all(np.isfinite(T_given))):
-                raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got {np.shape(T_given)}")
-        if self.mode == "rgbd" and depth is None:
-            raise ValueError("mode 'rgbd' needs a depth image for every frame (or set mode=mono)")
-        depth = depth if self.mode == "rgbd" else None
+        T_init_WC = None if T_init_WC is None else checked_pose(T_init_WC, "T_init_WC")
+        T_WC = None if T_WC is None else checked_pose(T_WC, "T_WC")
         t0 = time.perf_counter()
         i = len(self.poses)
+        if self.bootstrap is not None and (T_init_WC is not None or T_WC is not None):
+            raise ValueError("the monocular bootstrap finds its own poses: no T_init_WC / T_WC before it ends")
+        frame = self.frame_check.check(rgb, depth)  # ValueError for the caller's mistakes
+        if frame.unusable and i == 0:
+            raise ValueError(f"frame 0 cannot start the map: {frame.unusable}")
+        rgb, depth = frame.rgb, frame.depth
         if self.bootstrap is not None:
-            if T_init_WC is not None or T_WC is not None:
-                raise ValueError("the monocular bootstrap finds its own poses: no T_init_WC / T_WC before it ends")
-            return self._process_bootstrap(rgb, timestamp, t0)
+            return self._process_bootstrap(rgb, timestamp, t0, frame)
+        if frame.unusable:
+            return self._skip(i, frame, T_WC, timestamp, t0)
         tracking, given = None, T_WC is not None
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
@@ -175,12 +182,16 @@ class SLAM:
             tr0 = time.perf_counter()
             tracking = self.tracker.track(rgb, depth, self.map, T_init_WC)
             self.stats["tracking_s"] += time.perf_counter() - tr0
+            if tracking.diverged:  # neither the map nor the trajectory gets the estimate
+                result = FrameResult(i, self.poses[-1].copy(), tracking, False, "not mapped: tracking diverged")
+                return self._record(self._counted(result, frame, tracking.reason), timestamp, t0)
             T, exposure, pose_ok = tracking.T_WC, (tracking.gain, tracking.bias), not tracking.lost
             decision = self.selector.should_add(tracking.alpha, T, None if tracking.lost else tracking.loss)
         is_kf, reason = decision.is_keyframe, decision.reason + (" (pose given)" if given and i else "")
         if 0 < i < self._init_window_end:
             is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}{', pose given' if given else ''})"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
+        self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
             self.selector.accept(T)
             self._add_keyframe(i, T, rgb, depth, exposure, result)
@@ -196,6 +207,21 @@ class SLAM:
                 result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held)
                 self.stats["mapping_s"] += time.perf_counter() - t1
         return self._record(result, timestamp, t0)
+
+    def _skip(self, i: int, frame: CheckedFrame, T_WC, timestamp: float | None, t0: float) -> FrameResult:
+        """A frame whose input is unusable: neither tracked nor mapped; its pose is ``T_WC`` if given
+        (the frame is then not lost), else the last good one, and the motion model goes on."""
+        self.tracker.skip(T_WC)
+        T = self.poses[-1].copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
+        result = FrameResult(i, T, None, False, f"not used: {frame.unusable}")
+        return self._record(self._counted(result, frame, frame.unusable if T_WC is None else ""), timestamp, t0)
+
+    @staticmethod
+    def _counted(result: FrameResult, frame: CheckedFrame, lost_reason: str) -> FrameResult:
+        """``result`` with the frame check's counts, and lost with ``lost_reason`` unless it is empty."""
+        result.nonfinite_rgb, result.nonfinite_depth = frame.nonfinite_rgb, frame.nonfinite_depth
+        result.lost, result.lost_reason = bool(lost_reason), lost_reason
+        return result
 
     def _record(self, result: FrameResult, timestamp: float | None, t0: float) -> FrameResult:
         self.poses.append(result.T_WC)
@@ -233,7 +259,9 @@ class SLAM:
             self.stats["maintenance_s"] += time.perf_counter() - t0
         else:
             result.pruned = result.mapping.pruned
-        self._log_convergence(i, "init" if init else "keyframe", window, result.mapping)
+        self.convergence += self.mapper.convergence(
+            self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
+        )
 
     def _held_exposures(self, window: list[int]) -> list[int]:
         """The window's keyframes whose exposure mapping holds (``Mapper.optimize``'s ``fixed_exposure``):
@@ -257,30 +285,24 @@ class SLAM:
             added += self.seeder.seed_matches(self.map, kf, slot, m, points)
         return added + self.seeder.seed_depth(self.map, kf, slot)
 
-    def _log_convergence(self, i: int, phase: str, window: list[int], mapping: MappingResult) -> None:
-        """The samples taken during keyframe i's mapping, then the window's PSNR after it (and after
-        the maintenance), which replaces a sample at the same iteration; nothing without mapping."""
-        if mapping.iters == 0:
-            return
-        points = list(mapping.psnr_curve)
-        if points and points[-1][0] == self.mapper.total_iters:
-            points.pop()
-        points.append((self.mapper.total_iters, self.mapper.window_psnr(self.keyframes, window), len(self.map)))
-        for it, psnr_db, n in points:
-            psnr_db = float(psnr_db) if np.isfinite(psnr_db) else None
-            self.convergence.append({"iteration": it, "frame": i, "phase": phase, "psnr_db": psnr_db, "gaussians": n})
-
-    def _process_bootstrap(self, rgb, timestamp: float | None, t0: float) -> FrameResult:
+    def _process_bootstrap(self, rgb, timestamp: float | None, t0: float, frame: CheckedFrame) -> FrameResult:
         """Monocular start (``bootstrap.py``): frame 0 waits for a frame k with enough parallax; then
         keyframes 0 and k are seeded from their triangulated matches and mapped together
         (``mapping.init_iters``), and the frames in between are tracked against that map.  After
         ``bootstrap.max_wait_frames`` frames without success the start falls back to frame 0 alone
-        on a plane at ``matching.scene_depth_m`` (the frames since are then tracked against it)."""
+        on a plane at ``matching.scene_depth_m`` (the frames since are then tracked against it).  A
+        frame whose input is unusable waits with frame 0's pose and is never tracked."""
         cfg, i = self.cfg, len(self.poses)
-        rgb_host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
-        self._boot_frames.append((rgb_host, float(i) if timestamp is None else float(timestamp)))
+        stamp = float(i) if timestamp is None else float(timestamp)
         T0 = self.T_first.copy()
+        if frame.unusable:
+            self._boot_frames.append((None, stamp))
+            result = FrameResult(i, T0, None, False, f"monocular bootstrap: frame not used: {frame.unusable}")
+            return self._record(self._counted(result, frame, frame.unusable), stamp, t0)
+        rgb_host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
+        self._boot_frames.append((rgb_host, stamp))
         result = FrameResult(i, T0, None, False, "monocular bootstrap: first frame, waiting for parallax")
+        self._counted(result, frame, "")
         boot = None
         if i > 0:
             tb = time.perf_counter()
@@ -314,16 +336,22 @@ class SLAM:
         psnr_every = cfg.eval.convergence_every
         result.mapping = self.mapper.optimize(self.keyframes, window, cfg.mapping.init_iters, psnr_every, [slot0])
         self.stats["mapping_s"] += time.perf_counter() - tm
-        self._log_convergence(i, "init", window, result.mapping)
+        self.convergence += self.mapper.convergence(self.keyframes, window, result.mapping, i, "init")
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
         for j in retrack:
+            if frames[j][0] is None:  # its input was unusable: the last good pose
+                self.tracker.skip()
+                self.poses[j] = self.poses[j - 1].copy()
+                continue
             tr0 = time.perf_counter()
             tracking = self.tracker.track(frames[j][0], None, self.map)
             self.stats["tracking_s"] += time.perf_counter() - tr0
+            T = self.poses[j - 1].copy() if tracking.diverged else tracking.T_WC
             if j < i:
-                self.poses[j] = tracking.T_WC
+                self.poses[j] = T
             else:
-                result.tracking, result.T_WC = tracking, tracking.T_WC
+                result.tracking, result.T_WC = tracking, T
+                self._counted(result, frame, tracking.reason if tracking.lost else "")
         if boot is not None:
             self.tracker.reset(result.T_WC, self.poses[i - 1] if i > 1 else T0)
         self.selector.should_add(self._alpha_at(result.T_WC), result.T_WC)
@@ -359,97 +387,7 @@ class SLAM:
         exactly where this SLAM is: a run's checkpoint.  A checkpoint favours speed: its
         ``keyframes.npz`` is not compressed (ten 1200x680 keyframes: 0.2 s against 6 s compressed).
         Without ``state``, a ``state.npz`` of an earlier save in the folder is removed."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        writers = {
-            "trajectory.txt": lambda path: write_tum_trajectory(path, *self.trajectory()),
-            "keyframes.npz": lambda path: self._save_keyframes(path, compress=not state),
-            "map.ply": lambda path: save_ply(path, self.map),
-            "config.yaml": lambda path: save_config(self.cfg, path),
-        }
-        if state:
-            writers["state.npz"] = self._save_state
-        else:
-            (directory / "state.npz").unlink(missing_ok=True)
-        saved, failed = [], {}
-        for name, write in writers.items():
-            try:
-                write(directory / name)
-            except Exception as e:  # noqa: BLE001 (reported with the others in SaveError)
-                failed[name] = e
-            else:
-                saved.append(name)
-        if failed:
-            raise SaveError(directory, saved, failed)
-        return directory
-
-    def _save_keyframes(self, path: Path, compress: bool = True) -> None:
-        kf = self.keyframes
-        slots = kf.slots()
-        with atomic_write(path) as f:
-            (np.savez_compressed if compress else np.savez)(
-                f,
-                frame_ids=kf.frame_ids[slots],
-                poses=kf.poses[slots],
-                exposure=kf.exposure[slots],
-                rgb=np.stack([kf.rgb[s].numpy() for s in slots]) if slots else np.zeros((0,)),
-                depth=np.stack([kf.depth[s].numpy() for s in slots]) if slots else np.zeros((0,)),
-                slots=np.array(slots, dtype=np.int64),  # load puts each keyframe back in its slot
-                keyframe_indices=np.array(self.keyframe_indices, dtype=np.int64),
-                frames=len(self.poses),  # trajectory.txt's length: load tells a truncated one
-                mapping_iters=self.mapper.total_iters,  # the densification schedule's clock
-                camera=np.array([self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy]),
-                size=np.array([self.camera.width, self.camera.height]),
-                first_pose=self.T_first,
-            )
-
-    def _save_state(self, path: Path) -> None:
-        if self.bootstrap is not None and self._boot_frames:
-            raise ValueError("the monocular bootstrap is waiting for parallax: its frames are not saved")
-        n = len(self.map)
-        columns = [name for name in self.map.column_names() if name not in GaussianMap.PARAMETERS]
-        state = {f"map.{name}": self.map.column(name).numpy()[:n] for name in columns}
-        for prefix, stage in (("selector.", self.selector), ("tracker.", self.tracker), ("mapper.", self.mapper)):
-            state.update({prefix + k: v for k, v in stage.state_dict().items()})
-        state.update({f"seeder.{k}": v for k, v in self.seeder.state_dict().items()})
-        meta = {
-            "frames": len(self.poses),
-            "gaussians": n,
-            "init_window_end": self._init_window_end,
-            "stats": self.stats,
-            "convergence": self.convergence,
-        }
-        state["slam.meta"] = np.array(json.dumps(meta))
-        # the poses bit-exact (trajectory.txt's rotations pass through quaternions)
-        state["slam.poses"], state["slam.timestamps"] = self.trajectory()[1], np.array(self.timestamps)
-        with atomic_write(path) as f:
-            np.savez(f, **state)  # uncompressed: optimiser moments do not compress, and checkpoints are frequent
-
-    def _load_state(self, path: Path) -> None:
-        """Restore what ``_save_state`` wrote, onto a SLAM just loaded from the same folder."""
-        state = _read_npz(path, ("slam.meta", "slam.poses", "slam.timestamps"))
-        meta = json.loads(str(state["slam.meta"]))
-        n = len(self.map)
-        if (meta["frames"], meta["gaussians"]) != (len(self.poses), n):
-            raise LoadError(
-                f"{path}: saved with {meta['frames']} frames and {meta['gaussians']} Gaussians, the folder's "
-                f"trajectory.txt and map.ply have {len(self.poses)} and {n} (files of different saves?)"
-            )
-        for key, value in state.items():
-            if not key.startswith("map."):
-                continue
-            name = key[len("map.") :]
-            column = self.map.column(name) if self.map.has_column(name) else None
-            if column is None or value.shape[0] != n:
-                raise LoadError(f"{path}: column {name!r} does not fit this SLAM's map (another method?)")
-            if n:
-                column[:n].assign(value)
-        for prefix, stage in (("selector.", self.selector), ("tracker.", self.tracker), ("mapper.", self.mapper)):
-            stage.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
-        self.seeder.load_state_dict({k[len("seeder.") :]: v for k, v in state.items() if k.startswith("seeder.")})
-        self.poses, self.timestamps = list(state["slam.poses"]), [float(t) for t in state["slam.timestamps"]]
-        self._init_window_end = int(meta["init_window_end"])
-        self.stats, self.convergence = dict(meta["stats"]), list(meta["convergence"])
+        return save_slam(self, directory, state)
 
     @classmethod
     def load(cls, directory: str | Path, device=None) -> SLAM:
@@ -459,84 +397,4 @@ class SLAM:
         the saved one would have.  A missing, truncated or inconsistent file raises ``LoadError`` (or
         the reader's own ``PlyFormatError``, ``TrajectoryFormatError``, ``ConfigError``), naming the
         file and what is wrong."""
-        directory = Path(directory)
-        for name in ("map.ply", "trajectory.txt", "keyframes.npz", "config.yaml"):
-            if not (directory / name).is_file():
-                raise LoadError(f"{directory / name}: missing (not a folder written by SLAM.save)")
-        cfg = load_saved_config(directory / "config.yaml")
-        data = _read_npz(directory / "keyframes.npz", (*_KEYFRAME_ARRAYS, "first_pose"))
-        stamps, poses = read_tum_trajectory(directory / "trajectory.txt")
-        _check_consistent(directory, data, len(poses))
-        fx, fy, cx, cy = (float(v) for v in data["camera"])
-        w, h = (int(v) for v in data["size"])
-        slam = cls(cfg, Camera(fx, fy, cx, cy, w, h), device=device, T_first_WC=data["first_pose"])
-        loaded = load_ply(directory / "map.ply", device=slam.device)
-        if loaded.sh_degree != slam.map.sh_degree:
-            raise LoadError(
-                f"{directory / 'map.ply'}: SH degree {loaded.sh_degree}, config.yaml says {slam.map.sh_degree}"
-            )
-        n = len(loaded)
-        if n:
-            slam.map.append(
-                loaded.means[:n], loaded.rotations[:n], loaded.log_scales[:n], loaded.opacity_logits[:n], loaded.sh[:n]
-            )
-        slam.poses = list(poses)
-        slam.timestamps = [float(t) for t in stamps]
-        slam.keyframe_indices = [int(v) for v in data["keyframe_indices"]]
-        for k, frame_id in enumerate(int(v) for v in data["frame_ids"]):
-            depth = data["depth"][k] if cfg.mode == "rgbd" else None
-            slot = int(data["slots"][k]) if "slots" in data else None
-            slam.keyframes.add(frame_id, data["poses"][k], data["rgb"][k], depth, data["exposure"][k], slot=slot)
-        if "mapping_iters" in data:  # folders saved before it was recorded start the count afresh
-            slam.mapper.total_iters = int(data["mapping_iters"])
-        if slam.keyframe_indices and slam.bootstrap is not None:  # a monocular map: its bootstrap is done
-            slam.bootstrap, slam._init_window_end = None, 0
-        if (directory / "state.npz").is_file():
-            slam._load_state(directory / "state.npz")
-            return slam
-        if slam.poses:
-            slam.tracker.reset(slam.poses[-1], slam.poses[-2] if len(slam.poses) > 1 else None)
-        if len(slam.keyframes):
-            T_kf = slam.keyframes.poses[slam.keyframes.slots()[-1]]
-            slam.selector.should_add(slam._alpha_at(T_kf), T_kf)
-            slam.selector.accept(T_kf)
-        return slam
-
-
-class LoadError(ValueError):
-    """A folder that ``SLAM.load`` cannot restore; the message names the file and what is wrong."""
-
-
-_KEYFRAME_ARRAYS = ("frame_ids", "poses", "exposure", "rgb", "depth", "keyframe_indices", "camera", "size")
-
-
-def _read_npz(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """Every array of an ``.npz`` of ``save``, read now (a damaged member fails here, naming the file)."""
-    try:
-        with np.load(path) as z:
-            data = {name: z[name] for name in z.files}
-    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as e:
-        raise LoadError(f"{path}: not a readable archive (truncated or damaged?): {type(e).__name__}: {e}") from e
-    missing = [name for name in required if name not in data]
-    if missing:
-        raise LoadError(f"{path}: arrays {', '.join(missing)} missing (not written by SLAM.save?)")
-    return data
-
-
-def _check_consistent(directory: Path, data: dict[str, np.ndarray], n_poses: int) -> None:
-    """The keyframe archive against the trajectory: a file cut short by a copy shows up here."""
-    k = len(data["frame_ids"])
-    shapes = {name: data[name].shape[:1] for name in ("poses", "exposure")}
-    if k and (data["rgb"].shape[:1] != (k,) or any(shape != (k,) for shape in shapes.values())):
-        raise LoadError(f"{directory / 'keyframes.npz'}: {k} keyframe ids but arrays of other lengths")
-    if "frames" in data and int(data["frames"]) != n_poses:
-        raise LoadError(
-            f"{directory / 'trajectory.txt'}: {n_poses} poses, keyframes.npz was saved with {int(data['frames'])} "
-            "(truncated?)"
-        )
-    indices = data["keyframe_indices"]
-    if len(indices) and int(indices.max()) >= n_poses:
-        raise LoadError(
-            f"{directory / 'trajectory.txt'}: {n_poses} poses, but frame {int(indices.max())} is a keyframe "
-            "(truncated?)"
-        )
+        return load_slam(cls, directory, device)
