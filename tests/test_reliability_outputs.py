@@ -83,7 +83,7 @@ def test_empty_map_saves_and_loads_back(tmp_path, device):
 
 def test_a_failing_file_loses_no_other_and_the_error_says_what_was_saved(tmp_path, device, monkeypatch):
     """8dc16f7 writes map.ply first: a full disk there leaves no trajectory."""
-    import rgs_warp.slam as slam_module
+    import rgs_warp.slam.storage as slam_module
 
     def disk_full(path, gmap):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
@@ -238,7 +238,7 @@ def test_a_run_failing_at_start_up_leaves_no_folder(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_full_disk_at_the_final_save_is_one_message_saying_what_was_saved(tmp_path, capsys, monkeypatch):
     """8dc16f7: the OSError's traceback, and no trajectory (map.ply was written first)."""
-    import rgs_warp.slam as slam_module
+    import rgs_warp.slam.storage as slam_module
 
     def disk_full(path, gmap):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))

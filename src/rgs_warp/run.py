@@ -231,13 +231,24 @@ def _run_frames(cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, pro
                 lost=len(state.lost),
             )
             bar.update(1)
-    except BaseException:  # an error, Ctrl-C or SIGTERM: save what was tracked, then stop as asked
+    except BaseException as stop:  # an error, Ctrl-C or SIGTERM: save what was tracked, then stop as asked
         bar.close()
         log.close()
         try:
             _save_run(cfg, slam, run_dir)
         except Exception as e:  # noqa: BLE001 (the error that stopped the run is the one raised)
             print(f"error: the run stopped, and saving what it tracked failed: {e}", file=sys.stderr)
+        else:
+            if isinstance(stop, KeyboardInterrupt | SystemExit):
+                again = (
+                    f"; python -m rgs_warp.slam resume={run_dir} continues it"
+                    if (run_dir / CHECKPOINT).is_file()
+                    else ""
+                )
+                print(
+                    f"stopped at frame {state.next_frame}: what was tracked is saved in {run_dir}{again}",
+                    file=sys.stderr,
+                )
         raise
     bar.close()
     log.close()
@@ -583,6 +594,8 @@ def main(argv: list[str] | None = None) -> int:
     except (DatasetError, ValueError, OSError) as e:  # OSError: OutputError, SaveError, a full disk
         print(f"error: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C: the run saved what it tracked and said where
+        return 130
     ate = (metrics.get("ate") or {}).get("all_frames", {})
     photo = metrics.get("photometric") or {}
     print(f"run dir   {run_dir}")
@@ -593,7 +606,9 @@ def main(argv: list[str] | None = None) -> int:
     if ate:
         print(f"ATE RMSE  {ate['rmse_cm']:.2f} cm (all frames)")
     if photo:
-        print(f"PSNR      {photo['psnr_db']:.2f} dB, SSIM {photo['ssim']:.3f}")
+        print(
+            f"PSNR      {photo['psnr_db']:.2f} dB raw, {photo['psnr_compensated_db']:.2f} exposure-compensated; SSIM {photo['ssim']:.3f}"
+        )
     print(f"report    {run_dir / 'metrics.md'}")
     tracking = metrics.get("tracking") or {}
     if tracking.get("lost_frames"):
