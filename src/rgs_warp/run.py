@@ -606,9 +606,8 @@ def main(argv: list[str] | None = None) -> int:
     if ate:
         print(f"ATE RMSE  {ate['rmse_cm']:.2f} cm (all frames)")
     if photo:
-        print(
-            f"PSNR      {photo['psnr_db']:.2f} dB raw, {photo['psnr_compensated_db']:.2f} exposure-compensated; SSIM {photo['ssim']:.3f}"
-        )
+        raw, compensated = photo["psnr_db"], photo["psnr_compensated_db"]
+        print(f"PSNR      {raw:.2f} dB raw, {compensated:.2f} exposure-compensated; SSIM {photo['ssim']:.3f}")
     print(f"report    {run_dir / 'metrics.md'}")
     tracking = metrics.get("tracking") or {}
     if tracking.get("lost_frames"):
