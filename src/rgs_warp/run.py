@@ -134,6 +134,14 @@ def ground_truth_mesh(cfg: Config, ds) -> Path | None:
     return None
 
 
+def memory_mib(device) -> float | None:
+    """GPU memory the run holds now (Warp's memory pool), in MiB; None on the CPU."""
+    device = wp.get_device(device)
+    if not device.is_cuda or not wp.is_mempool_enabled(device):
+        return None
+    return wp.get_mempool_used_mem_current(device) / 2**20
+
+
 def peak_memory_mib(device) -> float | None:
     device = wp.get_device(device)
     if not device.is_cuda or not wp.is_mempool_enabled(device):
@@ -271,8 +279,12 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
         "keyframe": result.keyframe,
         "reason": result.keyframe_reason,
         "seconds": round(result.seconds, 4),
+        "tracking_seconds": round(result.tracking_seconds, 4),
         "gaussians": len(slam.map),
     }
+    memory = memory_mib(slam.device)
+    if memory is not None:
+        entry["memory_mib"] = round(memory, 1)
     if result.tracking is not None:
         entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
         state.frame_losses.append(result.tracking.loss)
