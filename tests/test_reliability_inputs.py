@@ -387,6 +387,33 @@ def test_cli_config_error_is_one_line_and_exit_2(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_missing_evaluation_package_stops_before_any_run(tmp_path, monkeypatch, capsys):
+    """The evaluation imports pytorch-msssim at the end of a run; without it the command says so at
+    once (one line, no run folder) instead of after minutes of tracking."""
+    import importlib.util
+
+    from rgs_warp import run as run_module
+    from rgs_warp.eval import suite
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "pytorch_msssim" else find_spec(name, *a)
+    )
+    small = ["dataset.max_frames=2", "mapping.init_iters=5", "device=cpu"]  # were it to run: seconds
+    assert run_module.main([f"output_dir={tmp_path / 'runs'}", *small]) == 1
+    assert suite.main(["--quick", "--out", str(tmp_path / "suite"), "--device", "cpu"]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert (
+        err
+        == [
+            "error: the evaluation at the end of a run needs pytorch-msssim, which is not installed: "
+            "pip install pytorch-msssim (nothing was run)"
+        ]
+        * 2
+    ), err
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "suite").exists()
+
+
 # ---- 4. TUM: frames without depth ----------------------------------------------------------------
 def test_tum_says_how_many_frames_it_drops_and_why(tmp_path):
     from rgs_warp.datasets import TUMDataset

@@ -7,6 +7,7 @@ report and figures.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import itertools
 import json
 import shutil
@@ -99,6 +100,21 @@ def _clear_run_dir(path: Path) -> None:
             shutil.rmtree(child)
         else:
             child.unlink()
+
+
+# what the evaluation at the end of a run imports, and the pip name that provides it
+EVALUATION_IMPORTS = {"torch": "torch", "pytorch_msssim": "pytorch-msssim"}
+
+
+def check_evaluation_imports() -> None:
+    """Refuse to start a run whose evaluation could not import what it needs (a run of minutes
+    would otherwise end in a ModuleNotFoundError); an ``ImportError`` naming what to install."""
+    missing = [pip for module, pip in EVALUATION_IMPORTS.items() if importlib.util.find_spec(module) is None]
+    if missing:
+        raise ImportError(
+            f"the evaluation at the end of a run needs {', '.join(missing)}, which is not installed: "
+            f"pip install {' '.join(missing)} (nothing was run)"
+        )
 
 
 def _own_run_dir(run_dir: Path) -> Path:
@@ -196,6 +212,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
     """
     if cfg.checkpoint_every < 0:
         raise ValueError(f"checkpoint_every must be >= 0 (0 = no checkpoints), got {cfg.checkpoint_every}")
+    check_evaluation_imports()
     device = resolve_device(cfg.device)
     ds = open_dataset(cfg, device=device)
     first = ds[0]
@@ -603,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except (DatasetError, ValueError, OSError) as e:  # OSError: OutputError, SaveError, a full disk
+    except (DatasetError, ValueError, OSError, ImportError) as e:  # OSError: OutputError, SaveError, a full disk
         print(f"error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # Ctrl-C: the run saved what it tracked and said where

@@ -39,7 +39,7 @@ from tqdm import tqdm  # noqa: E402
 
 from rgs_warp.config import ConfigError, group_options, load_config  # noqa: E402
 from rgs_warp.eval.report import NA_SUFFIX, to_json  # noqa: E402
-from rgs_warp.run import run  # noqa: E402
+from rgs_warp.run import check_evaluation_imports, run  # noqa: E402
 from rgs_warp.slam import METHODS  # noqa: E402
 
 # runner(cfg, run_dir=..., progress=...) -> (run folder, metrics): the signature of rgs_warp.run.run
@@ -761,6 +761,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"error: unknown method(s) {', '.join(unknown)}; valid: {', '.join(METHODS)}", file=sys.stderr)
         return 2
+    try:
+        check_evaluation_imports()
+    except ImportError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     device = _device_of([f"device={args.device}"])
     extra = [f"device={device}", *args.overrides]
     try:
