@@ -175,55 +175,6 @@ def test_adam_exposure_step_matches_numpy_and_holds_the_gauge(device):
     assert not m.numpy()[2].any()
 
 
-def _twist_matrix(xi):
-    rho, phi = xi[:3], xi[3:]
-    X = np.zeros((4, 4))
-    X[:3, :3] = [[0, -phi[2], phi[1]], [phi[2], 0, -phi[0]], [-phi[1], phi[0], 0]]
-    X[:3, 3] = rho
-    return X
-
-
-def test_adam_keyframe_pose_step_matches_numpy_and_holds_the_gauge(device):
-    from scipy.linalg import expm
-
-    b1, b2, lr = 0.9, 0.999, 2e-3
-    grads = np.array([[0.3, -0.2, 0.1, 0.02, -0.4, 0.05], [1.0] * 6], np.float32)
-    fixed = np.array([0, 1], np.int32)
-    rng = np.random.default_rng(3)
-    T0 = np.stack([expm(_twist_matrix(rng.normal(0, 0.5, 6))) for _ in range(2)])  # camera-from-world
-    T_CW = wp.array(T0, dtype=wp.mat44d, device=device)
-    T_WC = wp.zeros(2, dtype=wp.mat44, device=device)
-    m = wp.zeros((2, 6), dtype=wp.float32, device=device)
-    v = wp.zeros((2, 6), dtype=wp.float32, device=device)
-    f32 = np.float32
-    m_ref, v_ref, T_ref = np.zeros(6, f32), np.zeros(6, f32), T0[0].copy()
-    p = np.array([0.0, 0.0, 2.5])  # the pivot on the optical axis of view 0
-    pivot = wp.array([2.5, 1.0], dtype=wp.float32, device=device)
-    P = np.eye(4)
-    P[:3, 3] = -p  # X -> X - p
-    g = grads[0].astype(f32)
-    g = np.concatenate([g[:3], g[3:] + np.cross(g[:3], p.astype(f32))]).astype(f32)  # about the pivot
-    for step in (1, 2, 3):
-        for k in (0, 1):
-            wp.launch(
-                km.adam_keyframe_pose_step,
-                dim=1,
-                inputs=[wp.array(grads[k], device=device), k, wp.array(fixed, device=device), pivot, step, lr, b1, b2],
-                outputs=[m, v, T_CW, T_WC],
-                device=device,
-            )
-        m_ref = f32(b1) * m_ref + (f32(1) - f32(b1)) * g
-        v_ref = f32(b2) * v_ref + (f32(1) - f32(b2)) * g * g
-        c1, c2 = f32(1) - f32(b1) ** f32(step), f32(1) - f32(b2) ** f32(step)
-        xi = -f32(lr) * (m_ref / c1) / (np.sqrt(v_ref / c2) + f32(1e-8))
-        # left update about the pivot, Exp by the matrix exponential
-        T_ref = np.linalg.inv(P) @ expm(_twist_matrix(xi.astype(np.float64))) @ P @ T_ref
-    np.testing.assert_allclose(T_CW.numpy()[0], T_ref, atol=1e-6)
-    np.testing.assert_allclose(T_WC.numpy()[0], np.linalg.inv(T_ref), atol=1e-5)
-    np.testing.assert_array_equal(T_CW.numpy()[1], T0[1])  # the held keyframe keeps its pose
-    assert not m.numpy()[1].any()
-
-
 # ---- regularizer ------------------------------------------------------------------------------------
 REG = {"w_e": 0.3, "log_r": np.log(10.0), "w_o": 0.2, "o_max": 6.0, "w_a": 1.5}
 
@@ -396,36 +347,6 @@ def test_mapping_refines_corrupted_colours(device, room):
     assert np.all(np.isfinite(result.depth_l1_history))  # RGB-D: every keyframe has depth
     # each of the 60 iterations renders the 3 keyframes of the window
     assert np.all(gmap.column("obs_count").numpy()[:n] <= 180) and gmap.column("obs_count").numpy()[:n].max() > 0
-
-
-def test_pose_steps_descend_the_loss_and_hold_the_gauge(device, room):
-    """mapping.lr_pose, the map held (its rates 0): keyframe 2 placed 3 cm and 1 degree off, its
-    pose steps lower its loss; the held keyframe keeps its pose bit for bit, and without lr_pose no
-    pose moves.  (Whether the steps bring a keyframe nearer the truth depends on the map and the
-    view: on this 96x54 room the loss falls while the pose drifts further off, which is why pose
-    refinement is off by default; experiments/results/fidelity.md measures it on 7-Scenes.)"""
-    from scipy.spatial.transform import Rotation
-
-    cam = room["camera"]
-    off = np.eye(4)
-    off[:3, :3] = Rotation.from_rotvec(np.radians([0.6, -0.8, 0.0])).as_matrix()
-    off[:3, 3] = [0.02, -0.015, 0.015]
-    frames = [*room["frames"][:2], (*room["frames"][2][:2], room["frames"][2][2] @ off)]
-    held = {"lr_position": 0.0, "lr_rotation": 0.0, "lr_scale": 0.0, "lr_color": 0.0, "lr_opacity": 0.0}
-    for lr_pose in (0.0, 1e-4):
-        gmap = _room_map(room, device)
-        kf, slots = _keyframes(room, frames, device)
-        poses = kf.poses.copy()
-        mapper = Mapper(MappingConfig(lr_pose=lr_pose, lr_final_factor=1.0, **held), cam, gmap, device)
-        displaced = mapper.optimize(kf, [slots[2]], 12).loss_history
-        mapper.optimize(kf, slots[:2], 2, fixed_pose=[slots[0]])
-        np.testing.assert_array_equal(kf.poses[slots[0]], poses[slots[0]])
-        if lr_pose == 0.0:
-            np.testing.assert_array_equal(kf.poses, poses)
-            assert np.ptp(displaced) == 0.0  # nothing moves: the same loss every iteration
-        else:
-            assert not np.array_equal(kf.poses[slots[1]], poses[slots[1]])
-            assert np.all(np.diff(displaced) < 0.0), displaced
 
 
 def _rows(n, rng):

@@ -216,9 +216,6 @@ class MappingConfig:
     # Adam on the exposure (g, b) of Eq. 3 of each window keyframe, with the map (the first keyframe's
     # stays the identity: the gauge of the map's colour); 0: the exposures stay the tracker's
     lr_exposure: float = 0.0
-    # Adam on the twist (rad, m) of each window keyframe's pose, with the map, from the same loss (the
-    # first keyframe's stays: the gauge of the map's frame); 0: the keyframe poses stay the tracker's
-    lr_pose: float = 0.0
     adam_beta1: float = 0.9  # Table 1
     adam_beta2: float = 0.999
     lambda_dssim: float = 0.2  # Table 1: L1 + lambda_dssim (1 - SSIM)
@@ -505,7 +502,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.lr_scale": NON_NEGATIVE,
     "mapping.lr_final_factor": NON_NEGATIVE,
     "mapping.lr_exposure": NON_NEGATIVE,
-    "mapping.lr_pose": NON_NEGATIVE,
     "mapping.max_gaussians": NON_NEGATIVE,  # 0 = no cap
     "mapping.cap_headroom": Bound(0, 1, lo_open=True),
     "checkpoint_every": NON_NEGATIVE,  # 0 = no checkpoints

@@ -105,8 +105,6 @@ class KeyframeBuffer:
         self.poses = np.tile(np.eye(4), (capacity, 1, 1))  # camera-to-world, refined by mapping
         self.exposure = np.tile(np.array([1.0, 0.0]), (capacity, 1))  # (g, b) of Eq. 3
         self.frame_ids = np.full(capacity, -1, dtype=np.int64)
-        # median measured depth (m) of each keyframe, 1 without depth: the pivot of its pose updates
-        self.median_depth = np.ones(capacity)
         self.descriptors: list = [None] * capacity  # filled by the DenseMatcher
         self._order: list[int] = []  # slots, oldest first
 
@@ -131,13 +129,8 @@ class KeyframeBuffer:
         else:
             slot = next(s for s in range(self.capacity) if s not in self._order)
         _copy_into(self.rgb, slot, rgb, wp.vec3)
-        self.median_depth[slot] = 1.0
         if depth is not None:
             _copy_into(self.depth, slot, depth, wp.float32)
-            valid = self.depth[slot].numpy()
-            valid = valid[valid > 0.0]
-            if valid.size:
-                self.median_depth[slot] = float(np.median(valid))
         else:
             self.depth[slot].zero_()
         self.poses[slot] = T_WC

@@ -6,10 +6,8 @@ One mapping iteration renders every keyframe of the window (gradients averaged o
 takes one Adam step on the map: L1 with robust per-pixel weights + lambda_dssim (1 - SSIM) on the
 exposure-corrected render x = g I_hat + b (g, b: the keyframe's exposure from tracking), + the depth
 L1 for RGB-D, + the regularizer; Table 1 learning rates with cosine decay, clipped to a global
-gradient norm of 1.0.  Keyframe poses are the tracker's unless ``mapping.lr_pose`` > 0: then each
-view's twist gradient from the same backward pass takes an Adam step on that keyframe's pose (§4.5;
-off by default: on the office, whose tracked poses are near exact, it moved keyframes away from the
-truth, docs/decisions.md, "Keyframe poses in mapping").
+gradient norm of 1.0.  Keyframe poses are the tracker's: pose-only steps inside the window (§4.5)
+moved keyframes away from the truth on the office (docs/decisions.md, "Keyframe poses in mapping").
 Nothing is read back to the host inside the loop; the loss history comes back once per call.  Two
 optional passengers of the loop read a little at their own iterations only: the residual-driven
 densification of ``method=baseline`` (a ``Densifier``, stepped after every iteration with the
@@ -30,7 +28,6 @@ import warp as wp
 
 from rgs_warp.config import DensifyConfig, MappingConfig
 from rgs_warp.densification import Densifier
-from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels import mapping as km
 from rgs_warp.kernels.math import REDUCE_BLOCK
 from rgs_warp.keyframes import KeyframeBuffer
@@ -154,12 +151,9 @@ class Mapper:
         """The gradient columns of the map (valid until it grows)."""
         return GaussianGrads(*(self.gmap.column(f"grad.{name}") for name in GaussianMap.PARAMETERS))
 
-    def _upload_window(
-        self, keyframes: KeyframeBuffer, window: list[int], fixed_exposure: Sequence[int] = (), fixed_pose=()
-    ) -> None:
-        """The window's camera-to-world poses as the renderer's float32 device matrices, ``_T_WC[j]``
-        (and as float64 camera-from-world ``_T_CW[j]``, held where ``_pose_fixed[j]``), and its
-        keyframes' exposures (g, b) ``_exposure[j]`` (held where ``_exposure_fixed[j]``)."""
+    def _upload_window(self, keyframes: KeyframeBuffer, window: list[int], fixed_exposure: Sequence[int] = ()) -> None:
+        """The window's camera-to-world poses as the renderer's float32 device matrices, ``_T_WC[j]``,
+        and its keyframes' exposures (g, b) ``_exposure[j]`` (held where ``_exposure_fixed[j]``)."""
         k, dev = len(window), self.device
         if k > self._window_capacity:
             self._window_capacity = cap = grown_capacity(self._window_capacity, k, minimum=8)
@@ -169,18 +163,9 @@ class Mapper:
             self._exposure_grad = wp.zeros(cap, dtype=wp.vec2d, device=dev)
             self._exposure_m = wp.zeros(cap, dtype=wp.vec2, device=dev)
             self._exposure_v = wp.zeros(cap, dtype=wp.vec2, device=dev)
-            self._T_CW = wp.zeros(cap, dtype=wp.mat44d, device=dev)
-            self._pose_fixed = wp.zeros(cap, dtype=wp.int32, device=dev)
-            self._pose_pivot = wp.zeros(cap, dtype=wp.float32, device=dev)
-            self._pose_m = wp.zeros((cap, 6), dtype=wp.float32, device=dev)
-            self._pose_v = wp.zeros((cap, 6), dtype=wp.float32, device=dev)
         self._T_WC[:k].assign(np.stack([keyframes.poses[s] for s in window]).astype(np.float32))
         self._exposure[:k].assign(keyframes.exposure[window].astype(np.float32))
         self._exposure_fixed[:k].assign(np.array([int(s in fixed_exposure) for s in window], dtype=np.int32))
-        if self.cfg.lr_pose > 0.0:
-            self._T_CW[:k].assign(np.stack([invert_pose(keyframes.poses[s]) for s in window]))
-            self._pose_fixed[:k].assign(np.array([int(s in fixed_pose) for s in window], dtype=np.int32))
-            self._pose_pivot[:k].assign(keyframes.median_depth[window].astype(np.float32))
 
     def _view_loss(self, keyframes, slot, j, it, weight, use_depth, blocks) -> RenderResult:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
@@ -223,17 +208,15 @@ class Mapper:
         iters: int,
         psnr_every: int = 0,
         fixed_exposure: Sequence[int] = (),
-        fixed_pose: Sequence[int] = (),
     ) -> MappingResult:
         """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  The exposures (g, b)
         of the window's keyframes are refined with the map (``mapping.lr_exposure``) and written back
         to ``keyframes.exposure``, except those of the slots in ``fixed_exposure`` (the gauge: the
-        first keyframe's exposure is the map's colour).  Likewise the keyframe poses
-        (``mapping.lr_pose``), written back to ``keyframes.poses``, except those of the slots in
-        ``fixed_pose``.  ``psnr_every`` > 0: after every iteration whose cumulative count
-        ``total_iters`` is a multiple of it, the mean PSNR of the window (``window_psnr``) goes to
-        ``MappingResult.psnr_curve`` (measured before that iteration's densification, whose fresh
-        clones and split children the following iterations have yet to fit)."""
+        first keyframe's exposure is the map's colour).  ``psnr_every`` > 0: after every iteration
+        whose cumulative count ``total_iters`` is a multiple of it, the mean PSNR of the window
+        (``window_psnr``) goes to ``MappingResult.psnr_curve`` (measured before that iteration's
+        densification, whose fresh clones and split children the following iterations have yet to
+        fit)."""
         dev, gmap = self.device, self.gmap
         window = list(window)
         if not window:
@@ -244,11 +227,9 @@ class Mapper:
         if iters <= 0 or len(gmap) == 0:
             return MappingResult(0, np.zeros(0), np.zeros(0), np.zeros(0))
         k_win = len(window)
-        self._upload_window(keyframes, window, fixed_exposure, fixed_pose)
+        self._upload_window(keyframes, window, fixed_exposure)
         self._exposure_m.zero_()
         self._exposure_v.zero_()
-        self._pose_m.zero_()
-        self._pose_v.zero_()
         if self._loss.shape[0] < iters:
             self._loss = wp.zeros((iters, km.L_COLUMNS), dtype=wp.float64, device=dev)
         self._loss.zero_()
@@ -271,11 +252,6 @@ class Mapper:
 
         if self.cfg.lr_exposure > 0.0:
             keyframes.exposure[window] = self._exposure[:k_win].numpy()
-        if self.cfg.lr_pose > 0.0:
-            T_CW = self._T_CW[:k_win].numpy()
-            for j, slot in enumerate(window):
-                if slot not in fixed_pose:
-                    keyframes.poses[slot] = invert_pose(T_CW[j])
         loss = self._loss[:iters].numpy()
         pixels = np.maximum(loss[:, km.L_PIXELS], 1.0)
         depth_px = loss[:, km.L_DEPTH_PIXELS]
@@ -299,19 +275,7 @@ class Mapper:
                 before[:n].zero_()
             else:
                 wp.copy(before, grads.opacity_logits, count=n)
-            if cfg.lr_pose > 0.0:
-                self.renderer.pose_grad.zero_()  # this view's twist gradient alone (the map's accumulate)
             self.renderer.backward(self._d_color, self._d_depth, None, grads_out=grads, accumulate=v > 0)
-            if cfg.lr_pose > 0.0:
-                wp.launch(
-                    km.adam_keyframe_pose_step,
-                    dim=1,
-                    inputs=[self.renderer.pose_grad, j, self._pose_fixed, self._pose_pivot, it + 1]
-                    + [cfg.lr_pose * lr_factor]
-                    + [cfg.adam_beta1, cfg.adam_beta2],
-                    outputs=[self._pose_m, self._pose_v, self._T_CW, self._T_WC],
-                    device=dev,
-                )
             wp.launch(
                 km.update_statistics,
                 dim=n,

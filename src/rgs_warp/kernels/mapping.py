@@ -9,7 +9,7 @@ so nothing is read back to the host inside the mapping loop.
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, rigid_inverse_f32, se3_exp
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
 
 wp.set_module_options({"enable_backward": False})
 
@@ -262,64 +262,3 @@ def exposed_squared_error(
     total = block_sum(e)
     if lane == 0:
         wp.atomic_add(sums_out, row, wp.float64(total))
-
-
-@wp.kernel
-def adam_keyframe_pose_step(
-    # in: the twist gradient of window view k's render (the renderer's, xi = (rho, phi) with
-    # T_CW <- Exp(xi) T_CW), its window slot, whether its pose is held, the pivot depth of each view
-    # (m), the step count, schedule
-    grad: wp.array(dtype=wp.float32),
-    k: int,
-    fixed: wp.array(dtype=wp.int32),
-    pivot_depth: wp.array(dtype=wp.float32),
-    step_count: int,
-    lr: float,
-    beta1: float,
-    beta2: float,
-    # in/out: per-window-slot Adam moments (6 each) of the twist about the pivot, camera-from-world
-    # poses (float64)
-    m: wp.array2d(dtype=wp.float32),
-    v: wp.array2d(dtype=wp.float32),
-    T_CW: wp.array(dtype=wp.mat44d),
-    # out: the renderer's camera-to-world pose of slot k
-    T_WC: wp.array(dtype=wp.mat44),
-):
-    # The tracker's left update, about a pivot p on the optical axis at the view's depth (as
-    # kernels/tracking.adam_pose_step, for the same reason: about the camera centre a small rotation
-    # and a sideways shift move the image almost alike): g_phi' = g_phi + g_rho x p, and
-    # T_CW <- P^-1 Exp(xi') P T_CW with P: X -> X - p.
-    if fixed[k] != 0:
-        return
-    c1 = 1.0 - wp.pow(beta1, float(step_count))
-    c2 = 1.0 - wp.pow(beta2, float(step_count))
-    p = wp.vec3(0.0, 0.0, pivot_depth[k])
-    g_rho = wp.vec3(grad[0], grad[1], grad[2])
-    g_phi = wp.vec3(grad[3], grad[4], grad[5]) + wp.cross(g_rho, p)
-    rho = wp.vec3d()
-    phi = wp.vec3d()
-    for j in range(6):
-        g = g_rho[0]
-        if j < 3:
-            g = g_rho[j]
-        else:
-            g = g_phi[j - 3]
-        mj = beta1 * m[k, j] + (1.0 - beta1) * g
-        vj = beta2 * v[k, j] + (1.0 - beta2) * g * g
-        m[k, j] = mj
-        v[k, j] = vj
-        d = wp.float64(-lr * (mj / c1) / (wp.sqrt(vj / c2) + 1.0e-8))
-        if j < 3:
-            rho[j] = d
-        else:
-            phi[j - 3] = d
-    E = se3_exp(rho, phi)
-    pd = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(pivot_depth[k]))
-    R = wp.mat33d(E[0, 0], E[0, 1], E[0, 2], E[1, 0], E[1, 1], E[1, 2], E[2, 0], E[2, 1], E[2, 2])
-    t = wp.vec3d(E[0, 3], E[1, 3], E[2, 3]) + pd - R @ pd
-    E[0, 3] = t[0]
-    E[1, 3] = t[1]
-    E[2, 3] = t[2]
-    T = E @ T_CW[k]
-    T_CW[k] = T
-    T_WC[k] = rigid_inverse_f32(T)

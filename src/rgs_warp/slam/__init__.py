@@ -154,8 +154,6 @@ class SLAM:
             raise ValueError("give T_init_WC (where tracking starts) or T_WC (the known pose), not both")
         T_init_WC = None if T_init_WC is None else checked_pose(T_init_WC, "T_init_WC")
         T_WC = None if T_WC is None else checked_pose(T_WC, "T_WC")
-        if T_WC is not None and self.cfg.mapping.lr_pose > 0.0:
-            raise ValueError("a given pose T_WC is final, and mapping.lr_pose > 0 refines keyframe poses: set it to 0")
         t0 = time.perf_counter()
         i = len(self.poses)
         if self.bootstrap is not None and (T_init_WC is not None or T_WC is not None):
@@ -205,7 +203,8 @@ class SLAM:
             if self.cfg.mapping.frame_iters > 0 and len(self.keyframes):
                 t1 = time.perf_counter()
                 window = self.keyframes.slots()[-self.cfg.mapping.window :]
-                result.mapping = self._optimize(window, self.cfg.mapping.frame_iters)
+                iters, held = self.cfg.mapping.frame_iters, self._held_exposures(window)
+                result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held)
                 self.stats["mapping_s"] += time.perf_counter() - t1
         return self._record(result, timestamp, t0)
 
@@ -252,8 +251,7 @@ class SLAM:
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
-        result.mapping = self._optimize(window, iters, psnr_every)
-        result.T_WC = kf.poses[slot].copy()  # refined with the map where mapping.lr_pose > 0
+        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, self._held_exposures(window))
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
             t0 = time.perf_counter()
@@ -264,19 +262,6 @@ class SLAM:
         self.convergence += self.mapper.convergence(
             self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
         )
-
-    def _optimize(self, window: list[int], iters: int, psnr_every: int = 0):
-        """``Mapper.optimize`` over ``window`` with the first keyframe's exposure and pose held (the
-        gauges of the map's colour and frame); keyframe poses refined with the map
-        (``mapping.lr_pose``) replace those frames' poses in the trajectory."""
-        kf, first = self.keyframes, self.keyframe_indices[0]
-        held_pose = [s for s in window if int(kf.frame_ids[s]) == first]
-        mapping = self.mapper.optimize(kf, window, iters, psnr_every, self._held_exposures(window), held_pose)
-        if self.cfg.mapping.lr_pose > 0.0:
-            for s in window:
-                if int(kf.frame_ids[s]) < len(self.poses):
-                    self.poses[int(kf.frame_ids[s])] = kf.poses[s].copy()
-        return mapping
 
     def _held_exposures(self, window: list[int]) -> list[int]:
         """The window's keyframes whose exposure mapping holds (``Mapper.optimize``'s ``fixed_exposure``):
@@ -349,9 +334,7 @@ class SLAM:
         self.stats["seeding_s"] += time.perf_counter() - tb
         tm = time.perf_counter()
         psnr_every = cfg.eval.convergence_every
-        result.mapping = self._optimize(window, cfg.mapping.init_iters, psnr_every)
-        if boot is not None:
-            result.T_WC = self.keyframes.poses[slot_k].copy()  # refined with the map where mapping.lr_pose > 0
+        result.mapping = self.mapper.optimize(self.keyframes, window, cfg.mapping.init_iters, psnr_every, [slot0])
         self.stats["mapping_s"] += time.perf_counter() - tm
         self.convergence += self.mapper.convergence(self.keyframes, window, result.mapping, i, "init")
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
