@@ -46,6 +46,16 @@ def commit() -> str:
         return "unknown"
 
 
+def case_configs(cases: list[str], common: str, out: Path):
+    """(name, overrides, Config) of each ``name:override,override`` case, with the ``common``
+    overrides (comma separated) and its run folder ``out/runs/<name>``."""
+    shared = [o for o in common.split(",") if o]
+    for case in cases:
+        name, _, overrides = case.partition(":")
+        folder = [f"output_dir={out / 'runs'}", f"run_name={name}"]
+        yield name, overrides, load_config([o for o in overrides.split(",") if o] + shared + folder)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=os.environ.get("OUT", "bench_out"))
@@ -56,12 +66,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    common = [o for o in args.common.split(",") if o]
-    for case in args.case or DEFAULT_CASES:
-        name, _, overrides = case.partition(":")
-        cfg = load_config(
-            [o for o in overrides.split(",") if o] + common + [f"output_dir={out / 'runs'}", f"run_name={name}"]
-        )
+    for name, _, cfg in case_configs(args.case or DEFAULT_CASES, args.common, out):
         try:
             run_dir, metrics = run(cfg, progress=sys.stderr.isatty())
             if args.diagnose:

@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from slam import case_configs  # experiments/bench/slam.py (the script's folder is on sys.path)
 
-from rgs_warp.config import load_config
 from rgs_warp.run import run
 
 DEFAULT_CASES = [
@@ -122,12 +122,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    common = [o for o in args.common.split(",") if o]
-    for case in args.case or DEFAULT_CASES:
-        name, _, overrides = case.partition(":")
-        cfg = load_config(
-            [o for o in overrides.split(",") if o] + common + [f"output_dir={out / 'runs'}", f"run_name={name}"]
-        )
+    for name, overrides, cfg in case_configs(args.case or DEFAULT_CASES, args.common, out):
         try:
             run_dir, metrics = run(cfg, progress=sys.stderr.isatty())
         except Exception as e:  # record and go on with the next case
