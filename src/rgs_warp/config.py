@@ -188,6 +188,10 @@ class SeedingConfig:
     # render black) get seeds on a layer at this depth, beyond the sensor's range; 0 = off
     far_layer_m: float = 0.0
     depth_stride: int = 2  # px between depth seeds (experiments/results/slam.md: 4 -> 2 -> 1)
+    # RGB-D: where the keyframe has detail (grey-level gradient magnitude, central differences, at least
+    # detail_min_gradient per pixel), depth seeds also at this finer stride (px); 0 = off
+    detail_stride: int = 0
+    detail_min_gradient: float = 0.03
     # RGB-D: a tracked frame that is not a keyframe also gets measured-depth seeds where the map does
     # not cover it, when more than this fraction of its pixels is uncovered (new surface shows up
     # between keyframes; seen by no keyframe it would stay a hole); negative = off
@@ -488,6 +492,8 @@ CONSTRAINTS: dict[str, Bound] = {
     "seeding.depth_consistency_tol": NON_NEGATIVE,
     "seeding.far_layer_m": NON_NEGATIVE,
     "seeding.depth_stride": AT_LEAST_1,
+    "seeding.detail_stride": NON_NEGATIVE,
+    "seeding.detail_min_gradient": NON_NEGATIVE,
     "seeding.depth_max_rel_jump": NON_NEGATIVE,
     "mapping.iters": NON_NEGATIVE,
     "mapping.frame_iters": NON_NEGATIVE,
@@ -557,6 +563,7 @@ ORDERED_KEYS = (
     ("matching.min_depth_m", "matching.max_depth_m", ": they bound the epipolar search"),
     ("seeding.alpha_min", "seeding.alpha_max", ": Eq. 14's opacity range"),
     ("seeding.axial_min_ratio", "seeding.axial_max_ratio", ": the clip of Eq. 13's axial scale"),
+    ("seeding.detail_stride", "seeding.depth_stride", ": detail seeds are the finer ones"),
     ("mapping.init_window", "mapping.init_iters", ": each initial frame gets init_iters // init_window iterations"),
 )
 # The smallest images the pipeline runs on: mapping's SSIM has an 11x11 window (DSSIMLoss refuses

@@ -277,17 +277,29 @@ class Seeder:
         self._depth_points = TriangulatedPoints.zeros(n, dev)
         # measured depth is certain (Eq. 14 at full confidence); a monocular plane is not
         self._depth_confidence = wp.full(n, 1.0 if mode == "rgbd" else 0.0, dtype=wp.float32, device=dev)
+        # detail seeds (seeding.detail_stride): a finer grid of measured depth where the image has detail
+        self._from_detail = None
+        if mode == "rgbd" and 0 < cfg.detail_stride < cfg.depth_stride:
+            self._from_detail = PointSeeder(replace(cfg, poisson_radius_px=radius * cfg.detail_stride), camera, dev)
+            self._detail_grid = (camera.height // cfg.detail_stride, camera.width // cfg.detail_stride)
+            n_detail = self._detail_grid[0] * self._detail_grid[1]
+            self._detail_points = TriangulatedPoints.zeros(n_detail, dev)
+            self._detail_confidence = wp.full(n_detail, 1.0, dtype=wp.float32, device=dev)
         shape = (camera.height, camera.width)
         # monocular: the first keyframe's plane; RGB-D: the far layer's depth image (far_layer_depth)
         self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
+    def _point_seeders(self) -> list[tuple[str, PointSeeder]]:
+        seeders = [("matches.", self._from_matches), ("depth.", self._from_depth)]
+        return seeders + ([("detail.", self._from_detail)] if self._from_detail is not None else [])
+
     def state_dict(self) -> dict[str, np.ndarray]:
-        """The seeds waiting in ``pending`` and the two point seeders' cell sizes; ``load_state_dict``
+        """The seeds waiting in ``pending`` and the point seeders' cell sizes; ``load_state_dict``
         restores them."""
         state = {f"pending.{name}": value for name, value in self.pending.to_numpy().items()}
-        for prefix, seeder in (("matches.", self._from_matches), ("depth.", self._from_depth)):
+        for prefix, seeder in self._point_seeders():
             state.update({prefix + k: v for k, v in seeder.state_dict().items()})
         return state
 
@@ -295,7 +307,7 @@ class Seeder:
         self.pending.count = 0
         if len(state["pending.means"]):
             self.pending.append(*(state[f"pending.{name}"] for name in GaussianMap.PARAMETERS))
-        for prefix, seeder in (("matches.", self._from_matches), ("depth.", self._from_depth)):
+        for prefix, seeder in self._point_seeders():
             seeder.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
 
     def seed_points(
@@ -427,7 +439,8 @@ class Seeder:
     ) -> int:
         """Seeds from the measured depth of ``frames`` slot ``slot`` (``depth`` in its place, e.g. the
         monocular plane) where ``alpha`` is below ``covered_alpha``, appended to ``target`` (at most
-        ``limit`` rows in all, ``_within_cap``)."""
+        ``limit`` rows in all, ``_within_cap``); with ``detail_stride``, measured depth also seeds
+        the finer grid where the image has detail (``kernels/seeding.py: keep_detail_points``)."""
         cfg, cam = self.cfg, self.camera
         p = self._depth_points
         wp.launch(
@@ -441,4 +454,22 @@ class Seeder:
         )
         row0 = len(target)
         added = self._from_depth.seed(p, self._depth_confidence, frames, [slot], target)
+        if self._from_detail is not None and depth is None:  # measured depth: finer where the image has detail
+            p = self._detail_points
+            wp.launch(
+                ks.depth_points,
+                dim=self._detail_grid,
+                inputs=[frames.depth[slot], cam.fx, cam.fy, cam.cx, cam.cy, wp.mat44d(frames.poses[slot])]
+                + [cfg.detail_stride, cfg.depth_max_rel_jump, cfg.min_residual_px, 90.0, alpha, cfg.covered_alpha],
+                outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
+                device=self.device,
+            )
+            wp.launch(
+                ks.keep_detail_points,
+                dim=self._detail_grid,
+                inputs=[frames.rgb[slot], cfg.detail_stride, cfg.depth_stride, cfg.detail_min_gradient],
+                outputs=[p.valid],
+                device=self.device,
+            )
+            added += self._from_detail.seed(p, self._detail_confidence, frames, [slot], target)
         return self._within_cap(target, row0, added, limit)

@@ -9,7 +9,7 @@ poses, ``view_slot`` their keyframe-buffer slots, ``view_exposure`` their (g, b)
 
 import warp as wp
 
-from rgs_warp.kernels.math import SH_C0, CameraParams, bilerp, bilinear_corner
+from rgs_warp.kernels.math import SH_C0, CameraParams, bilerp, bilinear_corner, grey_level
 
 wp.set_module_options({"enable_backward": False})
 
@@ -358,6 +358,32 @@ def depth_points(
     parallax_out[i] = wp.float64(parallax_deg)
     support_out[i] = 1
     valid_out[i] = wp.where(ok, 1, 0)
+
+
+@wp.kernel
+def keep_detail_points(
+    # in: the keyframe's colour, the fine grid's stride (depth_points' layout), the coarse grid's, and
+    # the smallest grey-level gradient magnitude (per pixel) that counts as detail
+    rgb: wp.array2d(dtype=wp.vec3),
+    stride: int,
+    coarse_stride: int,
+    min_gradient: float,
+    # in/out: the fine grid's points, invalidated on plain image or where the coarse grid has one
+    valid: wp.array(dtype=wp.int32),
+):
+    # Detail seeds: a fine-grid point stays where the image changes (central differences of the grey
+    # level, clamped at the border) and the coarse depth grid has no point at that pixel.
+    gy, gx = wp.tid()
+    width, height = rgb.shape[1], rgb.shape[0]
+    i = gy * (width // stride) + gx
+    u = gx * stride + stride // 2
+    v = gy * stride + stride // 2
+    on_coarse = u < (width // coarse_stride) * coarse_stride and v < (height // coarse_stride) * coarse_stride
+    on_coarse = on_coarse and u % coarse_stride == coarse_stride // 2 and v % coarse_stride == coarse_stride // 2
+    du = 0.5 * (grey_level(rgb[v, wp.min(u + 1, width - 1)]) - grey_level(rgb[v, wp.max(u - 1, 0)]))
+    dv = 0.5 * (grey_level(rgb[wp.min(v + 1, height - 1), u]) - grey_level(rgb[wp.max(v - 1, 0), u]))
+    if on_coarse or du * du + dv * dv < min_gradient * min_gradient:
+        valid[i] = 0
 
 
 @wp.func
