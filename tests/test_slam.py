@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from rgs_warp import SLAM
+from rgs_warp import SLAM, open_dataset
 from rgs_warp.config import load_config
 from rgs_warp.io.ply import load_ply
 from rgs_warp.io.trajectory import read_tum_trajectory
@@ -466,3 +466,32 @@ def test_exposure_drift_compensated_scores(tmp_path, device):
     photo = metrics["photometric"]
     assert photo["psnr_compensated_db"] > photo["psnr_db"] + 0.3, photo
     assert photo["ssim_compensated"] > photo["ssim"], photo
+
+
+@pytest.mark.slow
+def test_final_refinement_over_every_keyframe(tmp_path, device):
+    """mapping.final_iters: every keyframe is kept on the host (the buffer holds 3), the refinement
+    after the last frame raises their mean PSNR, is reported apart, and travels with the state."""
+    overrides = [*OVERRIDES, "keyframes.buffer_size=3", "mapping.final_iters=30", f"device={device}"]
+    cfg = load_config(overrides + [f"output_dir={tmp_path}", "run_name=final"])
+    run_dir, metrics = run(cfg, progress=False)
+    final = metrics["final_refinement"]
+    assert final["iters"] == 30 and final["keyframes"] == metrics["keyframes"] > 3, final
+    assert final["keyframe_psnr_after_db"] > final["keyframe_psnr_before_db"] + 0.2, final
+    assert "## final_refinement" in (run_dir / "metrics.md").read_text()
+    _, plain = run(
+        load_config([*OVERRIDES, f"device={device}", f"output_dir={tmp_path}", "run_name=plain"]), progress=False
+    )
+    assert "final_refinement" not in plain
+    # a checkpoint (state.npz) carries the archive: a resumed run refines over every keyframe too
+    ds = open_dataset(cfg, device=device)
+    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+    for i in range(8):
+        slam.process(ds[i])
+    slam.save(tmp_path / "state", state=True)
+    loaded = SLAM.load(tmp_path / "state")
+    assert len(loaded.archive) == len(slam.archive) == len(slam.keyframe_indices) > 3
+    for name in ("frame_ids", "poses", "rgb", "depth", "exposure"):
+        np.testing.assert_array_equal(
+            np.asarray(getattr(loaded.archive, name)), np.asarray(getattr(slam.archive, name))
+        )

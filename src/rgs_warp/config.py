@@ -205,6 +205,9 @@ class MappingConfig:
     # after each frame that is not a keyframe, this many more iterations over the current window: the
     # map keeps improving between keyframes (with asynchronous mapping this would be free); 0 = off
     frame_iters: int = 0
+    # after the last frame (SLAM.finish), this many more iterations over windows of `window` keyframes
+    # drawn from every keyframe of the run (host copies keep those the buffer evicted); 0 = off
+    final_iters: int = 0
     window: int = 5  # keyframes in the sliding window (Table 1)
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
@@ -497,6 +500,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "seeding.depth_max_rel_jump": NON_NEGATIVE,
     "mapping.iters": NON_NEGATIVE,
     "mapping.frame_iters": NON_NEGATIVE,
+    "mapping.final_iters": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,
     "mapping.init_iters": AT_LEAST_1,
     "mapping.init_window": AT_LEAST_1,

@@ -147,3 +147,50 @@ def _copy_into(dst: wp.array, slot: int, src, dtype) -> None:
     if src.shape != dst.shape[1:]:  # wp.copy would copy the overlap of any two sizes silently
         raise ValueError(f"keyframe image of shape {src.shape}, the buffer holds {dst.shape[1:]}")
     wp.copy(dst[slot], src)
+
+
+class KeyframeArchive:
+    """Host copies of every keyframe of a run (colour, depth, pose, exposure, frame index), for the
+    final refinement over all of them (``mapping.final_iters``; the buffer keeps only the newest)."""
+
+    FIELDS = ("frame_ids", "poses", "exposure", "rgb", "depth")
+
+    def __init__(self):
+        self.frame_ids: list[int] = []
+        self.poses: list[np.ndarray] = []
+        self.exposure: list[np.ndarray] = []
+        self.rgb: list[np.ndarray] = []
+        self.depth: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def add_from(self, buffer: KeyframeBuffer, slot: int) -> None:
+        """A copy of the keyframe in ``buffer`` slot ``slot``."""
+        self.frame_ids.append(int(buffer.frame_ids[slot]))
+        self.poses.append(buffer.poses[slot].copy())
+        self.exposure.append(buffer.exposure[slot].copy())
+        self.rgb.append(buffer.rgb[slot].numpy().copy())
+        self.depth.append(buffer.depth[slot].numpy().copy())
+
+    def update_exposures(self, buffer: KeyframeBuffer) -> None:
+        """The exposures of the keyframes still in ``buffer`` (mapping may have refined them)."""
+        where = {f: i for i, f in enumerate(self.frame_ids)}
+        for slot in buffer.slots():
+            i = where.get(int(buffer.frame_ids[slot]))
+            if i is not None:
+                self.exposure[i] = buffer.exposure[slot].copy()
+
+    def load_into(self, buffer: KeyframeBuffer, i: int) -> int:
+        """Keyframe ``i`` into ``buffer`` (its oldest slot when full); returns the slot."""
+        return buffer.add(self.frame_ids[i], self.poses[i], self.rgb[i], self.depth[i], self.exposure[i])
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        if not len(self):
+            return {}
+        return {name: np.stack([np.asarray(v) for v in getattr(self, name)]) for name in self.FIELDS}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        for name in self.FIELDS:
+            setattr(self, name, list(state[name]) if name in state else [])
+        self.frame_ids = [int(f) for f in self.frame_ids]

@@ -30,7 +30,7 @@ from rgs_warp.config import DensifyConfig, MappingConfig
 from rgs_warp.densification import Densifier
 from rgs_warp.kernels import mapping as km
 from rgs_warp.kernels.math import REDUCE_BLOCK
-from rgs_warp.keyframes import KeyframeBuffer
+from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer
 from rgs_warp.losses import DSSIMLoss
 from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
 from rgs_warp.render import GaussianGrads, Renderer, RenderResult
@@ -323,6 +323,30 @@ class Mapper:
         result.cloned += step.cloned
         result.split += step.split
         result.pruned += before - len(self.gmap) - step.split
+
+    def refine_all(self, archive: KeyframeArchive, iters: int, window: int, round_iters: int = 10) -> dict:
+        """``iters`` iterations over every keyframe of ``archive``: rounds of ``round_iters`` over a
+        window of ``window`` keyframes drawn at random (``rng``), exposures held.  Returns iterations,
+        keyframes and the mean keyframe PSNR (``window_psnr``) over all of them before and after."""
+        n, cam = len(archive), self.camera
+        buffer = KeyframeBuffer(max(1, min(window, n)), cam.width, cam.height, str(self.device))
+
+        def mean_psnr() -> float:
+            total = 0.0
+            for start in range(0, n, buffer.capacity):
+                chunk = range(start, min(start + buffer.capacity, n))
+                total += self.window_psnr(buffer, [archive.load_into(buffer, i) for i in chunk]) * len(chunk)
+            return total / n
+
+        before = mean_psnr()
+        done = 0
+        while done < iters:
+            chosen = self.rng.choice(n, size=buffer.capacity, replace=False)
+            slots = [archive.load_into(buffer, int(i)) for i in chosen]
+            step = min(round_iters, iters - done)
+            self.optimize(buffer, slots, step, fixed_exposure=slots)
+            done += step
+        return {"iters": done, "keyframes": n, "keyframe_psnr_before_db": before, "keyframe_psnr_after_db": mean_psnr()}
 
     # ---- convergence ---------------------------------------------------------------------------
     def convergence(

@@ -260,7 +260,7 @@ def _run_frames(cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, pro
         bar.close()
         log.close()
         try:
-            _save_run(cfg, slam, run_dir)
+            _save_run(cfg, slam, run_dir, refine=False)  # a stopped run saves at once
         except Exception as e:  # noqa: BLE001 (the error that stopped the run is the one raised)
             print(f"error: the run stopped, and saving what it tracked failed: {e}", file=sys.stderr)
         else:
@@ -323,10 +323,11 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     return entry
 
 
-def _save_run(cfg: Config, slam: SLAM, run_dir: Path) -> None:
-    """The end of a run: the waiting frame-fill seeds join the map, then ``SLAM.save`` and the
-    convergence files; one ``SaveError`` names what failed and what was saved."""
-    slam.finish()
+def _save_run(cfg: Config, slam: SLAM, run_dir: Path, refine: bool = True) -> None:
+    """The end of a run: the waiting frame-fill seeds join the map (and ``refine``: the final
+    refinement of ``mapping.final_iters``), then ``SLAM.save`` and the convergence files; one
+    ``SaveError`` names what failed and what was saved."""
+    slam.finish(refine)
     saved, failed = ["trajectory.txt", "keyframes.npz", "map.ply", "config.yaml"], {}
     try:
         slam.save(run_dir)
@@ -501,6 +502,8 @@ def evaluate_run(
     if metrics["tracking_fps"] is None:
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
+    if slam.final_refinement is not None:  # mapping.final_iters: reported apart from the run's mapping
+        metrics["final_refinement"] = slam.final_refinement
     if tracking is not None:
         metrics["tracking"] = tracking
     has_gt = all(p is not None for p in gt_poses) and n >= 3
@@ -637,6 +640,12 @@ def main(argv: list[str] | None = None) -> int:
     if photo:
         raw, compensated = photo["psnr_db"], photo["psnr_compensated_db"]
         print(f"PSNR      {raw:.2f} dB raw, {compensated:.2f} exposure-compensated; SSIM {photo['ssim']:.3f}")
+    final = metrics.get("final_refinement")
+    if final:
+        print(
+            f"final     {final['iters']} iterations over {final['keyframes']} keyframes in {final['seconds']:.1f} s: "
+            f"keyframe PSNR {final['keyframe_psnr_before_db']:.2f} -> {final['keyframe_psnr_after_db']:.2f} dB"
+        )
     print(f"report    {run_dir / 'metrics.md'}")
     tracking = metrics.get("tracking") or {}
     if tracking.get("lost_frames"):

@@ -26,7 +26,7 @@ import warp as wp
 from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
 from rgs_warp.config import Config, check_config, check_image_size, resolve_device
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
-from rgs_warp.keyframes import KeyframeBuffer, KeyframeSelector
+from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
@@ -120,6 +120,9 @@ class SLAM:
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
+        # mapping.final_iters: host copies of every keyframe, and what the final refinement did
+        self.archive = KeyframeArchive() if cfg.mapping.final_iters > 0 else None
+        self.final_refinement: dict | None = None
 
     # ---- per frame -----------------------------------------------------------------------------
     def track(self, rgb, depth=None, timestamp=None, T_init_WC=None, T_WC=None) -> np.ndarray:
@@ -240,6 +243,7 @@ class SLAM:
     def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult) -> None:
         cfg, kf = self.cfg, self.keyframes
         slot = kf.add(i, T, rgb, depth, exposure)
+        self._archive(slot)
         self.keyframe_indices.append(i)
         t0 = time.perf_counter()
         self.seeder.join_pending(self.map)
@@ -316,10 +320,12 @@ class SLAM:
         self._init_window_end = 0
         tb = time.perf_counter()
         slot0 = self.keyframes.add(0, T0, frames[0][0], None)
+        self._archive(slot0)
         self.keyframe_indices.append(0)
         if boot is not None:
             result.T_WC = T0 @ boot.T_0k
             slot_k = self.keyframes.add(i, result.T_WC, rgb_host, None)
+            self._archive(slot_k)
             self.keyframe_indices.append(i)
             confidence = wp.array(boot.confidence, dtype=wp.float32, device=self.device)
             points = to_triangulated_points(boot, T0, self.device)
@@ -369,10 +375,24 @@ class SLAM:
         images are the renderer's buffers, valid until the next render."""
         return self.renderer.forward(self.map, camera or self.camera, T_WC, self.cfg.render.background)
 
-    def finish(self) -> None:
+    def _archive(self, slot: int) -> None:
+        if self.archive is not None:
+            self.archive.add_from(self.keyframes, slot)
+
+    def finish(self, refine: bool = True) -> None:
         """End of the sequence: the frame-fill seeds that wait for the next keyframe join the map
-        (without mapping).  ``run`` calls it after the last frame; ``track`` may go on after it."""
+        (without mapping); then, with ``mapping.final_iters`` and ``refine``, the final refinement
+        over every keyframe of the run (``Mapper.refine_all``; what it did: ``final_refinement``,
+        its time counts as mapping).  ``run`` calls it after the last frame; ``track`` may go on
+        after it."""
         self.seeder.join_pending(self.map)
+        if refine and self.archive is not None and len(self.archive) and len(self.map):
+            t0 = time.perf_counter()
+            self.archive.update_exposures(self.keyframes)
+            cfg = self.cfg.mapping
+            self.final_refinement = self.mapper.refine_all(self.archive, cfg.final_iters, cfg.window)
+            self.final_refinement["seconds"] = time.perf_counter() - t0
+            self.stats["mapping_s"] += self.final_refinement["seconds"]
 
     def save(self, directory: str | Path, state: bool = False) -> Path:
         """Write ``trajectory.txt`` (TUM), ``keyframes.npz``, ``map.ply`` and ``config.yaml``, in that

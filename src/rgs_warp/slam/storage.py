@@ -86,6 +86,8 @@ def _save_state(slam, path: Path) -> None:
     for prefix, stage in (("selector.", slam.selector), ("tracker.", slam.tracker), ("mapper.", slam.mapper)):
         state.update({prefix + k: v for k, v in stage.state_dict().items()})
     state.update({f"seeder.{k}": v for k, v in slam.seeder.state_dict().items()})
+    if slam.archive is not None:
+        state.update({f"archive.{k}": v for k, v in slam.archive.state_dict().items()})
     meta = {
         "frames": len(slam.poses),
         "gaussians": n,
@@ -122,6 +124,8 @@ def _load_state(slam, path: Path) -> None:
     for prefix, stage in (("selector.", slam.selector), ("tracker.", slam.tracker), ("mapper.", slam.mapper)):
         stage.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
     slam.seeder.load_state_dict({k[len("seeder.") :]: v for k, v in state.items() if k.startswith("seeder.")})
+    if slam.archive is not None:
+        slam.archive.load_state_dict({k[len("archive.") :]: v for k, v in state.items() if k.startswith("archive.")})
     slam.poses, slam.timestamps = list(state["slam.poses"]), [float(t) for t in state["slam.timestamps"]]
     slam._init_window_end = int(meta["init_window_end"])
     slam.stats, slam.convergence = dict(meta["stats"]), list(meta["convergence"])
