@@ -295,7 +295,7 @@ def test_errors_name_file_and_problem(tmp_path, replica_root):
     root = tmp_path / "r1"
     lines = _copy_replica(replica_root, root)
     (root / "traj.txt").write_text(lines[0] + "\n" + lines[1].replace(lines[1].split()[3], "nan", 1) + "\n")
-    with pytest.raises(DatasetError, match=r"traj.txt:2: pose has non-finite"):
+    with pytest.raises(DatasetError, match=r"traj.txt:2: pose: non-finite values"):
         ReplicaDataset(root)
     (root / "traj.txt").write_text(lines[0] + "\n1 2 3\n")
     with pytest.raises(DatasetError, match=r"traj.txt:2: expected 16 numbers"):

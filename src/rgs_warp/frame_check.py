@@ -30,6 +30,7 @@ import numpy as np
 import warp as wp
 from scipy.ndimage import distance_transform_edt
 
+from rgs_warp.geometry import rigid_pose_problem
 from rgs_warp.kernels import frame_check as fk
 from rgs_warp.types import Camera
 
@@ -215,9 +216,7 @@ def checked_pose(T, name: str) -> np.ndarray:
         raise ValueError(f"{name}: expected a 4x4 camera-to-world matrix of numbers") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
-        raise ValueError(f"{name}: the rotation is not orthonormal (det {np.linalg.det(R):.4f})")
-    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
-        raise ValueError(f"{name}: last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    problem = rigid_pose_problem(T)
+    if problem:
+        raise ValueError(f"{name}: {problem}")
     return T

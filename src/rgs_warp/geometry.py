@@ -96,3 +96,16 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees."""
     c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.degrees(np.arccos(c)))
+
+
+def rigid_pose_problem(T: np.ndarray) -> str | None:
+    """What keeps the 4x4 ``T`` from being a finite rigid transform (rotation orthonormal to 1e-3, last
+    row 0 0 0 1), or None; the loaders' ``check_pose`` and the library's ``checked_pose`` both ask."""
+    if not np.all(np.isfinite(T)):
+        return "non-finite values"
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
+        return f"the rotation is not orthonormal (det {np.linalg.det(R):.4f})"
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        return f"last row is {T[3].tolist()}, expected [0, 0, 0, 1]"
+    return None

@@ -395,18 +395,9 @@ class SLAM:
             self.stats["mapping_s"] += self.final_refinement["seconds"]
 
     def save(self, directory: str | Path, state: bool = False) -> Path:
-        """Write ``trajectory.txt`` (TUM), ``keyframes.npz``, ``map.ply`` and ``config.yaml``, in that
-        order, each atomically (``rgs_warp.io.atomic``): a crash or a full disk leaves each file whole
-        or as it was.  A file that fails does not stop the others; then ``SaveError`` (an OSError)
-        names it and what was saved.  The frame-fill seeds still waiting for a keyframe are not in
-        ``map.ply`` unless ``finish`` ran.
-
-        ``state``: also ``state.npz``, everything else the stages carry from frame to frame (the
-        optimiser's moments and clocks, the mapper's statistics, the keyframe selector's reference, the
-        motion model, the waiting seeds, the timers and convergence points), so that ``load`` continues
-        exactly where this SLAM is: a run's checkpoint.  A checkpoint favours speed: its
-        ``keyframes.npz`` is not compressed (ten 1200x680 keyframes: 0.2 s against 6 s compressed).
-        Without ``state``, a ``state.npz`` of an earlier save in the folder is removed."""
+        """Write ``trajectory.txt``, ``keyframes.npz``, ``map.ply``, ``config.yaml`` (each atomically;
+        ``SaveError`` names a file that failed and what was saved) and with ``state`` the checkpoint's
+        ``state.npz``: ``slam.storage.save_slam`` says what each holds."""
         return save_slam(self, directory, state)
 
     @classmethod
