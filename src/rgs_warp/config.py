@@ -205,6 +205,10 @@ class MappingConfig:
     # after each frame that is not a keyframe, this many more iterations over the current window: the
     # map keeps improving between keyframes (with asynchronous mapping this would be free); 0 = off
     frame_iters: int = 0
+    # keyframe work (matching, seeding, window mapping, merge / prune) and frame_iters in a worker thread
+    # while tracking goes on against the latest published map (supplement §3.2); false: each keyframe
+    # is mapped before the next frame is tracked (deterministic: tests, CI, the CPU)
+    asynchronous: bool = False
     # after the last frame (SLAM.finish), this many more iterations over windows of `window` keyframes
     # drawn from every keyframe of the run (host copies keep those the buffer evicted); 0 = off
     final_iters: int = 0

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -208,6 +208,7 @@ class Mapper:
         iters: int,
         psnr_every: int = 0,
         fixed_exposure: Sequence[int] = (),
+        pause: Callable[[], None] | None = None,
     ) -> MappingResult:
         """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  The exposures (g, b)
         of the window's keyframes are refined with the map (``mapping.lr_exposure``) and written back
@@ -216,7 +217,8 @@ class Mapper:
         whose cumulative count ``total_iters`` is a multiple of it, the mean PSNR of the window
         (``window_psnr``) goes to ``MappingResult.psnr_curve`` (measured before that iteration's
         densification, whose fresh clones and split children the following iterations have yet to
-        fit)."""
+        fit).  ``pause``: called after every iteration but the last (asynchronous mapping: where
+        tracking may take the device)."""
         dev, gmap = self.device, self.gmap
         window = list(window)
         if not window:
@@ -249,6 +251,8 @@ class Mapper:
                 result.psnr_curve.append((self.total_iters, psnr_db, len(gmap)))
             if self.densifier is not None:
                 self._densify(result)
+            if pause is not None and it + 1 < iters:
+                pause()
 
         if self.cfg.lr_exposure > 0.0:
             keyframes.exposure[window] = self._exposure[:k_win].numpy()

@@ -502,6 +502,16 @@ def evaluate_run(
     if metrics["tracking_fps"] is None:
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
+    metrics["mapping_iterations"] = slam.mapper.total_iters
+    metrics["mapping"] = "asynchronous" if cfg.mapping.asynchronous else "synchronous"
+    if slam.keyframe_latency_s:  # asynchronous: from a keyframe's tracking to its map published
+        lat = np.array(slam.keyframe_latency_s)
+        metrics["keyframe_to_map_s"] = {
+            "count": len(lat),
+            "p50": float(np.median(lat)),
+            "p99": float(np.percentile(lat, 99)),
+            "max": float(lat.max()),
+        }
     if slam.final_refinement is not None:  # mapping.final_iters: reported apart from the run's mapping
         metrics["final_refinement"] = slam.final_refinement
     if tracking is not None:

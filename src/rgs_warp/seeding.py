@@ -378,14 +378,17 @@ class Seeder:
             added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
         return added
 
-    def fill_frame(self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure, coverage) -> int:
-        """Measured-depth seeds into ``pending`` from a tracked frame (``rgb``, ``depth`` on the device)
-        that is not a keyframe, where neither the map nor the pending seeds cover it, when more than
-        ``frame_fill_min_uncovered`` of it is uncovered (``coverage``: the fraction the map covers);
-        returns how many (0 in monocular mode or when off)."""
+    def wants_fill(self, coverage: float) -> bool:
+        """Whether a tracked frame that is not a keyframe, of which the map covers the fraction
+        ``coverage``, gets ``fill_frame`` seeds: RGB-D, and more than ``frame_fill_min_uncovered``
+        of it uncovered."""
         fill = self.cfg.frame_fill_min_uncovered
-        if self.mode != "rgbd" or fill < 0.0 or 1.0 - coverage <= fill:
-            return 0
+        return self.mode == "rgbd" and fill >= 0.0 and 1.0 - coverage > fill
+
+    def fill_frame(self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure) -> int:
+        """Measured-depth seeds into ``pending`` from a tracked frame (``rgb``, ``depth`` on the device)
+        that is not a keyframe and that ``wants_fill``, where neither the map nor the pending seeds
+        cover it; returns how many."""
         dev = self.device
         if self._fill_frame is None:
             self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, dev)

@@ -304,6 +304,21 @@ class GaussianMap:
             wp.copy(self.column(name), value, dest_offset=self._count * rows, count=n * rows)
         self.count = self._count + n
 
+    def assign_parameters(self, src: GaussianMap) -> None:
+        """Make this map's live rows a copy of ``src``'s parameter columns (device copies, ordered on
+        the stream; other columns are left as they are): a published version of a working map."""
+        import warp as wp
+
+        if src.num_sh != self.num_sh:
+            raise ValueError(f"src holds {src.num_sh} SH coefficients per channel, this map {self.num_sh}")
+        n = len(src)
+        self.reserve(n)
+        self._count = n  # no fill: the copy writes every live row
+        for name, _, _ in self.parameter_layout():
+            rows = self.num_sh if name == "sh" else 1
+            if n:
+                wp.copy(self.column(name), src.column(name), count=n * rows)
+
     def remove(self, mask) -> None:
         """Remove the rows where ``mask`` (length ``len(self)``, bool NumPy or int32 ``wp.array``,
         nonzero = remove) is set: every column but scratch is compacted in place, in one pass, the

@@ -5,7 +5,9 @@
 camera-to-world pose.  Every frame is tracked against the map (``Tracker``); when the co-visibility
 test accepts it as a keyframe (``KeyframeSelector``), dense matching -> triangulation -> seeding
 (``DenseMatcher``, ``Triangulator``, ``Seeder``) -> windowed mapping (``Mapper``) -> merge / prune
-(``Maintainer``) run before the next frame (same thread, deterministic).
+(``Maintainer``) run before the next frame (same thread, deterministic).  With
+``mapping.asynchronous`` they run in a worker thread instead (``slam/worker.py``) while tracking goes
+on against the latest published version of the map; the initial window stays synchronous.
 
 ``method=baseline`` (the dense initialization baseline of supplement Table 2) makes one dense start
 at the first keyframe and grows the map by residual-driven densification inside the mapping
@@ -33,11 +35,15 @@ from rgs_warp.matching import DenseMatcher
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
 from rgs_warp.slam.storage import load_slam, save_slam
+from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher
 from rgs_warp.tracking import Tracker, TrackingResult
 from rgs_warp.triangulation import Triangulator
 from rgs_warp.types import Camera, Frame, GaussianMap
 
 METHODS = ("rgs", "baseline")
+# asynchronous mapping: tracking waits while this many keyframes are queued for the worker (their
+# mapping done at most one keyframe late: the map tracking reads stays close to the keyframes')
+MAX_QUEUED_KEYFRAMES = 2
 
 
 @dataclass
@@ -84,7 +90,9 @@ class SLAM:
         self.frame_check = FrameChecker(camera, dev, self.mode)
         self.map = GaussianMap(4096, sh_degree=cfg.render.sh_degree, device=dev)
         self.renderer = Renderer(dev)
-        self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=Renderer(dev))
+        # tracking's own renderer; asynchronous mapping also renders the published map with it
+        self._tracking_renderer = Renderer(dev)
+        self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=self._tracking_renderer)
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
@@ -123,6 +131,14 @@ class SLAM:
         # mapping.final_iters: host copies of every keyframe, and what the final refinement did
         self.archive = KeyframeArchive() if cfg.mapping.final_iters > 0 else None
         self.final_refinement: dict | None = None
+        # mapping.asynchronous: the worker maps ``self.map``; tracking reads the versions ``publisher``
+        # holds; ``keyframe_latency_s``: from a keyframe's tracking to the map with its seeds published
+        self.worker = self.publisher = self.turns = None
+        self.keyframe_latency_s: list[float] = []
+        if cfg.mapping.asynchronous:
+            self.turns = DeviceTurns()
+            self.publisher = MapPublisher(cfg.render.sh_degree, dev)
+            self.worker = MappingWorker(self.turns)
 
     # ---- per frame -----------------------------------------------------------------------------
     def track(self, rgb, depth=None, timestamp=None, T_init_WC=None, T_WC=None) -> np.ndarray:
@@ -157,6 +173,21 @@ class SLAM:
             raise ValueError("give T_init_WC (where tracking starts) or T_WC (the known pose), not both")
         T_init_WC = None if T_init_WC is None else checked_pose(T_init_WC, "T_init_WC")
         T_WC = None if T_WC is None else checked_pose(T_WC, "T_WC")
+        if self.worker is None:
+            return self._process(rgb, depth, timestamp, T_init_WC, T_WC, self.map)
+        self.worker.check()
+        with self.turns.tracking():
+            if self.publisher.version == 0 and len(self.map):  # a loaded or resumed map
+                self.publisher.publish(self.map)
+            with self.publisher.read() as published:
+                result = self._process(rgb, depth, timestamp, T_init_WC, T_WC, published)
+        if result.index < self._init_window_end or self.publisher.version == 0:
+            self.worker.drain()  # the initial window is mapped before the next frame, as in sync mode
+        self.worker.wait_until_fewer("keyframe", MAX_QUEUED_KEYFRAMES + 1)
+        return result
+
+    def _process(self, rgb, depth, timestamp, T_init_WC, T_WC, tmap: GaussianMap) -> FrameResult:
+        """``process`` with tracking against ``tmap`` (``self.map``, or its published version)."""
         t0 = time.perf_counter()
         i = len(self.poses)
         if self.bootstrap is not None and (T_init_WC is not None or T_WC is not None):
@@ -174,16 +205,16 @@ class SLAM:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
             exposure, pose_ok = (1.0, 0.0), True
-            decision = self.selector.should_add(self._alpha_at(T), T)  # "first frame"
+            decision = self.selector.should_add(self._alpha_at(tmap, T), T)  # "first frame"
         elif given:
             T = np.array(T_WC, dtype=np.float64)
             self.tracker.load_frame(rgb, depth)  # the frame fill reads it
             self.tracker.reset(T, self.poses[-1])  # the motion model goes on from the given poses
-            exposure, pose_ok = self.tracker.exposure(self.map, T), True
+            exposure, pose_ok = self.tracker.exposure(tmap, T), True
             decision = self.selector.should_add(self.tracker.alpha, T)
         else:
             tr0 = time.perf_counter()
-            tracking = self.tracker.track(rgb, depth, self.map, T_init_WC)
+            tracking = self.tracker.track(rgb, depth, tmap, T_init_WC)
             self.stats["tracking_s"] += time.perf_counter() - tr0
             if tracking.diverged:  # neither the map nor the trajectory gets the estimate
                 result = FrameResult(i, self.poses[-1].copy(), tracking, False, "not mapped: tracking diverged")
@@ -197,19 +228,55 @@ class SLAM:
         self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
             self.selector.accept(T)
-            self._add_keyframe(i, T, rgb, depth, exposure, result)
+            self.keyframe_indices.append(i)
+            rgb_k, depth_k = self._own(rgb), self._own(depth)
+            self._run("keyframe", self._add_keyframe, i, T, rgb_k, depth_k, exposure, result, time.perf_counter())
         else:
-            if pose_ok:
-                t1 = time.perf_counter()
-                result.seeded = self.seeder.fill_frame(self.map, i, *self.tracker.frame, T, exposure, decision.coverage)
-                self.stats["seeding_s"] += time.perf_counter() - t1
-            if self.cfg.mapping.frame_iters > 0 and len(self.keyframes):
-                t1 = time.perf_counter()
-                window = self.keyframes.slots()[-self.cfg.mapping.window :]
-                iters, held = self.cfg.mapping.frame_iters, self._held_exposures(window)
-                result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held)
-                self.stats["mapping_s"] += time.perf_counter() - t1
+            if pose_ok and self.seeder.wants_fill(decision.coverage):
+                rgb_t, depth_t = self.tracker.frame
+                self._run("fill", self._fill_frame, i, self._own(rgb_t), self._own(depth_t), T, exposure, result)
+            # refinement between keyframes: one job waiting at most (it only uses the worker's idle time)
+            if self.cfg.mapping.frame_iters > 0 and self.keyframe_indices:
+                if self.worker is None or self.worker.queued("refine") == 0:
+                    self._run("refine", self._refine_window, result)
         return self._record(result, timestamp, t0)
+
+    def _run(self, kind: str, job, *args) -> None:
+        """Run a mapping job now (synchronous) or queue it for the worker (its arguments then owned)."""
+        if self.worker is None:
+            job(*args)
+        else:
+            self.worker.submit(kind, lambda: job(*args))
+
+    def _own(self, image):
+        """``image`` itself (synchronous), or a copy that a queued job may hold while the caller and the
+        tracker reuse their buffers (NumPy or ``wp.array``; None stays None)."""
+        if self.worker is None or image is None:
+            return image
+        return wp.clone(image) if isinstance(image, wp.array) else np.array(image, dtype=np.float32, copy=True)
+
+    def _fill_frame(self, i: int, rgb, depth, T: np.ndarray, exposure, result: FrameResult) -> None:
+        t1 = time.perf_counter()
+        result.seeded = self.seeder.fill_frame(self.map, i, rgb, depth, T, exposure)
+        self.stats["seeding_s"] += time.perf_counter() - t1
+
+    def _refine_window(self, result: FrameResult) -> None:
+        """``mapping.frame_iters`` iterations over the current window, after a frame that is no keyframe."""
+        t1 = time.perf_counter()
+        window = self.keyframes.slots()[-self.cfg.mapping.window :]
+        iters, held = self.cfg.mapping.frame_iters, self._held_exposures(window)
+        result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held, pause=self._pause)
+        self.stats["mapping_s"] += time.perf_counter() - t1
+        self._publish()
+
+    def _pause(self) -> None:
+        """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
+        if self.turns is not None:
+            self.turns.pause()
+
+    def _publish(self) -> None:
+        if self.publisher is not None:
+            self.publisher.publish(self.map)
 
     def _skip(self, i: int, frame: CheckedFrame, T_WC, timestamp: float | None, t0: float) -> FrameResult:
         """A frame whose input is unusable: neither tracked nor mapped; its pose is ``T_WC`` if given
@@ -233,29 +300,33 @@ class SLAM:
         result.seconds = time.perf_counter() - t0
         return result
 
-    def _alpha_at(self, T_WC: np.ndarray) -> wp.array:
-        """The map's accumulated opacity seen from T_WC at the tracking resolution (zeros if empty)."""
+    def _alpha_at(self, gmap: GaussianMap, T_WC: np.ndarray) -> wp.array:
+        """``gmap``'s accumulated opacity seen from T_WC at the tracking resolution (zeros if empty)."""
         tc = self.tracker.track_camera
-        if len(self.map) == 0:
+        if len(gmap) == 0:
             return wp.zeros((tc.height, tc.width), dtype=wp.float32, device=self.device)
-        return self.renderer.forward(self.map, tc, T_WC).alpha
+        renderer = self.renderer if self.worker is None else self._tracking_renderer
+        return renderer.forward(gmap, tc, T_WC).alpha
 
-    def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult) -> None:
+    def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult, t_tracked: float) -> None:
+        """Keyframe ``i`` into the buffer, seeded, its window mapped and maintained (a mapping job)."""
         cfg, kf = self.cfg, self.keyframes
         slot = kf.add(i, T, rgb, depth, exposure)
         self._archive(slot)
-        self.keyframe_indices.append(i)
         t0 = time.perf_counter()
         self.seeder.join_pending(self.map)
         # baseline: the one dense start is the first keyframe's; later the densifier grows the map
-        result.seeded = self._seed(slot, matches=cfg.method == "rgs" or len(self.keyframe_indices) == 1)
+        first = int(kf.frame_ids[slot]) == self.keyframe_indices[0]
+        result.seeded = self._seed(slot, matches=cfg.method == "rgs" or first)
         self.stats["seeding_s"] += time.perf_counter() - t0
+        self._pause()
         t0 = time.perf_counter()
         init = i < self._init_window_end
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
-        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, self._held_exposures(window))
+        held = self._held_exposures(window)
+        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, held, pause=self._pause)
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
             t0 = time.perf_counter()
@@ -266,6 +337,9 @@ class SLAM:
         self.convergence += self.mapper.convergence(
             self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
         )
+        if self.publisher is not None:
+            self._publish()
+            self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
 
     def _held_exposures(self, window: list[int]) -> list[int]:
         """The window's keyframes whose exposure mapping holds (``Mapper.optimize``'s ``fixed_exposure``):
@@ -360,7 +434,7 @@ class SLAM:
                 self._counted(result, frame, tracking.reason if tracking.lost else "")
         if boot is not None:
             self.tracker.reset(result.T_WC, self.poses[i - 1] if i > 1 else T0)
-        self.selector.should_add(self._alpha_at(result.T_WC), result.T_WC)
+        self.selector.should_add(self._alpha_at(self.map, result.T_WC), result.T_WC)
         self.selector.accept(result.T_WC)
         return self._record(result, frames[-1][1], t0)
 
@@ -372,8 +446,22 @@ class SLAM:
 
     def render(self, T_WC: np.ndarray, camera: Camera | None = None) -> RenderResult:
         """Render the map from a camera-to-world pose (default camera: the SLAM's); the result's
-        images are the renderer's buffers, valid until the next render."""
-        return self.renderer.forward(self.map, camera or self.camera, T_WC, self.cfg.render.background)
+        images are the renderer's buffers, valid until the next render.  With asynchronous mapping:
+        the latest published version, rendered in tracking's turn (from any thread)."""
+        camera, background = camera or self.camera, self.cfg.render.background
+        if self.worker is None:
+            return self.renderer.forward(self.map, camera, T_WC, background)
+        with self.turns.tracking():
+            if self.publisher.version == 0 and len(self.map):
+                self.publisher.publish(self.map)
+            with self.publisher.read() as published:
+                return self._tracking_renderer.forward(published, camera, T_WC, background)
+
+    def wait_for_mapping(self) -> None:
+        """Return when the mapping worker has done every job queued so far (at once without one);
+        raises a job's exception."""
+        if self.worker is not None:
+            self.worker.drain()
 
     def _archive(self, slot: int) -> None:
         if self.archive is not None:
@@ -385,6 +473,7 @@ class SLAM:
         over every keyframe of the run (``Mapper.refine_all``; what it did: ``final_refinement``,
         its time counts as mapping).  ``run`` calls it after the last frame; ``track`` may go on
         after it."""
+        self.wait_for_mapping()
         self.seeder.join_pending(self.map)
         if refine and self.archive is not None and len(self.archive) and len(self.map):
             t0 = time.perf_counter()
@@ -397,7 +486,9 @@ class SLAM:
     def save(self, directory: str | Path, state: bool = False) -> Path:
         """Write ``trajectory.txt``, ``keyframes.npz``, ``map.ply``, ``config.yaml`` (each atomically;
         ``SaveError`` names a file that failed and what was saved) and with ``state`` the checkpoint's
-        ``state.npz``: ``slam.storage.save_slam`` says what each holds."""
+        ``state.npz``: ``slam.storage.save_slam`` says what each holds.  Waits for the mapping
+        worker first."""
+        self.wait_for_mapping()
         return save_slam(self, directory, state)
 
     @classmethod

@@ -1,0 +1,184 @@
+"""Asynchronous mapping (``mapping.asynchronous``, ``rgs_warp/slam/worker.py``): the published map
+versions that tracking reads are never torn, the device turns give tracking priority, a failing job
+surfaces in the caller's thread, and a whole run in the asynchronous mode is valid (CPU)."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import warp as wp
+
+from rgs_warp.config import load_config
+from rgs_warp.run import run
+from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher, TornMapError
+from rgs_warp.types import GaussianMap
+
+
+def _map_of(n: int, value: float, device) -> GaussianMap:
+    rng = np.random.default_rng(0)
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    sh = np.full((n, 1, 3), value)
+    return GaussianMap.from_numpy(
+        np.full((n, 3), value), quats, rng.normal(size=(n, 3)), np.zeros(n), sh, device=device
+    )
+
+
+def test_published_version_is_a_copy_of_the_working_map(device):
+    working = _map_of(50, 1.0, device)
+    pub = MapPublisher(sh_degree=0, device=device)
+    assert pub.publish(working) == 1
+    w = working
+    w.append(w.means[:10], w.rotations[:10], w.log_scales[:10], w.opacity_logits[:10], w.sh[:10])
+    with pub.read() as m:
+        assert len(m) == 50  # the version published before the working map grew
+        np.testing.assert_array_equal(m.means.numpy()[:50], working.means.numpy()[:50])
+        np.testing.assert_array_equal(m.sh.numpy()[:50], working.sh.numpy()[:50])
+    pub.publish(working)
+    with pub.read() as m:
+        assert len(m) == 60
+
+
+def _reader_and_writer(publisher: MapPublisher, working: GaussianMap, seconds: float) -> list[BaseException]:
+    """A reader taking versions and holding each a while (tracking) against a writer publishing
+    continuously and slowly (mapping); returns the reader's errors."""
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def writer():
+        while not stop.is_set():
+            publisher.publish(working, write_hook=lambda: time.sleep(0.002))
+
+    t = threading.Thread(target=writer)
+    t.start()
+    deadline = time.monotonic() + seconds
+    try:
+        while time.monotonic() < deadline:
+            try:
+                with publisher.read():
+                    time.sleep(0.003)
+            except TornMapError as e:
+                errors.append(e)
+    finally:
+        stop.set()
+        t.join()
+    return errors
+
+
+def test_reader_never_sees_a_torn_version(device):
+    working = _map_of(20, 0.5, device)
+    pub = MapPublisher(sh_degree=0, device=device)
+    pub.publish(working)
+    assert _reader_and_writer(pub, working, 1.0) == []
+    assert pub.version > 20  # the writer did publish while the reader read
+
+
+def test_the_check_catches_an_unsynchronised_publisher(device):
+    """The same reader and writer with one buffer, written in place while it is read: the check that
+    passes above must fail here, or it cannot fail at all."""
+    working = _map_of(20, 0.5, device)
+    pub = MapPublisher(sh_degree=0, device=device, buffers=1)
+    pub.publish(working)
+    assert _reader_and_writer(pub, working, 1.0)
+
+
+def test_tracking_takes_the_device_at_the_next_pause():
+    turns, log = DeviceTurns(), []
+    in_job, tracked = threading.Event(), threading.Event()
+
+    def mapping_job():
+        with turns.mapping():
+            in_job.set()
+            for k in range(50):
+                log.append(("mapping", k))
+                time.sleep(0.002)
+                turns.pause()
+
+    t = threading.Thread(target=mapping_job)
+    t.start()
+    in_job.wait()
+    with turns.tracking():
+        log.append(("tracking", None))
+        tracked.set()
+    t.join()
+    k = log.index(("tracking", None))
+    assert 0 < k < 50, "tracking waited for the whole mapping job instead of its next pause"
+    assert all(name == "mapping" for name, _ in log[k + 1 :])
+
+
+def test_a_failing_job_is_raised_in_the_callers_thread():
+    worker = MappingWorker(DeviceTurns())
+    done = []
+    worker.submit("keyframe", lambda: done.append(1))
+    worker.submit("keyframe", lambda: 1 / 0)
+    worker.submit("keyframe", lambda: done.append(2))
+    with pytest.raises(RuntimeError, match="mapping worker failed") as info:
+        worker.drain()
+    assert isinstance(info.value.__cause__, ZeroDivisionError)
+    assert done == [1]  # the job after the failure did not run
+    with pytest.raises(RuntimeError, match="mapping worker failed"):
+        worker.submit("fill", lambda: None)
+
+
+def test_back_pressure_waits_for_the_worker():
+    worker, release = MappingWorker(DeviceTurns()), threading.Event()
+    worker.submit("keyframe", release.wait)
+    worker.submit("keyframe", lambda: None)
+    assert worker.queued("keyframe") == 2
+    threading.Timer(0.05, release.set).start()
+    worker.wait_until_fewer("keyframe", 1)
+    assert worker.queued("keyframe") == 0
+
+
+OVERRIDES = [
+    "dataset=synthetic/office0",
+    "dataset.width=160",
+    "dataset.height=90",
+    "dataset.max_frames=20",
+    "mapping.init_iters=60",
+    "mapping.iters=15",
+    "mapping.window=3",
+]
+
+
+@pytest.mark.slow
+def test_asynchronous_run_is_valid(tmp_path, device):
+    """The run of ``test_slam.test_small_run_end_to_end`` with the keyframe work and 2 iterations per
+    frame in the worker: a full run folder, every frame tracked, a map, metrics within the bounds of
+    the synchronous run's test (its CPU numbers: 4.4 cm, 16.8 dB), and keyframe-to-map latencies."""
+    argv = [*OVERRIDES, "mapping.asynchronous=true", "mapping.frame_iters=2", f"device={device}"]
+    cfg = load_config([*argv, f"output_dir={tmp_path}", "run_name=async"])
+    run_dir, metrics = run(cfg, progress=False)
+    for name in ("trajectory.txt", "map.ply", "keyframes.npz", "metrics.json"):
+        assert (run_dir / name).is_file(), name
+    assert metrics["frames"] == 20 and metrics["gaussians"] > 1000
+    assert metrics["ate"]["all_frames"]["rmse_cm"] < 8.0, metrics["ate"]
+    assert metrics["photometric"]["psnr_db"] > 15.0, metrics["photometric"]
+    latency = metrics["keyframe_to_map_s"]
+    assert latency["count"] >= 1 and 0 < latency["p50"] <= latency["max"]
+
+
+@pytest.mark.slow
+def test_asynchronous_library_use_with_device_frames(device):
+    """``SLAM.track`` with frames as ``wp.array``s that the caller overwrites after each call: the
+    queued keyframe jobs own copies, so the map is built from the frames as they were."""
+    from rgs_warp import SLAM, open_dataset
+
+    cfg = load_config([*OVERRIDES, "dataset.max_frames=12", "mapping.asynchronous=true", f"device={device}"])
+    ds = open_dataset(cfg, device=device)
+    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+    rgb = wp.zeros((90, 160), dtype=wp.vec3, device=device)
+    depth = wp.zeros((90, 160), dtype=wp.float32, device=device)
+    for f in ds:
+        rgb.assign(f.rgb)
+        depth.assign(f.depth)
+        slam.track(rgb, depth, f.timestamp)
+        rgb.zero_()  # the caller reuses its buffers
+        depth.zero_()
+    slam.finish()
+    _, poses = slam.trajectory()
+    gt = np.array([f.pose_gt for f in ds])
+    assert len(slam.map) > 1000
+    assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
+    res = slam.render(poses[-1])
+    assert float(res.color.numpy().mean()) > 0.05  # the map renders colour, not the zeroed buffers
