@@ -141,7 +141,12 @@ def main(argv=None) -> int:
             "ate_cm": ate,
             "psnr_db": photometric.get("psnr_db"),
             "psnr_compensated_db": photometric.get("psnr_compensated_db"),
+            "keyframe_psnr_db": photometric.get("keyframe_psnr_db"),
             "time_s": metrics.get("time_s"),
+            "mapping": metrics.get("mapping"),
+            "mapping_iterations": metrics.get("mapping_iterations"),
+            "mapping_iterations_per_s": metrics.get("mapping_iterations", 0) / metrics["wall_s"],
+            "keyframe_to_map_s": metrics.get("keyframe_to_map_s"),
             **summarise(log),
         }
         title = f"{name}: {cfg.dataset.width}x{cfg.dataset.height}, {metrics['frames']} frames ({args.commit})"

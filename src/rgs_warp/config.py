@@ -209,6 +209,10 @@ class MappingConfig:
     # while tracking goes on against the latest published map (supplement §3.2); false: each keyframe
     # is mapped before the next frame is tracked (deterministic: tests, CI, the CPU)
     asynchronous: bool = False
+    # asynchronous: keyframes that may wait for the worker besides the one it maps before tracking waits
+    # (0: tracking waits for each keyframe's mapping, as in the synchronous mode, with frame fills and
+    # frame_iters still beside it; more: lower latency, a map further behind the camera)
+    async_queue: int = 1
     # after the last frame (SLAM.finish), this many more iterations over windows of `window` keyframes
     # drawn from every keyframe of the run (host copies keep those the buffer evicted); 0 = off
     final_iters: int = 0
@@ -505,6 +509,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.iters": NON_NEGATIVE,
     "mapping.frame_iters": NON_NEGATIVE,
     "mapping.final_iters": NON_NEGATIVE,
+    "mapping.async_queue": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,
     "mapping.init_iters": AT_LEAST_1,
     "mapping.init_window": AT_LEAST_1,

@@ -41,9 +41,6 @@ from rgs_warp.triangulation import Triangulator
 from rgs_warp.types import Camera, Frame, GaussianMap
 
 METHODS = ("rgs", "baseline")
-# asynchronous mapping: tracking waits while this many keyframes are queued for the worker (their
-# mapping done at most one keyframe late: the map tracking reads stays close to the keyframes')
-MAX_QUEUED_KEYFRAMES = 2
 
 
 @dataclass
@@ -183,7 +180,7 @@ class SLAM:
                 result = self._process(rgb, depth, timestamp, T_init_WC, T_WC, published)
         if result.index < self._init_window_end or self.publisher.version == 0:
             self.worker.drain()  # the initial window is mapped before the next frame, as in sync mode
-        self.worker.wait_until_fewer("keyframe", MAX_QUEUED_KEYFRAMES + 1)
+        self.worker.wait_until_fewer("keyframe", self.cfg.mapping.async_queue + 1)
         return result
 
     def _process(self, rgb, depth, timestamp, T_init_WC, T_WC, tmap: GaussianMap) -> FrameResult:
