@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import sys
 import threading
 import time
 from pathlib import Path
@@ -157,6 +158,52 @@ def test_views_render_whole_after_a_smaller_view(viewer, device):
     viewer._render(slam, camera, far)
     got = viewer._render(slam, camera, near).color.numpy()
     np.testing.assert_allclose(got, Renderer(device).forward(slam.map, camera, near).color.numpy(), atol=1e-5)
+
+
+def test_viewer_config_and_missing_viser(monkeypatch, capsys, tmp_path):
+    from rgs_warp.config import ConfigError
+    from rgs_warp.run import main
+    from rgs_warp.view import require_viser
+
+    assert load_config(["viewer=true", "viewer_port=0"]).viewer
+    with pytest.raises(ConfigError, match="viewer_port"):
+        load_config(["viewer_port=70000"])
+    monkeypatch.setitem(sys.modules, "viser", None)  # import viser now fails
+    with pytest.raises(ImportError, match=r"pip install \"rgs_warp\[viewer\]\""):
+        require_viser()
+    assert main(["viewer=true", f"output_dir={tmp_path}"]) == 1  # refused before the run starts
+    err = capsys.readouterr().err
+    assert 'pip install "rgs_warp[viewer]"' in err and len(err.strip().splitlines()) == 1
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_live_run_feeds_the_viewer(tmp_path, device):
+    """``run`` with a viewer and a (simulated) browser: the hook runs after every frame, the browser
+    gets rendered views, the panel and the scene are drawn, and log.jsonl has the hook's time."""
+    import json
+
+    from rgs_warp.run import run
+
+    # a small run: 3 keyframes (the keyframe ATE needs 3), 2 tracked frames; accuracy is test_slam's business
+    overrides = ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90", "dataset.max_frames=5"]
+    overrides += ["mapping.init_window=3", "mapping.init_iters=9", "mapping.iters=3", "tracking.iters=3"]
+    overrides += ["checkpoint_every=0"]
+    cfg = load_config([*overrides, f"device={device}", f"output_dir={tmp_path}", "run_name=live"])
+    with Viewer(port=0, host="127.0.0.1", panel_every_s=0.0, scene_every_s=0.0) as viewer:
+        client = SimulatedClient(viewer.url, fps=30.0, width=320, height=180)
+        try:
+            deadline = time.monotonic() + 20.0
+            while viewer.clients == 0 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            run_dir, metrics = run(cfg, progress=False, viewer=viewer)
+        finally:
+            client.close()
+    log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert len(log) == 5 and all("viewer_seconds" in e for e in log)
+    assert viewer.stats.updates == 5 and viewer.stats.busy_updates == 5
+    assert viewer.stats.views >= 1 and viewer.stats.panels >= 1 and viewer.stats.scenes >= 1
+    assert client.views >= 1
 
 
 # ---- a real browser -------------------------------------------------------------------------------------
