@@ -413,10 +413,16 @@ RESUME_OVERRIDES = ("device", "data_root", "viewer", "viewer_port")
 
 def resume_config(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """The config a resumed run goes on with: ``run_dir/config.yaml`` with ``overrides`` (``key=value``
-    of ``RESUME_OVERRIDES`` only)."""
+    of ``RESUME_OVERRIDES`` only); ``ResumeError`` for a folder that is not a run's or has nothing to
+    resume."""
     run_dir = Path(run_dir)
     if not (run_dir / "config.yaml").is_file():
         raise ResumeError(f"{run_dir}: not a run folder (no config.yaml)")
+    if not (run_dir / CHECKPOINT).is_file():
+        why = "the run finished" if (run_dir / "metrics.json").is_file() else "no checkpoint"
+        raise ResumeError(
+            f"{run_dir}: nothing to resume ({why}; a run writes a checkpoint every checkpoint_every keyframes)"
+        )
     cfg = load_saved_config(run_dir / "config.yaml")
     for item in overrides:
         key, _, value = item.partition("=")
@@ -440,15 +446,7 @@ def resume(
     after the checkpoint are processed again (their lines in ``log.jsonl`` are replaced); the run then
     ends as ``run`` does, in the same folder.  The checkpoint holds the whole SLAM state (optimiser
     included), so on the same device the run goes on as if it had not stopped.  ``viewer``: as ``run``'s."""
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.yaml").is_file():
-        raise ResumeError(f"{run_dir}: not a run folder (no config.yaml)")
-    pointer = run_dir / CHECKPOINT
-    if not pointer.is_file():
-        why = "the run finished" if (run_dir / "metrics.json").is_file() else "no checkpoint"
-        raise ResumeError(
-            f"{run_dir}: nothing to resume ({why}; a run writes a checkpoint every checkpoint_every keyframes)"
-        )
+    run_dir, pointer = Path(run_dir), Path(run_dir) / CHECKPOINT
     cfg = resume_config(run_dir, overrides)
     if viewer is None and cfg.viewer:
         from rgs_warp.view import open_viewer

@@ -399,14 +399,18 @@ class Viewer:
             if client is None:
                 continue
             camera = view_camera(view.fov_y, view.width, view.height, self.max_width)
-            image = to_uint8(self._render(slam, camera, view.T_WC).color.numpy())
-            self.last_view = image
+            color = self._render(slam, camera, view.T_WC).color.numpy()
+            if not slam.device.is_cuda:  # a CPU array's numpy() is a view of the buffer the next render reuses
+                color = color.copy()
             self._rendered[cid] = (view.stamp, now, len(slam.poses))
             self.stats.views += 1
-            self._sending = self._sender.submit(self._send, client, image)
+            self._sending = self._sender.submit(self._send, client, color)
             return  # one view per update: the others get the next one
 
-    def _send(self, client, image: np.ndarray) -> None:
+    def _send(self, client, color: np.ndarray) -> None:
+        """On the worker thread: the 8-bit conversion, the JPEG encoding (viser's) and the sending."""
+        image = to_uint8(color)
+        self.last_view = image
         client.scene.set_background_image(image, format="jpeg", jpeg_quality=self.jpeg_quality)
         client.flush()
 
@@ -516,22 +520,52 @@ def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 # ---- python -m rgs_warp.view RUN_DIR -----------------------------------------------------------------
+def ground_truth_poses(slam, device: str, data_root: str | None = None) -> list | None:
+    """The ground-truth poses of a loaded run's frames, from its dataset (``slam.cfg``'s); None, with
+    a warning, when the dataset cannot be opened or has none.  The run started at the first frame's
+    ground-truth pose, so they share its world frame."""
+    from rgs_warp.datasets import DatasetError, open_dataset
+
+    cfg = slam.cfg
+    if data_root is not None:
+        cfg.data_root = data_root
+    try:
+        poses = open_dataset(cfg, device=device).gt_poses()
+    except (DatasetError, ValueError, OSError) as e:
+        print(f"warning: no ground truth drawn: {e}", file=sys.stderr)
+        return None
+    if poses is None:
+        print("warning: no ground truth drawn: the dataset has no poses for every frame", file=sys.stderr)
+        return None
+    return list(poses[: len(slam.poses)])
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rgs_warp.view", description="Show a saved run in the browser.")
     ap.add_argument("run_dir", type=Path, help="a run folder (python -m rgs_warp.slam writes one under runs/)")
     ap.add_argument("--port", type=int, default=8080, help="the server's port (default 8080; 0: a free one)")
     ap.add_argument("--device", default="auto", help="where to render (default: cuda:0 when there is one, else cpu)")
+    ap.add_argument(
+        "--ground-truth",
+        action="store_true",
+        help="also draw the ground-truth trajectory, read from the run's dataset (a synthetic one not in the "
+        "cache is generated first)",
+    )
+    ap.add_argument("--data-root", help="where the run's dataset is, as data_root= of the run")
     args = ap.parse_args(argv)
     from rgs_warp.config import resolve_device
     from rgs_warp.slam import SLAM
 
     try:
         require_viser()
-        slam = SLAM.load(args.run_dir, device=resolve_device(args.device))
+        device = resolve_device(args.device)
+        slam = SLAM.load(args.run_dir, device=device)
     except (ImportError, ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
+    gt_poses = ground_truth_poses(slam, device, args.data_root) if args.ground_truth else None
     viewer = open_viewer(args.port)
+    viewer.update(slam, gt_poses=gt_poses)
     print(
         f"showing {args.run_dir}: {len(slam.poses)} frames, {len(slam.keyframe_indices)} keyframes, "
         f"{len(slam.map):,} Gaussians; Ctrl-C to stop",
