@@ -177,6 +177,26 @@ def test_viewer_config_and_missing_viser(monkeypatch, capsys, tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def test_resume_may_turn_the_viewer_on(tmp_path):
+    from rgs_warp.config import ConfigError, save_config
+    from rgs_warp.run import resume_config
+
+    save_config(load_config([]), tmp_path / "config.yaml")
+    (tmp_path / "checkpoint.json").write_text("{}")
+    cfg = resume_config(tmp_path, ["viewer=true", "viewer_port=9000", "device=cuda:1"])
+    assert (cfg.viewer, cfg.viewer_port, cfg.device) == (True, 9000, "cuda:1")
+    with pytest.raises(ConfigError, match="viewer"):
+        resume_config(tmp_path, ["viewer=sometimes"])
+
+
+def test_view_command_refuses_what_is_not_a_run(tmp_path, capsys):
+    from rgs_warp.view import main
+
+    assert main([str(tmp_path / "nothing"), "--port", "0", "--device", "cpu"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "map.ply: missing" in err and len(err.strip().splitlines()) == 1
+
+
 @pytest.mark.slow
 def test_live_run_feeds_the_viewer(tmp_path, device):
     """``run`` with a viewer and a (simulated) browser: the hook runs after every frame, the browser
@@ -229,7 +249,12 @@ def test_chromium_shows_the_rendered_map_and_follows_the_camera(device, tmp_path
         try:
             with playwright.sync_playwright() as p:
                 # software WebGL (SwiftShader): CI has no GPU
-                args = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+                args = [
+                    "--no-sandbox",
+                    "--disable-dev-shm-usage",
+                    "--use-angle=swiftshader",
+                    "--enable-unsafe-swiftshader",
+                ]
                 browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=args)
                 try:
                     page = browser.new_page(viewport={"width": 960, "height": 600})

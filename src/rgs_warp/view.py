@@ -177,17 +177,16 @@ class Viewer:
         self.server.on_client_connect(self._connected)
         self.server.on_client_disconnect(self._disconnected)
 
-    # ---- viser's callbacks (its event loop): record, never render --------------------------------
+    # ---- viser's callbacks, on its event loop (in message order): record, never render ---------------
     async def _connected(self, client) -> None:
-        client.camera.on_update(self._camera_moved)
-        self._camera_moved(client.camera)
+        client.camera.on_update(self._camera_moved)  # called for this first camera message too
 
     async def _disconnected(self, client) -> None:
         self._views.pop(client.client_id, None)
         self._placed.discard(client.client_id)
         self._rendered.pop(client.client_id, None)
 
-    def _camera_moved(self, camera) -> None:
+    async def _camera_moved(self, camera) -> None:
         view = _View(
             pose_from_viser(camera.wxyz, camera.position),
             float(camera.fov),
