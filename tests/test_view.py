@@ -142,6 +142,7 @@ def test_simulated_client_receives_rendered_views(viewer, device):
             time.sleep(0.02)
         assert client.views >= 3, viewer.stats
         assert viewer.clients == 1 and viewer.stats.views >= 3 and viewer.stats.scenes >= 1
+        assert viewer.stats.errors == 0
     finally:
         client.close()
 
@@ -223,7 +224,7 @@ def test_live_run_feeds_the_viewer(tmp_path, device):
     assert len(log) == 5 and all("viewer_seconds" in e for e in log)
     assert viewer.stats.updates == 5 and viewer.stats.busy_updates == 5
     assert viewer.stats.views >= 1 and viewer.stats.panels >= 1 and viewer.stats.scenes >= 1
-    assert client.views >= 1
+    assert client.views >= 1 and viewer.stats.errors == 0
 
 
 # ---- a real browser -------------------------------------------------------------------------------------
@@ -274,6 +275,7 @@ def test_chromium_shows_the_rendered_map_and_follows_the_camera(device, tmp_path
                     page.mouse.up()
                     after, _ = _wait_for_view(page, canvas, viewer, tmp_path / "after.png", unlike=before)
                     assert np.abs(after - before).mean() > 5.0
+                    assert viewer.stats.errors == 0 and viewer.stats.panels >= 1 and viewer.stats.scenes >= 1
                 finally:
                     browser.close()
         finally:

@@ -111,13 +111,15 @@ class _View:
 class ViewerStats:
     """What the viewer did: ``updates`` (hook calls), ``busy_updates`` (calls with a browser
     connected), ``views`` (browser views rendered and sent), ``panels``, ``scenes`` (trajectory and
-    frustum redraws) and ``seconds`` (time spent in ``update``, all calls)."""
+    frustum redraws), ``errors`` (updates that failed: the first is printed, the run goes on) and
+    ``seconds`` (time spent in ``update``, all calls)."""
 
     updates: int = 0
     busy_updates: int = 0
     views: int = 0
     panels: int = 0
     scenes: int = 0
+    errors: int = 0
     seconds: float = 0.0
 
 
@@ -231,13 +233,18 @@ class Viewer:
             return
         self.stats.busy_updates += 1
         views = dict(self._views)
-        self._place_new_clients(slam, views)
-        if t0 - self._counters_at >= 0.25:
-            self._counters_at = t0
-            self._update_counters(slam)
-        self._update_scene(slam, t0)
-        self._update_panel(slam, t0)
-        self._update_views(slam, views, t0)
+        try:
+            self._place_new_clients(slam, views)
+            if t0 - self._counters_at >= 0.25:
+                self._counters_at = t0
+                self._update_counters(slam)
+            self._update_scene(slam, t0)
+            self._update_panel(slam, t0)
+            self._update_views(slam, views, t0)
+        except Exception as e:  # noqa: BLE001 (what the viewer shows never stops the run)
+            if not self.stats.errors:
+                print(f"warning: viewer: {type(e).__name__}: {e} (the run goes on)", file=sys.stderr)
+            self.stats.errors += 1
         self.stats.seconds += time.perf_counter() - t0
 
     def serve(self, slam=None, stop: threading.Event | None = None, poll_s: float = 0.02) -> None:
