@@ -7,8 +7,8 @@ frustums, the current frame beside its render and residual, and the run's counte
 
 ``Viewer.update(slam, result, rgb, gt_poses, lost_frames)`` is the run loop's hook, called after each
 frame.  It does all the viewer's work itself, in the caller's thread, between two frames: the
-browsers' camera callbacks (viser's threads) only record the camera, so nothing renders while the
-SLAM changes the map.  With no browser connected it returns at once (no render, no copy).  With one,
+browsers' camera callbacks (on viser's event loop) only record the camera, so nothing renders while
+the SLAM changes the map.  With no browser connected it returns at once (no render, no copy).  With one,
 it renders each browser's view at most ``max_fps`` times a second when its camera moved (and every
 ``refresh_s`` while the map changes), at most ``max_width`` pixels wide; the JPEG encoding and the
 sending happen on a worker thread, and a view waits while the previous one is still being sent.
@@ -250,7 +250,7 @@ class Viewer:
     def serve(self, slam=None, stop: threading.Event | None = None, poll_s: float = 0.02) -> None:
         """Keep showing ``slam`` (default: the last one ``update`` saw), answering camera moves,
         until ``stop`` is set (or Ctrl-C)."""
-        slam = slam or self._slam
+        slam = self._slam if slam is None else slam
         stop = stop or threading.Event()
         while not stop.wait(poll_s):
             self.update(slam)
@@ -388,30 +388,31 @@ class Viewer:
         self._panel.image = to_uint8(np.concatenate([frame, render, error], axis=1))
 
     def _update_views(self, slam, views: dict[int, _View], now: float) -> None:
-        """Each browser's view, rendered when its camera moved (at most ``max_fps``) or, the map having
-        changed, every ``refresh_s``; skipped while the previous image is still being sent."""
+        """One browser's view per update, rendered when its camera moved (at most ``max_fps``) or, the
+        map having changed, every ``refresh_s`` (of those due, the one waiting longest); none while
+        the previous image is still being sent."""
         if self._sending is not None and not self._sending.done():
             return
-        clients = None
+        due = []
         for cid, view in views.items():
             stamp, at, frames = self._rendered.get(cid, (None, -math.inf, -1))
-            moved = view.stamp != stamp
             if now - at < 1.0 / self.max_fps:
                 continue
-            if not moved and not (frames != len(slam.poses) and now - at >= self.refresh_s):
-                continue
-            clients = clients or self.server.get_clients()
-            client = clients.get(cid)
-            if client is None:
-                continue
-            camera = view_camera(view.fov_y, view.width, view.height, self.max_width)
-            color = self._render(slam, camera, view.T_WC).color.numpy()
-            if not slam.device.is_cuda:  # a CPU array's numpy() is a view of the buffer the next render reuses
-                color = color.copy()
-            self._rendered[cid] = (view.stamp, now, len(slam.poses))
-            self.stats.views += 1
-            self._sending = self._sender.submit(self._send, client, color)
-            return  # one view per update: the others get the next one
+            if view.stamp != stamp or (frames != len(slam.poses) and now - at >= self.refresh_s):
+                due.append((at, cid))
+        if not due:
+            return
+        cid = min(due)[1]
+        client, view = self.server.get_clients().get(cid), views[cid]
+        if client is None:
+            return
+        camera = view_camera(view.fov_y, view.width, view.height, self.max_width)
+        color = self._render(slam, camera, view.T_WC).color.numpy()
+        if not slam.device.is_cuda:  # a CPU array's numpy() is a view of the buffer the next render reuses
+            color = color.copy()
+        self._rendered[cid] = (view.stamp, now, len(slam.poses))
+        self.stats.views += 1
+        self._sending = self._sender.submit(self._send, client, color)
 
     def _send(self, client, color: np.ndarray) -> None:
         """On the worker thread: the 8-bit conversion, the JPEG encoding (viser's) and the sending."""
