@@ -205,7 +205,8 @@ class Viewer:
 
     @property
     def url(self) -> str:
-        return f"http://localhost:{self.port}"
+        host = self.server.get_host()
+        return f"http://{'localhost' if host in ('0.0.0.0', '::', '') else host}:{self.port}"
 
     @property
     def clients(self) -> int:
@@ -418,6 +419,8 @@ class Viewer:
         """On the worker thread: the 8-bit conversion, the JPEG encoding (viser's) and the sending."""
         image = to_uint8(color)
         self.last_view = image
+        if client.client_id not in self._views:  # it left meanwhile
+            return
         client.scene.set_background_image(image, format="jpeg", jpeg_quality=self.jpeg_quality)
         client.flush()
 
