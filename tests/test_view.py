@@ -202,32 +202,46 @@ def test_view_command_refuses_what_is_not_a_run(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_live_run_feeds_the_viewer(tmp_path, device):
-    """``run`` with a viewer and a (simulated) browser: the hook runs after every frame, the browser
-    gets rendered views, the panel and the scene are drawn, and log.jsonl has the hook's time."""
+def test_live_run_feeds_the_viewer(tmp_path, device, monkeypatch, capsys):
+    """``python -m rgs_warp.slam ... viewer=true`` with a (simulated) browser: the viewer opens before
+    the run, its hook runs after every frame (the browser gets rendered views, the panel and the scene
+    are drawn, log.jsonl has the hook's time), it keeps serving after the run until Ctrl-C, then
+    closes."""
     import json
 
-    from rgs_warp.run import run
+    import rgs_warp.view
+    from rgs_warp.run import main
 
+    viewer = Viewer(port=0, host="127.0.0.1", panel_every_s=0.0, scene_every_s=0.0)
+    client = SimulatedClient(viewer.url, fps=30.0, width=320, height=180)
+    served, closed = [], []
+
+    def serve(slam=None, stop=None, poll_s=0.02):
+        served.append(viewer._slam)
+        raise KeyboardInterrupt  # Ctrl-C while it serves the finished run
+
+    monkeypatch.setattr(rgs_warp.view, "open_viewer", lambda port: viewer)
+    monkeypatch.setattr(viewer, "serve", serve)
+    monkeypatch.setattr(viewer, "close", lambda: closed.append(True))
     # a small run: 3 keyframes (the keyframe ATE needs 3), 2 tracked frames; accuracy is test_slam's business
-    overrides = ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90", "dataset.max_frames=5"]
-    overrides += ["mapping.init_window=3", "mapping.init_iters=9", "mapping.iters=3", "tracking.iters=3"]
-    overrides += ["checkpoint_every=0"]
-    cfg = load_config([*overrides, f"device={device}", f"output_dir={tmp_path}", "run_name=live"])
-    with Viewer(port=0, host="127.0.0.1", panel_every_s=0.0, scene_every_s=0.0) as viewer:
-        client = SimulatedClient(viewer.url, fps=30.0, width=320, height=180)
-        try:
-            deadline = time.monotonic() + 20.0
-            while viewer.clients == 0 and time.monotonic() < deadline:
-                time.sleep(0.05)
-            run_dir, metrics = run(cfg, progress=False, viewer=viewer)
-        finally:
-            client.close()
-    log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
-    assert len(log) == 5 and all("viewer_seconds" in e for e in log)
-    assert viewer.stats.updates == 5 and viewer.stats.busy_updates == 5
-    assert viewer.stats.views >= 1 and viewer.stats.panels >= 1 and viewer.stats.scenes >= 1
-    assert client.views >= 1 and viewer.stats.errors == 0
+    argv = ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90", "dataset.max_frames=5"]
+    argv += ["mapping.init_window=3", "mapping.init_iters=9", "mapping.iters=3", "tracking.iters=3"]
+    argv += ["checkpoint_every=0", f"device={device}", f"output_dir={tmp_path}", "run_name=live", "viewer=true"]
+    try:
+        deadline = time.monotonic() + 20.0
+        while viewer.clients == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert main(argv) == 0
+        assert "still serving the run at " + viewer.url in capsys.readouterr().err
+        assert len(served) == 1 and len(served[0].poses) == 5 and closed == [True]
+        log = [json.loads(line) for line in (tmp_path / "live" / "log.jsonl").read_text().splitlines()]
+        assert len(log) == 5 and all("viewer_seconds" in e for e in log)
+        assert viewer.stats.updates == 5 and viewer.stats.busy_updates == 5
+        assert viewer.stats.views >= 1 and viewer.stats.panels >= 1 and viewer.stats.scenes >= 1
+        assert client.views >= 1 and viewer.stats.errors == 0
+    finally:
+        client.close()
+        Viewer.close(viewer)
 
 
 # ---- a real browser -------------------------------------------------------------------------------------
