@@ -56,6 +56,7 @@ examples:
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen
   python -m rgs_warp.slam run_name=office overwrite=true  # reuse runs/office (else runs/office-2, ...)
   python -m rgs_warp.slam resume=runs/office               # continue a stopped run from its checkpoint
+  python -m rgs_warp.slam viewer=true                      # watch it in a browser (saved: python -m rgs_warp.view)
 """
 
 
