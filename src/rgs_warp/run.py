@@ -407,8 +407,8 @@ class ResumeError(ValueError):
     """A run folder that cannot be resumed; the message says why."""
 
 
-# what `resume=RUN_DIR` lets the command line change: where the run computes and where its data is,
-# never what it computes (docs/decisions.md, "Resuming a run")
+# what `resume=RUN_DIR` lets the command line change: where the run computes, where its data is and
+# whether a browser watches it, never what it computes (docs/decisions.md, "Resuming a run")
 RESUME_OVERRIDES = ("device", "data_root", "viewer", "viewer_port")
 
 
