@@ -365,6 +365,10 @@ class Config:
     # a checkpoint every this many keyframes (the SLAM.save files and the run's state, written
     # atomically), from which `python -m rgs_warp.slam resume=RUN_DIR` continues a stopped run; 0 = off
     checkpoint_every: int = 10
+    # the web viewer (rgs_warp.view, needs the `viewer` extra): served on viewer_port during the run
+    # (0: a free port; the console gives the URL), kept up after it until Ctrl-C
+    viewer: bool = False
+    viewer_port: int = 8080
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -524,6 +528,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.max_gaussians": NON_NEGATIVE,  # 0 = no cap
     "mapping.cap_headroom": Bound(0, 1, lo_open=True),
     "checkpoint_every": NON_NEGATIVE,  # 0 = no checkpoints
+    "viewer_port": Bound(0, 65535),  # 0 = a free port
     "export.voxel_m": POSITIVE,
     "mapping.adam_beta1": ADAM_BETA,
     "mapping.adam_beta2": ADAM_BETA,

@@ -24,9 +24,11 @@ from tqdm import tqdm
 from rgs_warp.config import (
     Config,
     ConfigError,
+    config_from_dict,
     help_text,
     load_config,
     load_saved_config,
+    parse_yaml,
     resolve_device,
     save_config,
 )
@@ -54,6 +56,7 @@ examples:
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen
   python -m rgs_warp.slam run_name=office overwrite=true  # reuse runs/office (else runs/office-2, ...)
   python -m rgs_warp.slam resume=runs/office               # continue a stopped run from its checkpoint
+  python -m rgs_warp.slam viewer=true                      # watch it in a browser (saved: python -m rgs_warp.view)
 """
 
 
@@ -197,7 +200,7 @@ class RunState:
 CHECKPOINT = "checkpoint.json"  # in the run folder: the latest complete checkpoint's folder
 
 
-def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tuple[Path, dict]:
+def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, viewer=None) -> tuple[Path, dict]:
     """Run SLAM on the configured sequence and evaluate it; returns (run folder, metrics).
 
     The folder (``make_run_dir``; made once the dataset opened, its first frame was read and the SLAM
@@ -209,10 +212,19 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
     While it runs, a checkpoint every ``checkpoint_every`` keyframes (``write_checkpoint``), removed
     when the run finished.  If the run stops early (error, Ctrl-C, SIGTERM), what was tracked so far is
     still saved, and the error is re-raised; ``resume(run_dir)`` continues it from its last checkpoint.
+
+    ``viewer``: an ``rgs_warp.view.Viewer`` whose ``update`` runs after each frame (its time per frame is
+    ``viewer_seconds`` in ``log.jsonl``); by default, with ``cfg.viewer``, one opened for this run and
+    closed at its end (the command line keeps its own open after the run).
     """
     if cfg.checkpoint_every < 0:
         raise ValueError(f"checkpoint_every must be >= 0 (0 = no checkpoints), got {cfg.checkpoint_every}")
     check_evaluation_imports()
+    if viewer is None and cfg.viewer:
+        from rgs_warp.view import open_viewer
+
+        with open_viewer(cfg.viewer_port) as viewer:
+            return run(cfg, run_dir, progress, viewer)
     device = resolve_device(cfg.device)
     ds = open_dataset(cfg, device=device)
     first = ds[0]
@@ -225,10 +237,12 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True) -> tupl
         write_text_atomic(run_dir / "dataset.json", json.dumps(dataset_summary(ds), indent=2))
     except OSError as e:
         raise OutputError(f"cannot write into the run folder {run_dir}: {e.strerror or e}") from e
-    return _run_frames(cfg, ds, slam, run_dir, RunState(frames_total=len(ds)), progress)
+    return _run_frames(cfg, ds, slam, run_dir, RunState(frames_total=len(ds)), progress, viewer)
 
 
-def _run_frames(cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, progress: bool) -> tuple[Path, dict]:
+def _run_frames(
+    cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, progress: bool, viewer=None
+) -> tuple[Path, dict]:
     """Frames ``state.next_frame`` .. the end through ``slam`` (checkpoints on the way), then the final
     save and the evaluation; what ``run`` and ``resume`` share."""
     t_start = time.perf_counter() - state.elapsed_s
@@ -242,7 +256,12 @@ def _run_frames(cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, pro
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
             state.gt_poses.append(frame.pose_gt)
             state.next_frame = result.index + 1
-            log.write(json.dumps(_log_entry(cfg, slam, result, state)) + "\n")
+            entry = _log_entry(cfg, slam, result, state)
+            if viewer is not None:
+                t_view = time.perf_counter()
+                viewer.update(slam, result, frame.rgb, state.gt_poses, len(state.lost))
+                entry["viewer_seconds"] = round(time.perf_counter() - t_view, 5)
+            log.write(json.dumps(entry) + "\n")
             if result.keyframe and 0 < cfg.checkpoint_every <= len(slam.keyframe_indices) - state.checkpoint_keyframes:
                 state.checkpoint_keyframes = len(slam.keyframe_indices)
                 state.elapsed_s = time.perf_counter() - t_start
@@ -388,24 +407,19 @@ class ResumeError(ValueError):
     """A run folder that cannot be resumed; the message says why."""
 
 
-# what `resume=RUN_DIR` lets the command line change: where the run computes and where its data is,
-# never what it computes (docs/decisions.md, "Resuming a run")
-RESUME_OVERRIDES = ("device", "data_root")
+# what `resume=RUN_DIR` lets the command line change: where the run computes, where its data is and
+# whether a browser watches it, never what it computes (docs/decisions.md, "Resuming a run")
+RESUME_OVERRIDES = ("device", "data_root", "viewer", "viewer_port")
 
 
-def resume(
-    run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True
-) -> tuple[Path, dict]:
-    """Continue a stopped run (killed, out of time) from its last checkpoint in ``run_dir``, with the
-    config of ``run_dir/config.yaml``; ``overrides`` may set only ``RESUME_OVERRIDES``.  The frames
-    after the checkpoint are processed again (their lines in ``log.jsonl`` are replaced); the run then
-    ends as ``run`` does, in the same folder.  The checkpoint holds the whole SLAM state (optimiser
-    included), so on the same device the run goes on as if it had not stopped."""
+def resume_config(run_dir: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """The config a resumed run goes on with: ``run_dir/config.yaml`` with ``overrides`` (``key=value``
+    of ``RESUME_OVERRIDES`` only); ``ResumeError`` for a folder that is not a run's or has nothing to
+    resume."""
     run_dir = Path(run_dir)
     if not (run_dir / "config.yaml").is_file():
         raise ResumeError(f"{run_dir}: not a run folder (no config.yaml)")
-    pointer = run_dir / CHECKPOINT
-    if not pointer.is_file():
+    if not (run_dir / CHECKPOINT).is_file():
         why = "the run finished" if (run_dir / "metrics.json").is_file() else "no checkpoint"
         raise ResumeError(
             f"{run_dir}: nothing to resume ({why}; a run writes a checkpoint every checkpoint_every keyframes)"
@@ -413,12 +427,33 @@ def resume(
     cfg = load_saved_config(run_dir / "config.yaml")
     for item in overrides:
         key, _, value = item.partition("=")
-        if key.strip() not in RESUME_OVERRIDES or not value:
+        key = key.strip()
+        if key not in RESUME_OVERRIDES or not value:
             raise ConfigError(
                 f"resume: {item!r} refused; a resumed run keeps its config.yaml and may only set "
                 f"{', '.join(k + '=...' for k in RESUME_OVERRIDES)}"
             )
-        setattr(cfg, key.strip(), value.strip())
+        # the names as given (device=cuda:0, a folder), the viewer's values read as YAML and checked
+        text = isinstance(getattr(cfg, key), str)
+        cfg = config_from_dict({**cfg.to_dict(), key: value.strip() if text else parse_yaml(value)})
+    return cfg
+
+
+def resume(
+    run_dir: str | Path, overrides: list[str] | tuple[str, ...] = (), progress: bool = True, viewer=None
+) -> tuple[Path, dict]:
+    """Continue a stopped run (killed, out of time) from its last checkpoint in ``run_dir``, with the
+    config of ``run_dir/config.yaml``; ``overrides`` may set only ``RESUME_OVERRIDES``.  The frames
+    after the checkpoint are processed again (their lines in ``log.jsonl`` are replaced); the run then
+    ends as ``run`` does, in the same folder.  The checkpoint holds the whole SLAM state (optimiser
+    included), so on the same device the run goes on as if it had not stopped.  ``viewer``: as ``run``'s."""
+    run_dir, pointer = Path(run_dir), Path(run_dir) / CHECKPOINT
+    cfg = resume_config(run_dir, overrides)
+    if viewer is None and cfg.viewer:
+        from rgs_warp.view import open_viewer
+
+        with open_viewer(cfg.viewer_port) as viewer:
+            return resume(run_dir, overrides, progress, viewer)
     try:
         folder = run_dir / json.loads(pointer.read_text(encoding="utf-8"))["folder"]
         state = RunState.from_json(json.loads((folder / "run_state.json").read_text(encoding="utf-8")))
@@ -433,7 +468,7 @@ def resume(
         raise ResumeError(f"{folder}: {len(slam.poses)} poses, run_state.json says {state.next_frame} frames")
     lines = (run_dir / "log.jsonl").read_text(encoding="utf-8").splitlines(keepends=True)
     write_text_atomic(run_dir / "log.jsonl", "".join(lines[: state.next_frame]))
-    return _run_frames(cfg, ds, slam, run_dir, state, progress)
+    return _run_frames(cfg, ds, slam, run_dir, state, progress, viewer)
 
 
 def tracking_section(tracked: int, lost: list[tuple[int, str]]) -> dict:
@@ -595,6 +630,12 @@ def keyframe_fit(ds, slam: SLAM, est: np.ndarray) -> dict:
     return {"keyframe_psnr_db": float(np.mean(raw)), "keyframe_psnr_compensated_db": float(np.mean(compensated))}
 
 
+def error_image(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """|render at the frame's exposure - frame| (``compensate_exposure``), x4 in grey levels (H x W x 3)."""
+    error = np.abs(compensate_exposure(render, ref, alpha) - ref).mean(axis=2, keepdims=True)
+    return np.repeat(np.clip(4.0 * error, 0.0, 1.0), 3, axis=2)
+
+
 def save_side_by_side(
     folder: Path, indices: list[int], renders: list, refs: list, alphas: list, count: int = 4
 ) -> None:
@@ -605,8 +646,7 @@ def save_side_by_side(
     folder.mkdir(parents=True, exist_ok=True)
     picks = np.unique(np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int))
     for k in picks:
-        error = np.abs(compensate_exposure(renders[k], refs[k], alphas[k]) - refs[k]).mean(axis=2, keepdims=True)
-        row = np.concatenate([renders[k], refs[k], np.repeat(np.clip(4.0 * error, 0.0, 1.0), 3, axis=2)], axis=1)
+        row = np.concatenate([renders[k], refs[k], error_image(renders[k], refs[k], alphas[k])], axis=1)
         image = (np.clip(row, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
         cv2.imwrite(str(folder / f"frame{indices[k]:05d}_render_gt_error.png"), image[..., ::-1])
 
@@ -623,21 +663,45 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    viewer = None
     try:
-        if resume_dirs:
-            if len(resume_dirs) > 1 or not resume_dirs[0]:
-                raise ResumeError("give one run folder: resume=RUN_DIR")
-            run_dir, metrics = resume(resume_dirs[0], [a for a in argv if not a.startswith("resume=")])
-        else:
-            run_dir, metrics = run(cfg)
-    except ConfigError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except (DatasetError, ValueError, OSError, ImportError) as e:  # OSError: OutputError, SaveError, a full disk
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:  # Ctrl-C: the run saved what it tracked and said where
-        return 130
+        try:
+            overrides = [a for a in argv if not a.startswith("resume=")]
+            if resume_dirs:
+                if len(resume_dirs) > 1 or not resume_dirs[0]:
+                    raise ResumeError("give one run folder: resume=RUN_DIR")
+                cfg = resume_config(resume_dirs[0], overrides)
+            if cfg.viewer:  # opened before the run (a missing viser fails now), kept up after it
+                from rgs_warp.view import open_viewer
+
+                viewer = open_viewer(cfg.viewer_port)
+            if resume_dirs:
+                run_dir, metrics = resume(resume_dirs[0], overrides, viewer=viewer)
+            else:
+                run_dir, metrics = run(cfg, viewer=viewer)
+        except ConfigError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        except (DatasetError, ValueError, OSError, ImportError) as e:  # OSError: OutputError, SaveError, a full disk
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:  # Ctrl-C: the run saved what it tracked and said where
+            return 130
+        print_summary(run_dir, metrics)
+        if viewer is not None:
+            print(f"viewer: still serving the run at {viewer.url}; Ctrl-C to stop", file=sys.stderr)
+            try:
+                viewer.serve()
+            except KeyboardInterrupt:
+                pass
+        return 0
+    finally:
+        if viewer is not None:
+            viewer.close()
+
+
+def print_summary(run_dir: Path, metrics: dict) -> None:
+    """The end of ``main``: where the run is and its headline numbers, and a warning when tracking was lost."""
     ate = (metrics.get("ate") or {}).get("all_frames", {})
     photo = metrics.get("photometric") or {}
     print(f"run dir   {run_dir}")
@@ -665,4 +729,3 @@ def main(argv: list[str] | None = None) -> int:
             f"are unreliable (each frame's entry in {run_dir / 'log.jsonl'} says why)",
             file=sys.stderr,
         )
-    return 0
