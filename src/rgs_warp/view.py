@@ -156,7 +156,6 @@ class Viewer:
         self._rendered: dict[int, tuple[float, float, int]] = {}  # client -> (view stamp, when, frames)
         self._sender = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rgs-viewer-send")
         self._sending: Future | None = None
-        self._renderer = None
         self.last_view: np.ndarray | None = None  # the last view sent (H x W x 3 uint8), for tests
         self._slam = None
         self._rgb = None
@@ -352,13 +351,11 @@ class Viewer:
         self.server.scene.add_line_segments(name, segments, color, thickness=2.0, thickness_units="screen")
 
     def _render(self, slam, camera: Camera, T_WC: np.ndarray):
-        from rgs_warp.render import Renderer
-
-        if self._renderer is None or self._renderer.device != slam.device:
-            self._renderer = Renderer(slam.device)  # its own buffers: the SLAM's renders stay untouched
-        res = self._renderer.forward(slam.map, camera, T_WC, slam.cfg.render.background)
+        """``slam.render``: with asynchronous mapping it renders the published map in tracking's turn,
+        never the map the worker is writing."""
+        res = slam.render(T_WC, camera)
         if res.overflowed:  # a view that needs more tile intersections than the last: that render grew them
-            res = self._renderer.forward(slam.map, camera, T_WC, slam.cfg.render.background)
+            res = slam.render(T_WC, camera)
         return res
 
     def _update_panel(self, slam, now: float) -> None:
