@@ -34,9 +34,10 @@ class ConfigError(ValueError):
 
 @dataclass
 class DatasetConfig:
-    type: str = "synthetic"  # replica | tum | 7scenes | synthetic
+    type: str = "synthetic"  # replica | tum | 7scenes | synthetic | realsense
     name: str = "room0"
-    path: str = ""  # relative to data_root unless absolute; unused for synthetic
+    # relative to data_root unless absolute; unused for synthetic; realsense: a recording, empty = live camera
+    path: str = ""
     stride: int = 1
     start: int = 0
     max_frames: int | None = None
@@ -56,7 +57,11 @@ class DatasetConfig:
     # without a pose are kept and the ATE is not scored
     require_pose: bool = True
     undistort: bool = True
-    # synthetic only
+    # realsense only: the live camera's frame rate and serial number (empty: the one connected);
+    # width and height below are its stream size
+    fps: int = 30
+    serial: str = ""
+    # synthetic (and a live realsense camera's stream)
     width: int = 240
     height: int = 136
     n_frames: int = 100
@@ -357,6 +362,9 @@ class Config:
     # a checkpoint every this many keyframes (the SLAM.save files and the run's state, written
     # atomically), from which `python -m rgs_warp.slam resume=RUN_DIR` continues a stopped run; 0 = off
     checkpoint_every: int = 10
+    # the command line on the CPU: a synthetic scene without any size key (CPU_SIZE_KEYS) given runs
+    # at CPU_SIZED's sizes (README, quick start); false: the sizes as configured
+    cpu_sized: bool = True
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -385,7 +393,7 @@ CHOICES = {
     "mode": ("rgbd", "mono"),
     "method": ("rgs", "baseline"),
     "tracking.brightness": ("gain", "affine", "off"),
-    "dataset.type": ("replica", "tum", "7scenes", "synthetic"),
+    "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 
 
@@ -437,6 +445,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "dataset.width": AT_LEAST_1,
     "dataset.height": AT_LEAST_1,
     "dataset.n_frames": AT_LEAST_1,
+    "dataset.fps": AT_LEAST_1,
     "dataset.depth_noise_m": NON_NEGATIVE,
     "dataset.seed": SEED,
     "render.sh_degree": Bound(0, 3),
@@ -848,6 +857,58 @@ def help_text() -> str:
 
     walk(Config(), "")
     return "\n".join(lines)
+
+
+# The command line's run of a synthetic scene on the CPU when the user set no size (README, quick start):
+# the full default (240x136, 100 frames, 1050 initial mapping iterations) takes ~30 min on 2 cores;
+# these values were measured to finish in under 3 minutes there, kernel compilation on a fresh cache
+# included, and still track and map (experiments/results/perf.md, "The CPU-sized first run").
+CPU_SIZED = {
+    "dataset.width": 120,
+    "dataset.height": 68,
+    "dataset.max_frames": 40,
+    "mapping.init_iters": 300,
+    "mapping.iters": 30,
+}
+# Keys that size a run: when the command line sets any of them, none of CPU_SIZED is applied (the user
+# chose the size; CPU_SIZED's keys and the others that change how much is computed)
+CPU_SIZE_KEYS = (
+    *CPU_SIZED,
+    "dataset.n_frames",
+    "dataset.stride",
+    "dataset.start",
+    "dataset.downscale",
+    "tracking.iters",
+    "tracking.downscale",
+    "mapping.window",
+    "mapping.init_window",
+    "mapping.frame_iters",
+    "mapping.final_iters",
+)
+
+
+def cpu_sized_overrides(cfg: Config, overrides, device: str) -> tuple[list[str], str]:
+    """The ``key=value`` overrides that make the command line's run CPU-sized, and the message that
+    says so, or ``([], "")``: only when ``device`` (resolved) is the CPU, the dataset is a synthetic
+    scene (``cfg``, loaded from ``overrides``), ``cpu_sized`` is on and ``overrides`` set none of
+    ``CPU_SIZE_KEYS``."""
+    given = {item.split("=", 1)[0].strip() for item in overrides if "=" in item}
+    if not device.startswith("cpu") or cfg.dataset.type != "synthetic" or not cfg.cpu_sized:
+        return [], ""
+    if given & set(CPU_SIZE_KEYS):
+        return [], ""
+    extra = [f"{k}={v}" for k, v in CPU_SIZED.items()]
+    d, m = cfg.dataset, cfg.mapping
+    message = (
+        f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}, {CPU_SIZED['dataset.width']}x"
+        f"{CPU_SIZED['dataset.height']} pixels, the first {CPU_SIZED['dataset.max_frames']} of {d.n_frames} "
+        f"frames, {CPU_SIZED['mapping.init_iters']} initial and {CPU_SIZED['mapping.iters']} per-keyframe "
+        f"mapping iterations (under 3 minutes on 2 cores).\n"
+        f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} iterations; "
+        f"about 30 minutes on 2 cores, seconds on a GPU): add cpu_sized=false, or set any size yourself "
+        f"(e.g. dataset.width=240 dataset.max_frames=60)."
+    )
+    return extra, message
 
 
 def resolve_device(name: str) -> str:

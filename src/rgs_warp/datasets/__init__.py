@@ -8,13 +8,16 @@ from rgs_warp.config import check_image_size
 from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset
 from rgs_warp.datasets.replica import ReplicaDataset
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
+from rgs_warp.datasets.stream import CallbackSource, RealSenseSource
 from rgs_warp.datasets.synthetic import SyntheticDataset
 from rgs_warp.datasets.tum import TUMDataset
 
 __all__ = [
+    "CallbackSource",
     "DatasetError",
     "DatasetWarning",
     "RGBDDataset",
+    "RealSenseSource",
     "ReplicaDataset",
     "SevenScenesDataset",
     "SyntheticDataset",
@@ -23,10 +26,11 @@ __all__ = [
 ]
 
 
-def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
+def open_dataset(cfg, device: str | None = None) -> RGBDDataset | CallbackSource:
     """The dataset named by a ``Config`` (its ``dataset`` section and ``data_root``); ``device`` is
     where a synthetic sequence is rendered if it is not cached yet.  Images that ``dataset.downscale``
-    or ``tracking.downscale`` would shrink below what the pipeline needs are a ``ConfigError``."""
+    or ``tracking.downscale`` would shrink below what the pipeline needs are a ``ConfigError``.
+    ``dataset.type=realsense`` gives a ``RealSenseSource`` (a stream: no length, no random access)."""
     ds = _open(cfg, device)
     camera = ds.native_camera
     check_image_size(camera.width, camera.height, cfg, native=True)
@@ -35,6 +39,11 @@ def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
 
 def _open(cfg, device: str | None) -> RGBDDataset:
     d = cfg.dataset
+    if d.type == "realsense":
+        recording = cfg.dataset_path() if d.path else None
+        return RealSenseSource(
+            recording, width=d.width, height=d.height, fps=d.fps, serial=d.serial, max_frames=d.max_frames
+        )
     if d.type != "synthetic":
         path = cfg.dataset_path()
         if not path.is_dir():
