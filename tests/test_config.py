@@ -142,9 +142,9 @@ def test_cpu_sized_run_only_on_the_cpu_without_sizes():
 
     extra, message = cpu_sized_overrides(load_config([]), [], "cpu")
     assert extra == [f"{k}={v}" for k, v in CPU_SIZED.items()]
-    assert "cpu_sized=false" in message and "120x68" in message
+    assert "cpu_sized=false" in message and "120x68" in message and "25 of 100" in message
     cfg = load_config(extra)
-    assert (cfg.dataset.width, cfg.dataset.height, cfg.dataset.max_frames) == (120, 68, 40)
+    assert (cfg.dataset.width, cfg.dataset.height, cfg.dataset.max_frames, cfg.tracking.iters) == (120, 68, 25, 20)
     office = ["dataset=synthetic/office0", "seed=3"]  # neither is a size
     assert cpu_sized_overrides(load_config(office), office, "cpu")[0] == extra
     for overrides in (
@@ -180,7 +180,7 @@ def test_cli_applies_the_cpu_sized_run_and_says_so(argv, device, sized, monkeypa
     err = capsys.readouterr().err
     width = seen["cfg"].dataset.width
     if sized:
-        assert width == 120 and seen["cfg"].dataset.max_frames == 40
+        assert width == 120 and seen["cfg"].dataset.max_frames == 25
         assert "CPU-sized" in err and "cpu_sized=false" in err
     else:
         assert width == (200 if argv else 240) and "CPU-sized" not in err

@@ -860,15 +860,18 @@ def help_text() -> str:
 
 
 # The command line's run of a synthetic scene on the CPU when the user set no size (README, quick start):
-# the full default (240x136, 100 frames, 1050 initial mapping iterations) takes ~30 min on 2 cores;
-# these values were measured to finish in under 3 minutes there, kernel compilation on a fresh cache
-# included, and still track and map (experiments/results/perf.md, "The CPU-sized first run").
+# the full default (240x136, 100 frames, 1050 initial mapping iterations) takes half an hour on 2 cores.
+# These values were measured to finish in under 3 minutes there, scene generation and kernel
+# compilation on fresh caches included, and still track and map (experiments/results/perf.md, "The
+# CPU-sized first run": 96x54 tracked worse, 2.3 cm; 30 frames reach a fast turn that 96x54 loses)
 CPU_SIZED = {
     "dataset.width": 120,
     "dataset.height": 68,
-    "dataset.max_frames": 40,
-    "mapping.init_iters": 300,
-    "mapping.iters": 30,
+    "dataset.max_frames": 25,
+    "tracking.iters": 20,
+    "mapping.init_iters": 100,
+    "mapping.iters": 15,
+    "mapping.window": 3,
 }
 # Keys that size a run: when the command line sets any of them, none of CPU_SIZED is applied (the user
 # chose the size; CPU_SIZED's keys and the others that change how much is computed)
@@ -878,9 +881,7 @@ CPU_SIZE_KEYS = (
     "dataset.stride",
     "dataset.start",
     "dataset.downscale",
-    "tracking.iters",
     "tracking.downscale",
-    "mapping.window",
     "mapping.init_window",
     "mapping.frame_iters",
     "mapping.final_iters",
@@ -898,15 +899,15 @@ def cpu_sized_overrides(cfg: Config, overrides, device: str) -> tuple[list[str],
     if given & set(CPU_SIZE_KEYS):
         return [], ""
     extra = [f"{k}={v}" for k, v in CPU_SIZED.items()]
-    d, m = cfg.dataset, cfg.mapping
+    d, m, q = cfg.dataset, cfg.mapping, CPU_SIZED
     message = (
-        f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}, {CPU_SIZED['dataset.width']}x"
-        f"{CPU_SIZED['dataset.height']} pixels, the first {CPU_SIZED['dataset.max_frames']} of {d.n_frames} "
-        f"frames, {CPU_SIZED['mapping.init_iters']} initial and {CPU_SIZED['mapping.iters']} per-keyframe "
-        f"mapping iterations (under 3 minutes on 2 cores).\n"
-        f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} iterations; "
-        f"about 30 minutes on 2 cores, seconds on a GPU): add cpu_sized=false, or set any size yourself "
-        f"(e.g. dataset.width=240 dataset.max_frames=60)."
+        f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}: {q['dataset.width']}x{q['dataset.height']} "
+        f"pixels, the first {q['dataset.max_frames']} of {d.n_frames} frames, {q['tracking.iters']} tracking "
+        f"iterations, {q['mapping.init_iters']} initial and {q['mapping.iters']} per-keyframe mapping iterations "
+        f"over {q['mapping.window']} keyframes (2-3 minutes on 2 cores).\n"
+        f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} mapping iterations; "
+        f"half an hour on 2 cores, seconds on a GPU): add cpu_sized=false, or set any size yourself, e.g. "
+        f"dataset.max_frames=40 (the rest then keeps its defaults)."
     )
     return extra, message
 

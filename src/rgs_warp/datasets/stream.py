@@ -175,8 +175,10 @@ class RealSenseSource(CallbackSource):
             raise DatasetError(f"RealSense {name}: cannot start streaming: {e}") from None
         device = profile.get_device()
         self._live = not recording
-        if recording:
-            device.as_playback().set_real_time(False)  # every frame, as fast as SLAM takes them
+        self._playback = None
+        if recording:  # every frame, as fast as SLAM takes them: paused while SLAM works on one
+            self._playback = device.as_playback()
+            self._playback.set_real_time(False)
         self.depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
         colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
         camera = camera_from_intrinsics(colour.get_intrinsics())
@@ -195,7 +197,11 @@ class RealSenseSource(CallbackSource):
         while True:
             if self._stopped:
                 return None
+            if self._playback is not None:
+                self._playback.resume()
             ok, frames = self._pipeline.try_wait_for_frames(self._timeout_ms)
+            if self._playback is not None and ok:
+                self._playback.pause()
             if not ok:  # a recording's end (or a live camera that stopped sending)
                 if self._live:
                     raise DatasetError(f"{self.name}: no frames for {self._timeout_ms} ms")
