@@ -1,8 +1,9 @@
 """A robot's perception loop on rgs_warp: frames arrive as ``wp.array``s on the GPU (a camera driver
 that writes device memory), ``slam.track`` tracks each in place, the pose goes on as a
 ``wp.transform``, and a planner looks ahead in depth rendered from the map at a pose the robot has not
-been to yet.  No image goes to the host: per frame, what is read back is the pose (16 numbers) and the
-planner's clearance (one number) (``tests/test_examples.py`` counts the reads).
+been to yet.  No image goes to the host: per frame what is read back is the tracker's pose and
+per-iteration history (a few kilobytes, whatever the image size), counters, and the planner's one
+number (``tests/test_examples.py`` counts the reads).
 
     python examples/robot_loop.py                          # synthetic office, on the GPU if Warp sees one
     python examples/robot_loop.py device=cpu dataset.width=96 dataset.height=54 dataset.max_frames=12 \\

@@ -46,8 +46,9 @@ def test_pose_to_transform_round_trip():
 @pytest.mark.slow
 def test_robot_loop_tracks_device_frames_without_host_round_trip(device, monkeypatch):
     """The frames stay on the device: during the loop no image-sized array is read to the host (on a
-    GPU each ``numpy()`` is a device-to-host copy; on the CPU device it is counted all the same), and
-    the frames are copied only device to device."""
+    GPU each ``numpy()`` of a device array is a device-to-host copy; on the CPU device every ``numpy()``
+    is counted, host staging buffers included), what is read is a few kilobytes a frame, and the
+    frames are copied only device to device."""
     robot = _example("robot_loop")
     cfg = load_config(["dataset=synthetic/office0", *TINY, f"device={device}"])
     dataset = open_dataset(cfg)
@@ -80,9 +81,11 @@ def test_robot_loop_tracks_device_frames_without_host_round_trip(device, monkeyp
     image_px = camera.width * camera.height
     image_reads = [shape for shape, _ in reads if int(np.prod(shape)) >= image_px]
     assert image_reads == [], image_reads
-    frame_bytes = image_px * 16  # vec3 colour + float depth
+    # what is read: the tracker's per-iteration history (loss terms and pose, 30 x 30 float64), the pose,
+    # counters and the planner's number, also host staging buffers the CPU device cannot tell apart:
+    # 10-13.5 kB a frame, whatever the image size (a 640x480 frame is 4.9 MB)
     read_per_frame = sum(size for _, size in reads) / len(steps)
-    assert read_per_frame < 0.05 * frame_bytes, (read_per_frame, frame_bytes)
+    assert read_per_frame < 16_000, read_per_frame
     assert all(src == dst for src, dst, _ in copies)  # device to device only
     assert len(steps) == 10 and all(isinstance(T, wp.transform) for T, _ in steps)
     # the transforms are the SLAM's poses, and those track the scene

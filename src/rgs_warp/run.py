@@ -49,7 +49,9 @@ USAGE = """usage: python -m rgs_warp.slam [group=option ...] [key=value ...]
        python -m rgs_warp.slam resume=RUN_DIR [device=...] [data_root=...]
 
 examples:
-  python -m rgs_warp.slam                                  # generated synthetic room (CPU-sized)
+  python -m rgs_warp.slam                                  # generated synthetic room (CPU-sized without a GPU)
+  python -m rgs_warp.slam cpu_sized=false                  # ... at its full size on the CPU too
+  python -m rgs_warp.slam dataset=realsense/d435           # a RealSense camera (dataset.path=REC: a recording)
   python -m rgs_warp.slam method=baseline                  # the same with the dense initialization baseline
   python -m rgs_warp.slam dataset=replica/office0 data_root=/data tracking.iters=40
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen

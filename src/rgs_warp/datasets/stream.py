@@ -213,7 +213,9 @@ class RealSenseSource(CallbackSource):
             aligned = self._align.process(frames)
             colour, depth = aligned.get_color_frame(), aligned.get_depth_frame()
             if not colour or not depth:
-                continue  # a set without one of the two streams (a recording's first sets)
+                # a set without one of the two streams: librealsense's syncer learns the streams from
+                # the frames it sees, so a recording's first depth image may come alone (then skipped)
+                continue
             fmt = str(colour.get_profile().format()).rsplit(".", 1)[-1]
             return frame_from_images(
                 np.asanyarray(colour.get_data()),
