@@ -59,13 +59,12 @@ def test_kernel_loads_sums_compile_seconds():
 
 def test_the_bar_says_when_a_scene_is_generated(tmp_path, monkeypatch, device):
     from rgs_warp.config import load_config
-    from rgs_warp.datasets import open_dataset
-    from rgs_warp.run import _generates_scene
+    from rgs_warp.datasets import generates_scene, open_dataset
 
     monkeypatch.setenv("RGS_CACHE", str(tmp_path))
     cfg = load_config(["dataset.width=32", "dataset.height=18", "dataset.n_frames=2", f"device={device}"])
-    assert _generates_scene(cfg)
+    assert generates_scene(cfg)
     open_dataset(cfg, device=device)
-    assert not _generates_scene(cfg)
-    assert _generates_scene(load_config(["dataset.width=32", "dataset.height=18", "dataset.n_frames=3"]))
-    assert not _generates_scene(load_config(["dataset=tum/fr1_desk"]))
+    assert not generates_scene(cfg)
+    assert generates_scene(load_config(["dataset.width=32", "dataset.height=18", "dataset.n_frames=3"]))
+    assert not generates_scene(load_config(["dataset=tum/fr1_desk"]))

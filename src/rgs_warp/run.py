@@ -30,7 +30,7 @@ from rgs_warp.config import (
     resolve_device,
     save_config,
 )
-from rgs_warp.datasets import DatasetError, open_dataset
+from rgs_warp.datasets import DatasetError, generates_scene, open_dataset
 from rgs_warp.eval import (
     LPIPS,
     ate_keyframes_and_all,
@@ -227,7 +227,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, source=
     with watch_kernel_loads(bar.kernel_load) as kernels:
         try:
             if source is None:
-                bar.phase("generating the scene (first use)" if _generates_scene(cfg) else "opening the dataset")
+                bar.phase("generating the scene (first use)" if generates_scene(cfg) else "opening the dataset")
             ds = open_dataset(cfg, device=device) if source is None else source
             frames = None
             if _is_stream(ds):
@@ -273,20 +273,6 @@ class KeptFrames:
 
     def __getitem__(self, i: int):
         return self.frames[i]
-
-
-def _generates_scene(cfg: Config) -> bool:
-    """Whether opening the dataset renders a synthetic sequence (not in ``$RGS_CACHE`` yet)."""
-    if cfg.dataset.type != "synthetic":
-        return False
-    from rgs_warp.datasets.synthetic.dataset import cache_dir, cache_key
-    from rgs_warp.datasets.synthetic.generate import SyntheticConfig
-
-    d = cfg.dataset
-    options = dict(width=d.width, height=d.height, n_frames=d.n_frames, depth_noise_m=d.depth_noise_m)
-    options.update(exposure_drift=d.exposure_drift, motion_blur=d.motion_blur, seed=d.seed)
-    synthetic = SyntheticConfig(scene=d.name, **options)
-    return not (cache_dir() / f"{synthetic.scene}-{cache_key(synthetic)}").is_dir()
 
 
 def _run_frames(

@@ -9,7 +9,8 @@ from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset
 from rgs_warp.datasets.replica import ReplicaDataset
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
 from rgs_warp.datasets.stream import CallbackSource, RealSenseSource
-from rgs_warp.datasets.synthetic import SyntheticDataset
+from rgs_warp.datasets.synthetic import SyntheticConfig, SyntheticDataset
+from rgs_warp.datasets.synthetic.dataset import sequence_dir
 from rgs_warp.datasets.tum import TUMDataset
 
 __all__ = [
@@ -22,6 +23,7 @@ __all__ = [
     "SevenScenesDataset",
     "SyntheticDataset",
     "TUMDataset",
+    "generates_scene",
     "open_dataset",
 ]
 
@@ -83,16 +85,25 @@ def _open(cfg, device: str | None) -> RGBDDataset:
             **common,
         )
     if d.type == "synthetic":
-        return SyntheticDataset(
-            d.name,
-            width=d.width,
-            height=d.height,
-            n_frames=d.n_frames,
-            depth_noise_m=d.depth_noise_m,
-            exposure_drift=d.exposure_drift,
-            motion_blur=d.motion_blur,
-            seed=d.seed,
-            device=device,
-            **common,
-        )
+        return SyntheticDataset(d.name, device=device, **_synthetic_options(d), **common)
     raise DatasetError(f"dataset.type {d.type!r} has no loader")
+
+
+def _synthetic_options(d) -> dict:
+    """The ``SyntheticConfig`` fields that a config's ``dataset`` section sets."""
+    return dict(
+        width=d.width,
+        height=d.height,
+        n_frames=d.n_frames,
+        depth_noise_m=d.depth_noise_m,
+        exposure_drift=d.exposure_drift,
+        motion_blur=d.motion_blur,
+        seed=d.seed,
+    )
+
+
+def generates_scene(cfg) -> bool:
+    """Whether ``open_dataset(cfg)`` renders a synthetic sequence (not in ``$RGS_CACHE`` yet)."""
+    if cfg.dataset.type != "synthetic":
+        return False
+    return not sequence_dir(SyntheticConfig(scene=cfg.dataset.name, **_synthetic_options(cfg.dataset))).is_dir()
