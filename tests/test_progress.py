@@ -36,6 +36,17 @@ def test_watch_kernel_loads_reports_each_module_once(device):
     assert after.compiled == [] and after.cached == []
 
 
+def test_progress_bar_is_silent_at_first(capsys):
+    bar = RunProgress("synthetic/room0", quiet_s=60.0)
+    bar.phase("opening the dataset")
+    bar.close()
+    assert capsys.readouterr().err == ""
+    bar = RunProgress("synthetic/room0", quiet_s=0.0)
+    bar.phase("opening the dataset")
+    bar.close()
+    assert "synthetic/room0 [opening the dataset]" in capsys.readouterr().err
+
+
 def test_progress_bar_names_the_phase_and_the_module_compiling():
     bar = RunProgress("synthetic/room0", enabled=False)
     bar.phase("generating the scene (first use)")

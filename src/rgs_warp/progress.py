@@ -94,11 +94,14 @@ def watch_kernel_loads(on_load: Callable[[str, bool], None] | None = None) -> It
 
 class RunProgress:
     """The run's progress bar: frames done of ``total`` (None: a stream of unknown length) and the
-    phase in its description, e.g. ``synthetic/room0 [compiling kernels: rasterize]``."""
+    phase in its description, e.g. ``synthetic/room0 [compiling kernels: rasterize]``.  It shows
+    nothing during its first ``quiet_s`` seconds, so a run that fails at start-up prints only its
+    error."""
 
-    def __init__(self, name: str, enabled: bool = True):
+    def __init__(self, name: str, enabled: bool = True, quiet_s: float = 1.0):
         self.name = name
-        self.bar = tqdm(total=None, desc=name, unit="frame", disable=not enabled, dynamic_ncols=True)
+        self.bar = tqdm(total=None, desc=name, unit="frame", disable=not enabled, dynamic_ncols=True, delay=quiet_s)
+        self._shown_after = time.monotonic() + quiet_s
         self.current = ""
         self._compiling = ""
 
@@ -115,7 +118,8 @@ class RunProgress:
 
     def _show(self) -> None:
         text = self._compiling or self.current
-        self.bar.set_description_str(f"{self.name} [{text}]" if text else self.name)
+        refresh = time.monotonic() >= self._shown_after
+        self.bar.set_description_str(f"{self.name} [{text}]" if text else self.name, refresh=refresh)
 
     def start_frames(self, total: int | None, initial: int = 0) -> None:
         self.bar.reset(total=total)
