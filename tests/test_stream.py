@@ -115,3 +115,82 @@ def test_realsense_source_says_how_to_install(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "pyrealsense2", None)  # as if not installed
     with pytest.raises(DatasetError, match=r"pip install 'rgs_warp\[realsense\]'"):
         open_dataset(load_config(["dataset=realsense/d435", f"dataset.path={tmp_path / 'x.db3'}"]))
+
+
+class _FakeRealSense:
+    """The part of pyrealsense2 that RealSenseSource calls, recording what it was asked for: a live
+    camera's configuration (no hardware here), with one frame pair then a timeout."""
+
+    class stream:  # noqa: N801 (pyrealsense2's names)
+        depth, color = "depth", "color"
+
+    class format:  # noqa: N801
+        z16, rgb8 = "format.z16", "format.rgb8"
+
+    def __init__(self, frames: int = 1):
+        self.calls, self.frames = [], frames
+        fake = self
+
+        class Config:
+            def enable_device(self, serial):
+                fake.calls.append(("device", serial))
+
+            def enable_stream(self, kind, width, height, fmt, fps):
+                fake.calls.append((kind, width, height, fmt, fps))
+
+        self.config = Config
+
+    def pipeline(self):
+        fake = self
+        intr = SimpleNamespace(width=4, height=3, fx=3.0, fy=3.0, ppx=1.5, ppy=1.0, coeffs=[0.0] * 5)
+        video = SimpleNamespace(get_intrinsics=lambda: intr)
+        device = SimpleNamespace(first_depth_sensor=lambda: SimpleNamespace(get_depth_scale=lambda: 0.00025))
+        profile = SimpleNamespace(
+            get_device=lambda: device, get_stream=lambda kind: SimpleNamespace(as_video_stream_profile=lambda: video)
+        )
+
+        def frame(data, fmt):
+            return SimpleNamespace(
+                get_data=lambda: data,
+                get_timestamp=lambda: 2000.0,
+                get_profile=lambda: SimpleNamespace(format=lambda: fmt),
+            )
+
+        pair = SimpleNamespace(
+            get_color_frame=lambda: frame(np.full((3, 4, 3), 255, np.uint8), "format.rgb8"),
+            get_depth_frame=lambda: frame(np.full((3, 4), 4000, np.uint16), "format.z16"),
+        )
+
+        class Pipeline:
+            def start(self, config):
+                return profile
+
+            def try_wait_for_frames(self, timeout_ms):
+                fake.frames -= 1
+                return (True, pair) if fake.frames >= 0 else (False, None)
+
+            def stop(self):
+                fake.calls.append("stop")
+
+        return Pipeline()
+
+    def align(self, to):
+        return SimpleNamespace(process=lambda frames: frames)
+
+
+def test_realsense_live_camera_configuration():
+    """A live camera (no recording): depth z16 and colour rgb8 at the configured size and rate, the
+    serial number passed on, the colour intrinsics and the depth scale used; a camera that stops
+    sending is an error, not the end of the sequence."""
+    from rgs_warp.datasets import RealSenseSource
+
+    rs = _FakeRealSense()
+    source = RealSenseSource(width=4, height=3, fps=15, serial="123", rs=rs, timeout_ms=10)
+    assert rs.calls == [("device", "123"), ("depth", 4, 3, "format.z16", 15), ("color", 4, 3, "format.rgb8", 15)]
+    assert source.camera == Camera(3.0, 3.0, 1.5, 1.0, 4, 3) and source.depth_scale_m == 0.00025
+    frames = iter(source)
+    frame = next(frames)
+    np.testing.assert_allclose(frame.depth, 1.0)
+    assert frame.timestamp == 2.0 and frame.rgb.max() == 1.0
+    with pytest.raises(DatasetError, match="no frames for 10 ms"):
+        next(frames)
