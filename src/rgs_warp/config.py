@@ -860,7 +860,7 @@ def help_text() -> str:
 
 
 # The command line's run of a synthetic scene on the CPU when the user set no size (README, quick start):
-# the full default (240x136, 100 frames, 1050 initial mapping iterations) takes half an hour on 2 cores.
+# the full default (240x136, 100 frames, 1050 initial mapping iterations) takes over half an hour on 2 cores.
 # These values were measured to finish in under 3 minutes there, scene generation and kernel
 # compilation on fresh caches included, and still track and map (experiments/results/perf.md, "The
 # CPU-sized first run": 96x54 tracked worse, 2.3 cm; 30 frames reach a fast turn that 96x54 loses)
@@ -904,9 +904,9 @@ def cpu_sized_overrides(cfg: Config, overrides, device: str) -> tuple[list[str],
         f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}: {q['dataset.width']}x{q['dataset.height']} "
         f"pixels, the first {q['dataset.max_frames']} of {d.n_frames} frames, {q['tracking.iters']} tracking "
         f"iterations, {q['mapping.init_iters']} initial and {q['mapping.iters']} per-keyframe mapping iterations "
-        f"over {q['mapping.window']} keyframes (2-3 minutes on 2 cores).\n"
+        f"over {q['mapping.window']} keyframes (under 3 minutes on 2 cores).\n"
         f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} mapping iterations; "
-        f"half an hour on 2 cores, seconds on a GPU): add cpu_sized=false, or set any size yourself, e.g. "
+        f"over half an hour on 2 cores): add cpu_sized=false, or set any size yourself, e.g. "
         f"dataset.max_frames=40 (the rest then keeps its defaults)."
     )
     return extra, message
