@@ -135,3 +135,52 @@ def test_group_file_settings_of_other_sections(tmp_path, monkeypatch):
     monkeypatch.setattr(config_module, "CONFIG_DIR", tmp_path)
     with pytest.raises(ConfigError, match="tau_gard"):
         config_module.load_config(["dataset=x/bad"])
+
+
+def test_cpu_sized_run_only_on_the_cpu_without_sizes():
+    from rgs_warp.config import CPU_SIZED, cpu_sized_overrides
+
+    extra, message = cpu_sized_overrides(load_config([]), [], "cpu")
+    assert extra == [f"{k}={v}" for k, v in CPU_SIZED.items()]
+    assert "cpu_sized=false" in message and "120x68" in message and "25 of 100" in message
+    cfg = load_config(extra)
+    assert (cfg.dataset.width, cfg.dataset.height, cfg.dataset.max_frames, cfg.tracking.iters) == (120, 68, 25, 20)
+    office = ["dataset=synthetic/office0", "seed=3"]  # neither is a size
+    assert cpu_sized_overrides(load_config(office), office, "cpu")[0] == extra
+    for overrides in (
+        ["dataset.max_frames=10"],
+        ["dataset.n_frames=50"],
+        ["mapping.init_iters=100"],
+        ["cpu_sized=false"],
+    ):
+        assert cpu_sized_overrides(load_config(overrides), overrides, "cpu") == ([], ""), overrides
+    assert cpu_sized_overrides(load_config([]), [], "cuda:0") == ([], "")
+    tum = ["dataset=tum/fr1_desk"]  # a recorded sequence keeps its size
+    assert cpu_sized_overrides(load_config(tum), tum, "cpu") == ([], "")
+
+
+@pytest.mark.parametrize(
+    ("argv", "device", "sized"),
+    [([], "cpu", True), ([], "cuda:0", False), (["dataset.width=200", "dataset.height=100"], "cpu", False)],
+)
+def test_cli_applies_the_cpu_sized_run_and_says_so(argv, device, sized, monkeypatch, capsys, tmp_path):
+    """The command line resolves the device (mocked here), and on the CPU without sizes runs the
+    CPU-sized config and prints how to get the full run."""
+    import rgs_warp.run as run_module
+
+    seen = {}
+
+    def fake_run(cfg, viewer=None):
+        seen["cfg"] = cfg
+        return tmp_path, {"frames": 1, "keyframes": 1, "gaussians": 1, "fps": 1.0}
+
+    monkeypatch.setattr(run_module, "resolve_device", lambda name: device)
+    monkeypatch.setattr(run_module, "run", fake_run)
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    width = seen["cfg"].dataset.width
+    if sized:
+        assert width == 120 and seen["cfg"].dataset.max_frames == 25
+        assert "CPU-sized" in err and "cpu_sized=false" in err
+    else:
+        assert width == (200 if argv else 240) and "CPU-sized" not in err

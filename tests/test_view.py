@@ -175,7 +175,7 @@ def test_viewer_config_and_missing_viser(monkeypatch, capsys, tmp_path):
     monkeypatch.setitem(sys.modules, "viser", None)  # import viser now fails
     with pytest.raises(ImportError, match=r"pip install \"rgs_warp\[viewer\]\""):
         require_viser()
-    assert main(["viewer=true", f"output_dir={tmp_path}"]) == 1  # refused before the run starts
+    assert main(["viewer=true", "cpu_sized=false", f"output_dir={tmp_path}"]) == 1  # refused before the run
     err = capsys.readouterr().err
     assert 'pip install "rgs_warp[viewer]"' in err and len(err.strip().splitlines()) == 1
     assert not list(tmp_path.iterdir())

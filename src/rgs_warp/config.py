@@ -34,9 +34,10 @@ class ConfigError(ValueError):
 
 @dataclass
 class DatasetConfig:
-    type: str = "synthetic"  # replica | tum | 7scenes | synthetic
+    type: str = "synthetic"  # replica | tum | 7scenes | synthetic | realsense
     name: str = "room0"
-    path: str = ""  # relative to data_root unless absolute; unused for synthetic
+    # relative to data_root unless absolute; unused for synthetic; realsense: a recording, empty = live camera
+    path: str = ""
     stride: int = 1
     start: int = 0
     max_frames: int | None = None
@@ -56,7 +57,11 @@ class DatasetConfig:
     # without a pose are kept and the ATE is not scored
     require_pose: bool = True
     undistort: bool = True
-    # synthetic only
+    # realsense only: the live camera's frame rate and serial number (empty: the one connected);
+    # width and height below are its stream size
+    fps: int = 30
+    serial: str = ""
+    # synthetic (and a live realsense camera's stream)
     width: int = 240
     height: int = 136
     n_frames: int = 100
@@ -369,6 +374,9 @@ class Config:
     # (0: a free port; the console gives the URL), kept up after it until Ctrl-C
     viewer: bool = False
     viewer_port: int = 8080
+    # the command line on the CPU: a synthetic scene without any size key (CPU_SIZE_KEYS) given runs
+    # at CPU_SIZED's sizes (README, quick start); false: the sizes as configured
+    cpu_sized: bool = True
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -397,7 +405,7 @@ CHOICES = {
     "mode": ("rgbd", "mono"),
     "method": ("rgs", "baseline"),
     "tracking.brightness": ("gain", "affine", "off"),
-    "dataset.type": ("replica", "tum", "7scenes", "synthetic"),
+    "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 
 
@@ -449,6 +457,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "dataset.width": AT_LEAST_1,
     "dataset.height": AT_LEAST_1,
     "dataset.n_frames": AT_LEAST_1,
+    "dataset.fps": AT_LEAST_1,
     "dataset.depth_noise_m": NON_NEGATIVE,
     "dataset.seed": SEED,
     "render.sh_degree": Bound(0, 3),
@@ -862,6 +871,59 @@ def help_text() -> str:
 
     walk(Config(), "")
     return "\n".join(lines)
+
+
+# The command line's run of a synthetic scene on the CPU when the user set no size (README, quick start):
+# the full default (240x136, 100 frames, 1050 initial mapping iterations) takes over half an hour on 2 cores.
+# These values were measured to finish in under 3 minutes there, scene generation and kernel
+# compilation on fresh caches included, and still track and map (experiments/results/perf.md, "The
+# CPU-sized first run": 96x54 tracked worse, 2.3 cm; 30 frames reach a fast turn that 96x54 loses)
+CPU_SIZED = {
+    "dataset.width": 120,
+    "dataset.height": 68,
+    "dataset.max_frames": 25,
+    "tracking.iters": 20,
+    "mapping.init_iters": 100,
+    "mapping.iters": 15,
+    "mapping.window": 3,
+}
+# Keys that size a run: when the command line sets any of them, none of CPU_SIZED is applied (the user
+# chose the size; CPU_SIZED's keys and the others that change how much is computed)
+CPU_SIZE_KEYS = (
+    *CPU_SIZED,
+    "dataset.n_frames",
+    "dataset.stride",
+    "dataset.start",
+    "dataset.downscale",
+    "tracking.downscale",
+    "mapping.init_window",
+    "mapping.frame_iters",
+    "mapping.final_iters",
+)
+
+
+def cpu_sized_overrides(cfg: Config, overrides, device: str) -> tuple[list[str], str]:
+    """The ``key=value`` overrides that make the command line's run CPU-sized, and the message that
+    says so, or ``([], "")``: only when ``device`` (resolved) is the CPU, the dataset is a synthetic
+    scene (``cfg``, loaded from ``overrides``), ``cpu_sized`` is on and ``overrides`` set none of
+    ``CPU_SIZE_KEYS``."""
+    given = {item.split("=", 1)[0].strip() for item in overrides if "=" in item}
+    if not device.startswith("cpu") or cfg.dataset.type != "synthetic" or not cfg.cpu_sized:
+        return [], ""
+    if given & set(CPU_SIZE_KEYS):
+        return [], ""
+    extra = [f"{k}={v}" for k, v in CPU_SIZED.items()]
+    d, m, q = cfg.dataset, cfg.mapping, CPU_SIZED
+    message = (
+        f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}: {q['dataset.width']}x{q['dataset.height']} "
+        f"pixels, the first {q['dataset.max_frames']} of {d.n_frames} frames, {q['tracking.iters']} tracking "
+        f"iterations, {q['mapping.init_iters']} initial and {q['mapping.iters']} per-keyframe mapping iterations "
+        f"over {q['mapping.window']} keyframes (under 3 minutes on 2 cores).\n"
+        f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} mapping iterations; "
+        f"over half an hour on 2 cores): add cpu_sized=false, or set any size yourself, e.g. "
+        f"dataset.max_frames=40 (the rest then keeps its defaults)."
+    )
+    return extra, message
 
 
 def resolve_device(name: str) -> str:

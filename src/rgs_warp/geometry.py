@@ -109,3 +109,24 @@ def rigid_pose_problem(T: np.ndarray) -> str | None:
     if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
         return f"last row is {T[3].tolist()}, expected [0, 0, 0, 1]"
     return None
+
+
+def pose_to_transform(T: np.ndarray):
+    """A 4x4 rigid pose as a ``wp.transform`` (translation, quaternion x, y, z, w; float32), e.g. a
+    camera-to-world pose from ``SLAM.track`` for Warp code that takes transforms (warp.sim, a planner)."""
+    import warp as wp
+
+    T = np.asarray(T, dtype=np.float64)
+    problem = rigid_pose_problem(T)
+    if problem:
+        raise ValueError(f"not a rigid pose: {problem}")
+    q = matrix_to_quat(T[:3, :3])
+    return wp.transform(wp.vec3(*T[:3, 3]), wp.quat(*q))
+
+
+def transform_to_pose(t) -> np.ndarray:
+    """The 4x4 float64 pose of a ``wp.transform`` (``pose_to_transform``'s inverse, to float32)."""
+    import warp as wp
+
+    p, q = wp.transform_get_translation(t), wp.transform_get_rotation(t)
+    return pose_from_tq(np.array([p[0], p[1], p[2]]), np.array([q[0], q[1], q[2], q[3]]))

@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
-from tqdm import tqdm
 
 from rgs_warp.config import (
     Config,
     ConfigError,
     config_from_dict,
+    cpu_sized_overrides,
     help_text,
     load_config,
     load_saved_config,
@@ -32,7 +32,7 @@ from rgs_warp.config import (
     resolve_device,
     save_config,
 )
-from rgs_warp.datasets import DatasetError, open_dataset
+from rgs_warp.datasets import DatasetError, generates_scene, open_dataset
 from rgs_warp.eval import (
     LPIPS,
     ate_keyframes_and_all,
@@ -44,13 +44,16 @@ from rgs_warp.eval import (
     write_report,
 )
 from rgs_warp.io.atomic import SaveError, write_text_atomic
+from rgs_warp.progress import KernelLoads, RunProgress, watch_kernel_loads
 from rgs_warp.slam import SLAM
 
 USAGE = """usage: python -m rgs_warp.slam [group=option ...] [key=value ...]
        python -m rgs_warp.slam resume=RUN_DIR [device=...] [data_root=...]
 
 examples:
-  python -m rgs_warp.slam                                  # generated synthetic room (CPU-sized)
+  python -m rgs_warp.slam                                  # generated synthetic room (CPU-sized without a GPU)
+  python -m rgs_warp.slam cpu_sized=false                  # ... at its full size on the CPU too
+  python -m rgs_warp.slam dataset=realsense/d435           # a RealSense camera (dataset.path=REC: a recording)
   python -m rgs_warp.slam method=baseline                  # the same with the dense initialization baseline
   python -m rgs_warp.slam dataset=replica/office0 data_root=/data tracking.iters=40
   python -m rgs_warp.slam dataset=7scenes/redkitchen dataset.path=../shared/data/7scenes-redkitchen
@@ -133,7 +136,7 @@ def dataset_summary(ds) -> dict:
     c = ds.camera
     return {
         "dataset": repr(ds),
-        "frames": len(ds),
+        "frames": None if _is_stream(ds) else len(ds),  # a stream's length is known at its end
         "resolution": [c.width, c.height],
         "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy},
     }
@@ -200,8 +203,13 @@ class RunState:
 CHECKPOINT = "checkpoint.json"  # in the run folder: the latest complete checkpoint's folder
 
 
-def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, viewer=None) -> tuple[Path, dict]:
+def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, source=None, viewer=None) -> tuple[Path, dict]:
     """Run SLAM on the configured sequence and evaluate it; returns (run folder, metrics).
+
+    ``source``: frames from elsewhere instead of ``open_dataset(cfg)``: a ``CallbackSource`` (a ROS
+    subscriber, a camera SDK; README, "Sensors") or any loader.  A stream (a source without random
+    access, e.g. ``dataset.type=realsense``) has no checkpoints, and the run keeps host copies of the
+    frames its evaluation reads again (the keyframes and every ``eval.every``-th frame).
 
     The folder (``make_run_dir``; made once the dataset opened, its first frame was read and the SLAM
     was built, so a run failing at start-up leaves none) gets: ``config.yaml``, ``dataset.json``,
@@ -212,6 +220,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, viewer=
     While it runs, a checkpoint every ``checkpoint_every`` keyframes (``write_checkpoint``), removed
     when the run finished.  If the run stops early (error, Ctrl-C, SIGTERM), what was tracked so far is
     still saved, and the error is re-raised; ``resume(run_dir)`` continues it from its last checkpoint.
+    The progress bar names the phase (generating the scene, compiling kernels, tracking, evaluating).
 
     ``viewer``: an ``rgs_warp.view.Viewer`` whose ``update`` runs after each frame (its time per frame is
     ``viewer_seconds`` in ``log.jsonl``); by default, with ``cfg.viewer``, one opened for this run and
@@ -224,45 +233,99 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, viewer=
         from rgs_warp.view import open_viewer
 
         with open_viewer(cfg.viewer_port) as viewer:
-            return run(cfg, run_dir, progress, viewer)
+            return run(cfg, run_dir, progress, source, viewer)
     device = resolve_device(cfg.device)
-    ds = open_dataset(cfg, device=device)
-    first = ds[0]
-    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=first.pose_gt)
-    run_dir = make_run_dir(cfg) if run_dir is None else _own_run_dir(Path(run_dir))
-    if progress and cfg.run_name and run_dir.name != cfg.run_name:
-        print(f"note: {Path(cfg.output_dir) / cfg.run_name} exists; this run writes {run_dir}", file=sys.stderr)
-    try:
-        save_config(cfg, run_dir / "config.yaml")
-        write_text_atomic(run_dir / "dataset.json", json.dumps(dataset_summary(ds), indent=2))
-    except OSError as e:
-        raise OutputError(f"cannot write into the run folder {run_dir}: {e.strerror or e}") from e
-    return _run_frames(cfg, ds, slam, run_dir, RunState(frames_total=len(ds)), progress, viewer)
+    bar = RunProgress(getattr(source, "name", f"{cfg.dataset.type}/{cfg.dataset.name}"), enabled=progress)
+    with watch_kernel_loads(bar.kernel_load) as kernels:
+        try:
+            if source is None:
+                bar.phase("generating the scene (first use)" if generates_scene(cfg) else "opening the dataset")
+            ds = open_dataset(cfg, device=device) if source is None else source
+            frames = None
+            if _is_stream(ds):
+                bar.phase("waiting for the first frame")
+                frames = iter(ds)
+                first = next(frames, None)
+                if first is None:
+                    raise DatasetError(f"{ds!r}: no frame came")
+                frames = itertools.chain([first], frames)
+            else:
+                first = ds[0]
+            bar.phase("starting")
+            slam = SLAM(cfg, ds.camera, device=device, T_first_WC=first.pose_gt)
+            run_dir = make_run_dir(cfg) if run_dir is None else _own_run_dir(Path(run_dir))
+            if progress and cfg.run_name and run_dir.name != cfg.run_name:
+                bar.write(f"note: {Path(cfg.output_dir) / cfg.run_name} exists; this run writes {run_dir}", sys.stderr)
+            try:
+                save_config(cfg, run_dir / "config.yaml")
+                write_text_atomic(run_dir / "dataset.json", json.dumps(dataset_summary(ds), indent=2))
+            except OSError as e:
+                raise OutputError(f"cannot write into the run folder {run_dir}: {e.strerror or e}") from e
+        except BaseException:
+            bar.close()
+            raise
+        state = RunState(frames_total=0 if frames is not None else len(ds))
+        return _run_frames(cfg, ds, slam, run_dir, state, bar, kernels, frames, viewer)
+
+
+def _is_stream(ds) -> bool:
+    """A frame source without random access (``CallbackSource``, ``RealSenseSource``)."""
+    return not hasattr(ds, "__getitem__")
+
+
+class KeptFrames:
+    """The frames of a stream that a run's evaluation reads again (``ds[i]``), kept as they pass."""
+
+    def __init__(self, camera):
+        self.camera = camera
+        self.frames: dict[int, object] = {}
+
+    def keep(self, index: int, frame) -> None:
+        self.frames[index] = frame
+
+    def __getitem__(self, i: int):
+        return self.frames[i]
 
 
 def _run_frames(
-    cfg: Config, ds, slam: SLAM, run_dir: Path, state: RunState, progress: bool, viewer=None
+    cfg: Config,
+    ds,
+    slam: SLAM,
+    run_dir: Path,
+    state: RunState,
+    bar: RunProgress,
+    kernels: KernelLoads,
+    stream=None,
+    viewer=None,
 ) -> tuple[Path, dict]:
     """Frames ``state.next_frame`` .. the end through ``slam`` (checkpoints on the way), then the final
-    save and the evaluation; what ``run`` and ``resume`` share."""
+    save and the evaluation; what ``run`` and ``resume`` share.  ``stream``: the frames of a stream
+    (``ds`` is then its source; no checkpoints).  Closes ``bar``."""
     t_start = time.perf_counter() - state.elapsed_s
-    name = f"{cfg.dataset.type}/{cfg.dataset.name}"
-    bar = tqdm(total=len(ds), initial=state.next_frame, desc=name, unit="frame", disable=not progress)
+    bar.start_frames(None if stream is not None else len(ds), state.next_frame)
     # a line per frame, readable while it runs; a resumed run appends to the lines up to its checkpoint
     log = (run_dir / "log.jsonl").open("a" if state.next_frame else "w", encoding="utf-8", buffering=1)
-    frames = iter(ds) if state.next_frame == 0 else (ds[i] for i in range(state.next_frame, len(ds)))
+    if stream is not None:
+        frames, kept = stream, KeptFrames(ds.camera)
+    else:
+        frames = iter(ds) if state.next_frame == 0 else (ds[i] for i in range(state.next_frame, len(ds)))
+        kept = None
+    checkpoints = cfg.checkpoint_every if kept is None else 0  # a stream cannot be read again to resume
     try:
         for frame in frames:
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
             state.gt_poses.append(frame.pose_gt)
             state.next_frame = result.index + 1
+            scored_later = result.keyframe or result.index % cfg.eval.every == 0 or slam.bootstrap is not None
+            if kept is not None and scored_later:
+                kept.keep(result.index, frame)
             entry = _log_entry(cfg, slam, result, state)
             if viewer is not None:
                 t_view = time.perf_counter()
                 viewer.update(slam, result, frame.rgb, state.gt_poses, len(state.lost))
                 entry["viewer_seconds"] = round(time.perf_counter() - t_view, 5)
             log.write(json.dumps(entry) + "\n")
-            if result.keyframe and 0 < cfg.checkpoint_every <= len(slam.keyframe_indices) - state.checkpoint_keyframes:
+            if result.keyframe and 0 < checkpoints <= len(slam.keyframe_indices) - state.checkpoint_keyframes:
                 state.checkpoint_keyframes = len(slam.keyframe_indices)
                 state.elapsed_s = time.perf_counter() - t_start
                 write_checkpoint(run_dir, slam, state, warn=bar.write)
@@ -294,16 +357,22 @@ def _run_frames(
                     file=sys.stderr,
                 )
         raise
-    bar.close()
     log.close()
-    _save_run(cfg, slam, run_dir)
-    wall = time.perf_counter() - t_start
     try:
+        bar.phase("saving" if cfg.mapping.final_iters <= 0 else "final refinement, saving")
+        _save_run(cfg, slam, run_dir)
+        wall = time.perf_counter() - t_start
+        bar.phase("evaluating")
         tracking = tracking_section(state.tracked, state.lost)
-        metrics = evaluate_run(cfg, ds, slam, state.gt_poses, run_dir, wall, tracking)
+        scored = ds if kept is None else kept
+        metrics = evaluate_run(cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary())
     except OSError as e:
+        if isinstance(e, SaveError):
+            raise
         saved = "trajectory.txt, keyframes.npz, map.ply, config.yaml, convergence.json"
         raise OutputError(f"{run_dir}: writing the report failed ({e}); saved before it: {saved}") from e
+    finally:
+        bar.close()
     remove_checkpoints(run_dir)
     return run_dir, metrics
 
@@ -460,15 +529,25 @@ def resume(
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ResumeError(f"{pointer}: the checkpoint it names cannot be read: {type(e).__name__}: {e}") from e
     device = resolve_device(cfg.device)
-    ds = open_dataset(cfg, device=device)
-    if len(ds) != state.frames_total:
-        raise ResumeError(f"{run_dir}: the dataset has {len(ds)} frames now, the run had {state.frames_total}")
-    slam = SLAM.load(folder, device=device)
-    if len(slam.poses) != state.next_frame:
-        raise ResumeError(f"{folder}: {len(slam.poses)} poses, run_state.json says {state.next_frame} frames")
-    lines = (run_dir / "log.jsonl").read_text(encoding="utf-8").splitlines(keepends=True)
-    write_text_atomic(run_dir / "log.jsonl", "".join(lines[: state.next_frame]))
-    return _run_frames(cfg, ds, slam, run_dir, state, progress, viewer)
+    bar = RunProgress(f"{cfg.dataset.type}/{cfg.dataset.name}", enabled=progress)
+    with watch_kernel_loads(bar.kernel_load) as kernels:
+        try:
+            bar.phase("opening the dataset")
+            ds = open_dataset(cfg, device=device)
+            if _is_stream(ds):
+                raise ResumeError(f"{run_dir}: its frames came from a stream ({ds!r}), which cannot be read again")
+            if len(ds) != state.frames_total:
+                raise ResumeError(f"{run_dir}: the dataset has {len(ds)} frames now, the run had {state.frames_total}")
+            bar.phase("loading the checkpoint")
+            slam = SLAM.load(folder, device=device)
+            if len(slam.poses) != state.next_frame:
+                raise ResumeError(f"{folder}: {len(slam.poses)} poses, run_state.json says {state.next_frame} frames")
+            lines = (run_dir / "log.jsonl").read_text(encoding="utf-8").splitlines(keepends=True)
+            write_text_atomic(run_dir / "log.jsonl", "".join(lines[: state.next_frame]))
+        except BaseException:
+            bar.close()
+            raise
+        return _run_frames(cfg, ds, slam, run_dir, state, bar, kernels, viewer=viewer)
 
 
 def tracking_section(tracked: int, lost: list[tuple[int, str]]) -> dict:
@@ -512,10 +591,18 @@ def write_convergence(run_dir: Path, points: list[dict], title: str) -> None:
 
 
 def evaluate_run(
-    cfg: Config, ds, slam: SLAM, gt_poses: list, run_dir: Path, wall_s: float, tracking: dict | None = None
+    cfg: Config,
+    ds,
+    slam: SLAM,
+    gt_poses: list,
+    run_dir: Path,
+    wall_s: float,
+    tracking: dict | None = None,
+    kernels: dict | None = None,
 ) -> dict:
     """Metrics of a finished run (supplement §3) written with ``write_report``; ``tracking``: the
-    section of ``tracking_section``."""
+    section of ``tracking_section``; ``kernels``: ``KernelLoads.summary()`` (the seconds the run spent
+    compiling Warp kernels, part of ``wall_s``)."""
     _, est = slam.trajectory()
     n = len(est)
     metrics: dict = {
@@ -547,6 +634,8 @@ def evaluate_run(
             "p99": float(np.percentile(lat, 99)),
             "max": float(lat.max()),
         }
+    if kernels is not None:
+        metrics["kernels"] = kernels
     if slam.final_refinement is not None:  # mapping.final_iters: reported apart from the run's mapping
         metrics["final_refinement"] = slam.final_refinement
     if tracking is not None:
@@ -658,8 +747,15 @@ def main(argv: list[str] | None = None) -> int:
         print(help_text())
         return 0
     resume_dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
+    # the progress bar names the kernel modules as Warp compiles them, instead of Warp's line for each
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     try:
         cfg = None if resume_dirs else load_config(argv)
+        if cfg is not None:
+            extra, message = cpu_sized_overrides(cfg, argv, resolve_device(cfg.device))
+            if extra:
+                print(message, file=sys.stderr)
+                cfg = load_config([*argv, *extra])
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -719,6 +815,12 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
         print(
             f"final     {final['iters']} iterations over {final['keyframes']} keyframes in {final['seconds']:.1f} s: "
             f"keyframe PSNR {final['keyframe_psnr_before_db']:.2f} -> {final['keyframe_psnr_after_db']:.2f} dB"
+        )
+    kernels = metrics.get("kernels") or {}
+    if kernels.get("compiled_modules"):
+        print(
+            f"kernels   {kernels['compiled_modules']} Warp modules compiled in {kernels['compile_s']:.0f} s of the run "
+            f"(the first run only: cached in {wp.config.kernel_cache_dir})"
         )
     print(f"report    {run_dir / 'metrics.md'}")
     tracking = metrics.get("tracking") or {}

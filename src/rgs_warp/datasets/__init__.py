@@ -8,25 +8,31 @@ from rgs_warp.config import check_image_size
 from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset
 from rgs_warp.datasets.replica import ReplicaDataset
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
-from rgs_warp.datasets.synthetic import SyntheticDataset
+from rgs_warp.datasets.stream import CallbackSource, RealSenseSource
+from rgs_warp.datasets.synthetic import SyntheticConfig, SyntheticDataset
+from rgs_warp.datasets.synthetic.dataset import sequence_dir
 from rgs_warp.datasets.tum import TUMDataset
 
 __all__ = [
+    "CallbackSource",
     "DatasetError",
     "DatasetWarning",
     "RGBDDataset",
+    "RealSenseSource",
     "ReplicaDataset",
     "SevenScenesDataset",
     "SyntheticDataset",
     "TUMDataset",
+    "generates_scene",
     "open_dataset",
 ]
 
 
-def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
+def open_dataset(cfg, device: str | None = None) -> RGBDDataset | CallbackSource:
     """The dataset named by a ``Config`` (its ``dataset`` section and ``data_root``); ``device`` is
     where a synthetic sequence is rendered if it is not cached yet.  Images that ``dataset.downscale``
-    or ``tracking.downscale`` would shrink below what the pipeline needs are a ``ConfigError``."""
+    or ``tracking.downscale`` would shrink below what the pipeline needs are a ``ConfigError``.
+    ``dataset.type=realsense`` gives a ``RealSenseSource`` (a stream: no length, no random access)."""
     ds = _open(cfg, device)
     camera = ds.native_camera
     check_image_size(camera.width, camera.height, cfg, native=True)
@@ -35,6 +41,11 @@ def open_dataset(cfg, device: str | None = None) -> RGBDDataset:
 
 def _open(cfg, device: str | None) -> RGBDDataset:
     d = cfg.dataset
+    if d.type == "realsense":
+        recording = cfg.dataset_path() if d.path else None
+        return RealSenseSource(
+            recording, width=d.width, height=d.height, fps=d.fps, serial=d.serial, max_frames=d.max_frames
+        )
     if d.type != "synthetic":
         path = cfg.dataset_path()
         if not path.is_dir():
@@ -74,16 +85,25 @@ def _open(cfg, device: str | None) -> RGBDDataset:
             **common,
         )
     if d.type == "synthetic":
-        return SyntheticDataset(
-            d.name,
-            width=d.width,
-            height=d.height,
-            n_frames=d.n_frames,
-            depth_noise_m=d.depth_noise_m,
-            exposure_drift=d.exposure_drift,
-            motion_blur=d.motion_blur,
-            seed=d.seed,
-            device=device,
-            **common,
-        )
+        return SyntheticDataset(d.name, device=device, **_synthetic_options(d), **common)
     raise DatasetError(f"dataset.type {d.type!r} has no loader")
+
+
+def _synthetic_options(d) -> dict:
+    """The ``SyntheticConfig`` fields that a config's ``dataset`` section sets."""
+    return dict(
+        width=d.width,
+        height=d.height,
+        n_frames=d.n_frames,
+        depth_noise_m=d.depth_noise_m,
+        exposure_drift=d.exposure_drift,
+        motion_blur=d.motion_blur,
+        seed=d.seed,
+    )
+
+
+def generates_scene(cfg) -> bool:
+    """Whether ``open_dataset(cfg)`` renders a synthetic sequence (not in ``$RGS_CACHE`` yet)."""
+    if cfg.dataset.type != "synthetic":
+        return False
+    return not sequence_dir(SyntheticConfig(scene=cfg.dataset.name, **_synthetic_options(cfg.dataset))).is_dir()

@@ -26,6 +26,11 @@ def cache_key(cfg: SyntheticConfig) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
+def sequence_dir(cfg: SyntheticConfig, root: Path | None = None) -> Path:
+    """Where the sequence for ``cfg`` is cached (under ``root``, default ``cache_dir()``)."""
+    return (Path(root) if root is not None else cache_dir()) / f"{cfg.scene}-{cache_key(cfg)}"
+
+
 def ensure_sequence(
     cfg: SyntheticConfig, device: str | None = None, root: Path | None = None, progress: bool = True
 ) -> Path:
@@ -34,10 +39,10 @@ def ensure_sequence(
     Generation goes to a temporary sibling folder that is renamed into place only when complete, so
     an interrupted run never leaves a folder that a later run would take for a finished one.
     """
-    root = Path(root) if root is not None else cache_dir()
-    final = root / f"{cfg.scene}-{cache_key(cfg)}"
+    final = sequence_dir(cfg, root)
     if final.is_dir():
         return final
+    root = final.parent
     root.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=root))
     try:

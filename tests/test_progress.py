@@ -1,0 +1,81 @@
+"""The run's progress bar phases and the record of the Warp kernel modules a run loads."""
+
+import numpy as np
+import warp as wp
+
+from rgs_warp.progress import KernelLoads, RunProgress, watch_kernel_loads
+
+
+def _fresh_kernel(step: float):
+    """A kernel in a module of its own (``step`` makes its code, hence its module, new)."""
+
+    @wp.kernel(module="unique")
+    def add_step(x: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        x[i] = x[i] + step
+
+    return add_step
+
+
+def test_watch_kernel_loads_reports_each_module_once(device):
+    kernel = _fresh_kernel(1.0)
+    calls = []
+    x = wp.zeros(4, dtype=wp.float32, device=device)
+    with watch_kernel_loads(lambda name, cached: calls.append((name, cached))) as loads:
+        wp.launch(kernel, dim=4, inputs=[x], device=device)
+        wp.launch(kernel, dim=4, inputs=[x], device=device)  # loaded: not reported again
+    np.testing.assert_array_equal(x.numpy(), 2.0)
+    names = [name for name, _ in loads.compiled + loads.cached]
+    assert names == [kernel.module.name]
+    assert calls[0][0] == kernel.module.name and calls[-1] == ("", True) and len(calls) == 2
+    assert loads.load_s > 0.0 and set(loads.summary()) == {"compiled_modules", "compile_s", "cached_modules", "load_s"}
+    # outside the block Warp's own loading is back
+    with watch_kernel_loads() as after:
+        pass
+    wp.launch(_fresh_kernel(0.5), dim=4, inputs=[x], device=device)
+    assert after.compiled == [] and after.cached == []
+
+
+def test_progress_bar_is_silent_at_first(capsys):
+    bar = RunProgress("synthetic/room0", quiet_s=60.0)
+    bar.phase("opening the dataset")
+    bar.close()
+    assert capsys.readouterr().err == ""
+    bar = RunProgress("synthetic/room0", quiet_s=0.0)
+    bar.phase("opening the dataset")
+    bar.close()
+    assert "synthetic/room0 [opening the dataset]" in capsys.readouterr().err
+
+
+def test_progress_bar_names_the_phase_and_the_module_compiling():
+    bar = RunProgress("synthetic/room0", enabled=False)
+    bar.phase("generating the scene (first use)")
+    assert bar.bar.desc == "synthetic/room0 [generating the scene (first use)]"
+    bar.start_frames(40)
+    assert bar.bar.total == 40 and bar.bar.desc.endswith("[tracking]")
+    bar.kernel_load("rgs_warp.kernels.rasterize", False)
+    assert bar.bar.desc == "synthetic/room0 [compiling kernels: rasterize]"
+    bar.kernel_load("", True)
+    assert bar.bar.desc.endswith("[tracking]")
+    bar.kernel_load("rgs_warp.kernels.ssim", True)
+    assert bar.bar.desc.endswith("[loading kernels: ssim]")
+    bar.close()
+
+
+def test_kernel_loads_sums_compile_seconds():
+    loads = KernelLoads(compiled=[("a", 1.5), ("b", 2.0)], cached=[("c", 0.25)])
+    assert loads.compile_s == 3.5 and loads.load_s == 3.75
+    assert loads.summary()["compiled_modules"] == 2
+
+
+def test_the_bar_says_when_a_scene_is_generated(tmp_path, monkeypatch, device):
+    from rgs_warp.config import load_config
+    from rgs_warp.datasets import generates_scene, open_dataset
+
+    monkeypatch.setenv("RGS_CACHE", str(tmp_path))
+    cfg = load_config(["dataset.width=32", "dataset.height=18", "dataset.n_frames=2", f"device={device}"])
+    assert generates_scene(cfg)
+    open_dataset(cfg, device=device)
+    assert not generates_scene(cfg)
+    assert generates_scene(load_config(["dataset.width=32", "dataset.height=18", "dataset.n_frames=3"]))
+    assert not generates_scene(load_config(["dataset=tum/fr1_desk"]))
