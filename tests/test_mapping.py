@@ -349,6 +349,35 @@ def test_mapping_refines_corrupted_colours(device, room):
     assert np.all(gmap.column("obs_count").numpy()[:n] <= 180) and gmap.column("obs_count").numpy()[:n].max() > 0
 
 
+@pytest.mark.parametrize("per_iter, per_step", [(0, 3), (1, 1), (2, 2)])
+def test_views_per_iteration_renders_a_random_subset(device, room, per_iter, per_step):
+    """``mapping.views_per_iter``: each iteration renders that many views of the window, a fresh
+    subset each time (every view still seen over the iterations); 0 renders all of them."""
+    import dataclasses
+
+    cam = room["camera"]
+    kf, slots = _keyframes(room, room["frames"], device)
+    renderer = Renderer(device)
+    cfg = dataclasses.replace(MappingConfig(), views_per_iter=per_iter)
+    mapper = Mapper(cfg, cam, _room_map(room, device), device, renderer=renderer)
+    rendered, steps = [], []
+    forward, map_step = renderer.forward, mapper._map_step
+
+    def counted_forward(*args, **kwargs):
+        rendered.append(1)
+        return forward(*args, **kwargs)
+
+    def recorded_step(keyframes, window, views, *args):
+        steps.append(list(views))
+        return map_step(keyframes, window, views, *args)
+
+    renderer.forward, mapper._map_step = counted_forward, recorded_step
+    mapper.optimize(kf, slots, 8)
+    assert [len(v) for v in steps] == [per_step] * 8
+    assert len(rendered) == 8 * per_step
+    assert len({j for v in steps for j in v}) >= 2  # not always the same view
+
+
 def _rows(n, rng):
     q = rng.normal(size=(n, 4))
     return (

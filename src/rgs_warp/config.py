@@ -222,6 +222,9 @@ class MappingConfig:
     # drawn from every keyframe of the run (host copies keep those the buffer evicted); 0 = off
     final_iters: int = 0
     window: int = 5  # keyframes in the sliding window (Table 1)
+    # views of the window rendered per mapping iteration, a fresh random subset each time (0: every view,
+    # Table 1's joint window step); fewer views make an iteration cheaper in proportion
+    views_per_iter: int = 0
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
     lr_color: float = 2e-3  # Table 1 (the DC colour)
@@ -523,6 +526,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.frame_iters": NON_NEGATIVE,
     "mapping.final_iters": NON_NEGATIVE,
     "mapping.async_queue": NON_NEGATIVE,
+    "mapping.views_per_iter": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,
     "mapping.init_iters": AT_LEAST_1,
     "mapping.init_window": AT_LEAST_1,

@@ -242,6 +242,8 @@ class Mapper:
         result = MappingResult(iters, np.zeros(0), np.zeros(0), np.zeros(0))
         for it in range(iters):
             views = list(self.rng.permutation(k_win))[::-1]  # every view, in a fresh order each iteration
+            if 0 < self.cfg.views_per_iter < k_win:
+                views = views[: self.cfg.views_per_iter]  # or a fresh random subset of them
             self._map_step(
                 keyframes, window, views, it, use_depth, blocks, cosine_factor(it, iters, self.cfg.lr_final_factor)
             )
