@@ -3,6 +3,7 @@ errors and n/a reasons in eval.md, the convergence comparison, plots, eval.json,
 scene selection."""
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +153,7 @@ def test_errors_and_na_reasons_in_markdown(result):
     assert cell.startswith("error [^")
     note = cell.split()[-1]
     assert f"{note}: run failed: ValueError: baseline: dense init not implemented | yet" in md
-    lpips = t["Rendering", "synthetic", "LPIPS ↓", "rgs"][0]
+    lpips = t["Rendering", "synthetic", "LPIPS AlexNet ↓", "rgs"][0]
     assert lpips.startswith("n/a [^") and f"{lpips.split()[-1]}: no LPIPS weights given" in md
     assert "no ground-truth mesh for this sequence" in md
     assert "measured on CUDA devices only" in md
@@ -429,3 +430,38 @@ def test_without_a_sweep_the_records_and_header_are_as_before(result):
     assert "rows" not in res["header"] and "variants" not in res["header"]
     assert not any("variant" in r for r in res["runs"])
     assert list(res["runs"][0])[:5] == ["scene", "method", "repeat", "seed", "run_dir"]
+
+
+# ---- the Ray path without Ray (tests/test_eval_suite_ray.py runs it) -----------------------------------
+
+
+def test_ray_task_options_ask_for_a_gpu_on_cuda(monkeypatch):
+    monkeypatch.delenv(suite.KILL_ENV, raising=False)
+    gpu = suite.ray_task_options("cuda:0")
+    assert gpu == {"num_gpus": 1.0, "num_cpus": 1, "max_retries": 1, "retry_exceptions": False}
+    assert suite.ray_task_options("cuda:0", 0.5)["num_gpus"] == 0.5
+    assert suite.ray_task_options("cpu") == {"num_cpus": 1, "max_retries": 1, "retry_exceptions": False}
+    monkeypatch.setenv(suite.KILL_ENV, "x-rgs-0:1")
+    assert suite.ray_task_options("cpu")["runtime_env"] == {"env_vars": {suite.KILL_ENV: "x-rgs-0:1"}}
+
+
+def test_ray_path_without_ray_says_what_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    with pytest.raises(ImportError, match=r"rgs_warp\[cluster\]"):
+        suite.run_suite(PLAN[:1], ("rgs",), 1, tmp_path, runner=fake_runner, progress=False, cluster="")
+    argv = ["--ray", "--device", "cpu", "--scenes", "synthetic/room0", "--out", str(tmp_path), "--repeats", "1"]
+    monkeypatch.setattr(suite, "check_evaluation_imports", lambda: None)
+    assert suite.main(argv) == 1
+
+
+def test_ray_with_another_gpu_than_cuda0_is_refused(capsys):
+    assert suite.main(["--ray", "--device", "cuda:1"]) == 2
+    assert "each task sees its own GPU as cuda:0" in capsys.readouterr().err
+
+
+def test_peer_metrics_named_in_the_tables(result):
+    """The peers' numbers each under a name that says whose they are (SplaTAM's "SSIM" is MS-SSIM)."""
+    out, _ = result
+    t = _tables((out / "eval.md").read_text())
+    for label in ("SSIM raw ↑", "SSIM 3DGS zero-padded (MonoGS's) ↑", "MS-SSIM (SplaTAM's SSIM) ↑", "LPIPS AlexNet ↓"):
+        assert ("Rendering", "synthetic", label, "rgs") in t, label

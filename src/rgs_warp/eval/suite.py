@@ -105,9 +105,9 @@ METRICS = (
         2,
     ),
     # the peers' SSIMs, named apart: MonoGS's (3DGS's zero-padded) and SplaTAM's "SSIM" (MS-SSIM)
-    Metric("ssim_3dgs", ("photometric", "ssim_3dgs"), "SSIM 3DGS zero-padded", "Rendering", False, 3),
-    Metric("ms_ssim", ("photometric", "ms_ssim"), "MS-SSIM", "Rendering", False, 3),
-    Metric("lpips", ("photometric", "lpips"), "LPIPS", "Rendering", True, 3),
+    Metric("ssim_3dgs", ("photometric", "ssim_3dgs"), "SSIM 3DGS zero-padded (MonoGS's)", "Rendering", False, 3),
+    Metric("ms_ssim", ("photometric", "ms_ssim"), "MS-SSIM (SplaTAM's SSIM)", "Rendering", False, 3),
+    Metric("lpips", ("photometric", "lpips"), "LPIPS AlexNet", "Rendering", True, 3),
     Metric("depth_l1_cm", ("photometric", "depth_l1_cm"), "Depth L1 (cm)", "Rendering", True, 2),
     Metric("acc_cm", ("mesh", "acc_cm"), "Acc. (cm)", "Reconstruction", True, 2),
     Metric("comp_cm", ("mesh", "comp_cm"), "Comp. (cm)", "Reconstruction", True, 2),
@@ -497,6 +497,17 @@ def _ray_task(
     return _one_run(entry, method, repeat, runs_dir, runner, extra, False, variant)
 
 
+def ray_task_options(device: str, gpus_per_task: float = 1.0) -> dict:
+    """What a run's Ray task asks for: ``gpus_per_task`` GPUs (and a CPU) on CUDA, else one CPU; one
+    retry when its worker dies (a Python exception is the run's own error, recorded, never retried:
+    the CPU SLAM would fail the same way again); the test hook ``KILL_ENV`` passed on when set."""
+    resources = {"num_gpus": gpus_per_task, "num_cpus": 1} if device.startswith("cuda") else {"num_cpus": 1}
+    options = {**resources, "max_retries": 1, "retry_exceptions": False}
+    if os.environ.get(KILL_ENV):
+        options["runtime_env"] = {"env_vars": {KILL_ENV: os.environ[KILL_ENV]}}
+    return options
+
+
 def _run_on_ray(
     jobs: list[tuple],
     runs_dir: Path,
@@ -522,11 +533,7 @@ def _run_on_ray(
     if started:
         ray.init(address=cluster or None)
     runs_dir = Path(runs_dir).resolve()  # the workers' working directory is not the driver's
-    resources = {"num_gpus": gpus_per_task, "num_cpus": 1} if device.startswith("cuda") else {"num_cpus": 1}
-    options = {**resources, "max_retries": 1, "retry_exceptions": False}
-    if os.environ.get(KILL_ENV):
-        options["runtime_env"] = {"env_vars": {KILL_ENV: os.environ[KILL_ENV]}}
-    task = ray.remote(_ray_task).options(**options)
+    task = ray.remote(_ray_task).options(**ray_task_options(device, gpus_per_task))
     runs: list[dict | None] = [None] * len(jobs)
     pending = {}
     try:
