@@ -454,6 +454,30 @@ def test_ray_path_without_ray_says_what_to_install(tmp_path, monkeypatch):
     assert suite.main(argv) == 1
 
 
+def test_ray_without_address_before_overrides(monkeypatch, tmp_path):
+    """``--ray key=value``: the override is an override, not the cluster's address."""
+    seen = {}
+    monkeypatch.setattr(suite, "check_evaluation_imports", lambda: None)
+    monkeypatch.setattr(suite, "run_suite", lambda *a, **k: seen.update(k) or {"runs": []})
+    argv = [
+        "--scenes",
+        "synthetic/room0",
+        "--device",
+        "cpu",
+        "--out",
+        str(tmp_path),
+        "--ray",
+        "tracking.iters=3",
+        "seed=1",
+    ]
+    suite.main(argv)
+    assert seen["cluster"] == "" and seen["extra_overrides"] == ["device=cpu", "tracking.iters=3", "seed=1"]
+    suite.main([*argv[:-3], "--ray", "ray://head:10001", "seed=1"])
+    assert seen["cluster"] == "ray://head:10001" and seen["extra_overrides"] == ["device=cpu", "seed=1"]
+    suite.main(argv[:-3])
+    assert seen["cluster"] is None
+
+
 def test_ray_with_another_gpu_than_cuda0_is_refused(capsys):
     assert suite.main(["--ray", "--device", "cuda:1"]) == 2
     assert "each task sees its own GPU as cuda:0" in capsys.readouterr().err

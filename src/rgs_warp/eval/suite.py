@@ -12,6 +12,12 @@ folders go to ``<out>/eval_runs/``.
 A run that raises (an absent dataset, a method not implemented yet) is recorded with its error and
 the suite goes on; a metric a run could not compute (None with ``<name>_na_reason``, see
 ``eval.report``) shows as "n/a" with the reason as a footnote.
+
+``--sweep SPEC.yaml`` runs an ablation written as one file (``load_sweep``: scenes, methods, repeats,
+overrides, named override sets and/or a grid); each method with each override set is a row of the
+tables. ``--ray [ADDRESS]`` runs one Ray task per run (``_run_on_ray``: a GPU each on CUDA, else a
+CPU) and gathers the records back into the same tables; without it the runs go one after another
+here, as they always did.
 """
 
 from __future__ import annotations
@@ -1039,7 +1045,8 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         metavar="ADDRESS",
         help="one Ray task per run (pip install 'rgs_warp[cluster]'): without ADDRESS ray.init()'s default "
-        "(RAY_ADDRESS, else a local cluster), else the cluster's address (auto, ray://head:10001)",
+        "(RAY_ADDRESS, else a local cluster), else the cluster's address (auto, ray://head:10001; a key=value "
+        "right after --ray is an override, not an address)",
     )
     p.add_argument(
         "--gpus-per-task", type=float, default=1.0, help="GPUs a Ray task asks for on CUDA (default 1; 0.5 packs two)"
@@ -1050,6 +1057,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    if args.ray and "=" in args.ray:  # "--ray key=value": argparse took the first override as the address
+        args.overrides.insert(0, args.ray)
+        args.ray = ""
     device = _device_of([f"device={args.device}"])
     if args.ray is not None and device.startswith("cuda:") and device != "cuda:0":
         print("error: with --ray each task sees its own GPU as cuda:0; use --device cuda:0", file=sys.stderr)
