@@ -32,7 +32,7 @@ def _sweep(tmp_path: Path, scenes: str) -> Path:
 
 @pytest.fixture(scope="module")
 def cluster():
-    ray.init(num_cpus=2, include_dashboard=False)
+    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 1024**2)
     yield
     ray.shutdown()
 
