@@ -95,3 +95,12 @@ def test_a_run_killed_twice_is_an_error_row_and_resume_redoes_only_it(tmp_path, 
     assert again["runs"][0]["resumed"] and again["runs"][0]["metrics"] == ok["metrics"]
     assert again["runs"][1]["status"] == "ok" and "resumed" not in again["runs"][1]
     assert finished.stat().st_mtime_ns == written  # the finished run was not run again
+
+
+def test_cuda_runs_on_a_cluster_without_gpus_fail_at_once(tmp_path, cluster, capsys):
+    """Not a sweep whose tasks wait for ever for a GPU: an error that says why, before any run."""
+    spec = _sweep(tmp_path, "synthetic/room0")
+    assert suite.main(["--sweep", str(spec), "--device", "cuda:0", "--out", str(tmp_path), "--ray"]) == 1
+    err = capsys.readouterr().err
+    assert "ask for 1.0 GPU each (device cuda:0) but the Ray cluster has 0" in err
+    assert not list((tmp_path / "eval_runs").iterdir())

@@ -481,6 +481,10 @@ def run_suite(
     return result
 
 
+class ClusterError(RuntimeError):
+    """The Ray cluster cannot run the suite's tasks (no GPU for CUDA runs)."""
+
+
 # Test hook of the Ray path: "RUN_NAME:N" makes the first N attempts of that run's task end their worker
 # process (os._exit), as a node lost or a worker killed by the OOM killer would; the attempts are
 # counted in a file next to the run folder.
@@ -538,11 +542,18 @@ def _run_on_ray(
     started = not ray.is_initialized()
     if started:
         ray.init(address=cluster or None)
+    options = ray_task_options(device, gpus_per_task)
     runs_dir = Path(runs_dir).resolve()  # the workers' working directory is not the driver's
-    task = ray.remote(_ray_task).options(**ray_task_options(device, gpus_per_task))
+    task = ray.remote(_ray_task).options(**options)
     runs: list[dict | None] = [None] * len(jobs)
     pending = {}
     try:
+        gpus = ray.cluster_resources().get("GPU", 0)
+        if options.get("num_gpus", 0) > gpus:  # the tasks would wait for ever
+            raise ClusterError(
+                f"the runs ask for {options['num_gpus']} GPU each (device {device}) but the Ray cluster has "
+                f"{gpus:g}: start it on GPU nodes (or check that Ray sees their GPUs), or use --device cpu"
+            )
         for i, (entry, method, repeat, variant) in enumerate(jobs):
             record, overrides = _run_spec(entry, method, repeat, runs_dir, extra, variant)
             done = _finished_record(Path(record["run_dir"]), overrides) if resume else None
@@ -1119,7 +1130,7 @@ def main(argv: list[str] | None = None) -> int:
             cluster=args.ray,
             gpus_per_task=args.gpus_per_task,
         )
-    except ImportError as e:  # --ray without Ray
+    except (ImportError, ClusterError) as e:  # --ray without Ray, or without the GPUs the runs need
         print(f"error: {e}", file=sys.stderr)
         return 1
     ok = sum(r["status"] == "ok" for r in result["runs"])
