@@ -34,7 +34,8 @@ def lint(session):
 def eval(session):
     """Evaluation tables (supplement §3): every scene x method x repeat, results in
     experiments/results/eval.md and eval.json. Arguments go to the suite, e.g.
-    `nox -s eval -- --quick` or `nox -s eval -- --device cuda:0 data_root=/data`."""
+    `nox -s eval -- --quick`, `nox -s eval -- --device cuda:0 data_root=/data` or a sweep on Ray,
+    `nox -s eval -- --sweep sweeps/example.yaml --ray`."""
     _install(session)
     env = {"WARP_CACHE_PATH": os.path.abspath(".cache/warp"), "RGS_CACHE": os.path.abspath(".cache/rgs_warp")}
     session.run("python", "-m", "rgs_warp.eval.suite", *session.posargs, env=env)

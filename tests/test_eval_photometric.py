@@ -10,6 +10,7 @@ from skimage.metrics import structural_similarity
 
 from rgs_warp.eval import (
     LPIPS,
+    cached_alexnet_path,
     compensate_exposure,
     depth_l1_cm,
     eval_frame_indices,
@@ -256,3 +257,14 @@ def test_peer_ssim_variants(frames):
     out = photometric_metrics([small], [small])
     assert out["ms_ssim"] is None and "161 px" in out["ms_ssim_na_reason"]
     assert out["ssim_3dgs"] == pytest.approx(1.0)
+
+
+def test_alexnet_weights_found_in_torch_hub_cache(tmp_path, monkeypatch):
+    """Where the lpips package (through torchvision) keeps AlexNet: used when no path is configured."""
+    torch = pytest.importorskip("torch")
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    assert cached_alexnet_path() is None
+    path = tmp_path / "hub" / "checkpoints" / "alexnet-owt-7be5be79.pth"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"")
+    assert cached_alexnet_path() == path

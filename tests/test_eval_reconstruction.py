@@ -130,3 +130,18 @@ def test_mesh_export_of_a_saved_run(tmp_path, device):
     metrics = mesh_metrics(mesh, o3d.io.read_triangle_mesh(str(ds.mesh_path)), n_samples=20_000, to_surface=True)
     assert metrics["acc_cm"] < 3.0, metrics
     assert export_main([str(tmp_path / "missing")]) == 1  # not a run folder: an error line, no traceback
+
+
+def test_samples_do_not_depend_on_the_triangles_order():
+    """Open3D's TSDF extraction lists the same triangles in another order from run to run; the same
+    surface must give the same samples (and metrics), whatever the order of its triangles."""
+    from rgs_warp.eval.reconstruction import sample_surface
+
+    mesh = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 0.5)
+    shuffled = copy.deepcopy(mesh)
+    triangles = np.asarray(mesh.triangles)
+    shuffled.triangles = o3d.utility.Vector3iVector(triangles[np.random.default_rng(3).permutation(len(triangles))])
+    assert not np.array_equal(np.asarray(shuffled.triangles), triangles)
+    a = sample_surface(mesh, 1000, np.random.default_rng(0))
+    b = sample_surface(shuffled, 1000, np.random.default_rng(0))
+    assert np.array_equal(a, b)

@@ -3,6 +3,7 @@ errors and n/a reasons in eval.md, the convergence comparison, plots, eval.json,
 scene selection."""
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +153,7 @@ def test_errors_and_na_reasons_in_markdown(result):
     assert cell.startswith("error [^")
     note = cell.split()[-1]
     assert f"{note}: run failed: ValueError: baseline: dense init not implemented | yet" in md
-    lpips = t["Rendering", "synthetic", "LPIPS ↓", "rgs"][0]
+    lpips = t["Rendering", "synthetic", "LPIPS AlexNet ↓", "rgs"][0]
     assert lpips.startswith("n/a [^") and f"{lpips.split()[-1]}: no LPIPS weights given" in md
     assert "no ground-truth mesh for this sequence" in md
     assert "measured on CUDA devices only" in md
@@ -290,3 +291,201 @@ def test_second_best_underlined_among_three():
     higher = suite.METRIC_BY_ID["psnr_db"]
     assert suite.rank_marks({"a": 30.001, "b": 30.004, "c": 20.0}, higher) == {"a": "best", "b": "best"}
     assert suite.rank_marks({"a": 2.0, "b": 1.0}, lower) == {"b": "best"}  # two methods: no underline
+
+
+# ---- sweeps ------------------------------------------------------------------------------------------
+
+
+def test_sweep_variants_name_and_combine():
+    assert suite.sweep_variants(None, None) is None and suite.sweep_variants([], {}) is None
+    sets = suite.sweep_variants(
+        [{"name": "default", "overrides": []}, {"name": "", "overrides": ["tracking.iters=10"]}],
+        {"mapping.iters": [5, 9], "mapping.window": [2]},
+    )
+    assert [s["name"] for s in sets] == [
+        "default mapping.iters=5 mapping.window=2",
+        "default mapping.iters=9 mapping.window=2",
+        "tracking.iters=10 mapping.iters=5 mapping.window=2",
+        "tracking.iters=10 mapping.iters=9 mapping.window=2",
+    ]
+    assert sets[3]["overrides"] == ["tracking.iters=10", "mapping.iters=9", "mapping.window=2"]
+    assert suite.sweep_variants(None, {"eval.lpips": [True]})[0]["overrides"] == ["eval.lpips=true"]
+    assert suite.sweep_variants([{"name": "", "overrides": []}], None) == [{"name": "default", "overrides": []}]
+    assert suite.variant_slug("short tracking / x=1") == "short_tracking_x=1"
+    assert suite.row_label("rgs", None) == "rgs" and suite.row_label("rgs", "a b") == "rgs [a b]"
+
+
+def _spec(tmp_path, text: str) -> Path:
+    path = tmp_path / "sweep.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_load_sweep_plan_order_of_overrides_and_errors(tmp_path):
+    spec = _spec(
+        tmp_path,
+        """
+scenes: [synthetic/room0, {scene: synthetic/office0_replica_size, overrides: [dataset.max_frames=7]}]
+methods: [rgs, baseline]
+repeats: 2
+overrides: [dataset.max_frames=9]
+variants: [{name: short, overrides: [tracking.iters=3]}]
+""",
+    )
+    sweep = suite.load_sweep(spec, "cpu")
+    assert sweep["name"] == "sweep" and sweep["methods"] == ["rgs", "baseline"] and sweep["repeats"] == 2
+    assert sweep["variants"] == [{"name": "short", "overrides": ["tracking.iters=3"]}]
+    room, office = sweep["plan"]
+    # a scene of the plan keeps the plan's CPU sizing; the spec's overrides, then the scene's own, win
+    assert room["overrides"] == [
+        "dataset=synthetic/room0",
+        f"dataset.max_frames={suite.CPU_MAX_FRAMES}",
+        "dataset.max_frames=9",
+    ]
+    assert office["overrides"] == [
+        "dataset=synthetic/office0_replica_size",
+        "dataset.max_frames=9",
+        "dataset.max_frames=7",
+    ]
+    assert suite.load_config(office["overrides"]).dataset.max_frames == 7
+
+    for text, message in (
+        ("methods: [rgs]", "non-empty 'scenes'"),
+        ("scenes: [synthetic/room0]\nrepeat: 2", "unknown key(s) repeat"),
+        ("scenes: [synthetic/room0]\nmethods: [nosuch]", "unknown method(s) nosuch"),
+        ("scenes: [synthetic/nowhere]", "unknown scene 'synthetic/nowhere'"),
+        ("scenes: [synthetic/room0]\nrepeats: 0", "repeats must be an integer >= 1"),
+        ("scenes: [synthetic/room0]\ngrid: {tracking.iters: 3}", "grid must map each key"),
+        ("scenes: [synthetic/room0]\nvariants: [{name: a, overides: []}]", "variants must be a list"),
+        ("scenes: [synthetic/room0]\nvariants: [{name: a b}, {name: a/b}]", "the same name"),
+        ("scenes: [synthetic/room0]\nvariants: [{overrides: [tracking.nosuch=1]}]", "tracking.nosuch"),
+    ):
+        with pytest.raises(suite.ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            suite.load_sweep(_spec(tmp_path, text), "cpu")
+
+
+def test_example_sweep_loads():
+    sweep = suite.load_sweep(Path(__file__).parents[1] / "sweeps" / "example.yaml", "cpu")
+    assert sweep["name"] == "example" and len(sweep["variants"]) == 4 and len(sweep["plan"]) == 2
+
+
+def test_sweep_rows_in_tables(tmp_path):
+    """Each (method, override set) is a row of its own: its runs carry the set's overrides (last) and
+    its name, their folders are apart, and the aggregates are per row."""
+    variants = [{"name": "default", "overrides": []}, {"name": "short tracking", "overrides": ["tracking.iters=3"]}]
+    seen = []
+
+    def runner(cfg, run_dir, progress=True):
+        seen.append((run_dir.name, cfg.tracking.iters))
+        run_dir, metrics = fake_runner(cfg, run_dir, progress)
+        metrics["ate"]["keyframes"]["rmse_cm"] += 10.0 * (cfg.tracking.iters == 3)
+        return run_dir, metrics
+
+    res = suite.run_suite(
+        PLAN[:1],
+        ("rgs",),
+        2,
+        tmp_path,
+        runner=runner,
+        extra_overrides=["tracking.iters=5"],
+        variants=variants,
+        progress=False,
+    )
+    assert [name for name, _ in seen] == [
+        "synthetic-room0-rgs-default-0",
+        "synthetic-room0-rgs-default-1",
+        "synthetic-room0-rgs-short_tracking-0",
+        "synthetic-room0-rgs-short_tracking-1",
+    ]
+    assert [iters for _, iters in seen] == [5, 5, 3, 3]  # the set's overrides come after the suite's
+    assert res["header"]["rows"] == ["rgs [default]", "rgs [short tracking]"] and res["header"]["methods"] == ["rgs"]
+    cells = res["aggregate"]["synthetic/room0"]
+    ate = [_numbers("synthetic/room0", "rgs", k)["ate"] for k in range(2)]
+    assert cells["rgs [default]"]["ate_keyframes_rmse_cm"]["values"] == ate
+    assert cells["rgs [short tracking]"]["ate_keyframes_rmse_cm"]["values"] == [a + 10.0 for a in ate]
+    md = (tmp_path / "eval.md").read_text()
+    t = _tables(md)
+    assert t["Tracking", "synthetic", "ATE RMSE keyframes (cm) ↓", "rgs [default]"][0].startswith("**")
+    assert ("Tracking", "synthetic", "ATE RMSE keyframes (cm) ↓", "rgs [short tracking]") in t
+    assert "  - short tracking: `tracking.iters=3`" in md and "  - default: (none)" in md
+    assert "| synthetic/room0 | rgs [short tracking] | 1 | ok |" in md
+    assert set(res["convergence"]["synthetic/room0"]["methods"]) == {"rgs [default]", "rgs [short tracking]"}
+    # resume tells the sets apart: all four are read back
+    again = suite.run_suite(
+        PLAN[:1],
+        ("rgs",),
+        2,
+        tmp_path,
+        runner=runner,
+        extra_overrides=["tracking.iters=5"],
+        variants=variants,
+        progress=False,
+        resume=True,
+    )
+    assert len(seen) == 4 and all(r["resumed"] for r in again["runs"])
+
+
+def test_without_a_sweep_the_records_and_header_are_as_before(result):
+    _, res = result
+    assert "rows" not in res["header"] and "variants" not in res["header"]
+    assert not any("variant" in r for r in res["runs"])
+    assert list(res["runs"][0])[:5] == ["scene", "method", "repeat", "seed", "run_dir"]
+
+
+# ---- the Ray path without Ray (tests/test_eval_suite_ray.py runs it) -----------------------------------
+
+
+def test_ray_task_options_ask_for_a_gpu_on_cuda(monkeypatch):
+    monkeypatch.delenv(suite.KILL_ENV, raising=False)
+    gpu = suite.ray_task_options("cuda:0")
+    assert gpu == {"num_gpus": 1.0, "num_cpus": 1, "max_retries": 1, "retry_exceptions": False}
+    assert suite.ray_task_options("cuda:0", 0.5)["num_gpus"] == 0.5
+    assert suite.ray_task_options("cpu") == {"num_cpus": 1, "max_retries": 1, "retry_exceptions": False}
+    monkeypatch.setenv(suite.KILL_ENV, "x-rgs-0:1")
+    assert suite.ray_task_options("cpu")["runtime_env"] == {"env_vars": {suite.KILL_ENV: "x-rgs-0:1"}}
+
+
+def test_ray_path_without_ray_says_what_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    with pytest.raises(ImportError, match=r"rgs_warp\[cluster\]"):
+        suite.run_suite(PLAN[:1], ("rgs",), 1, tmp_path, runner=fake_runner, progress=False, cluster="")
+    argv = ["--ray", "--device", "cpu", "--scenes", "synthetic/room0", "--out", str(tmp_path), "--repeats", "1"]
+    monkeypatch.setattr(suite, "check_evaluation_imports", lambda: None)
+    assert suite.main(argv) == 1
+
+
+def test_ray_without_address_before_overrides(monkeypatch, tmp_path):
+    """``--ray key=value``: the override is an override, not the cluster's address."""
+    seen = {}
+    monkeypatch.setattr(suite, "check_evaluation_imports", lambda: None)
+    monkeypatch.setattr(suite, "run_suite", lambda *a, **k: seen.update(k) or {"runs": []})
+    argv = [
+        "--scenes",
+        "synthetic/room0",
+        "--device",
+        "cpu",
+        "--out",
+        str(tmp_path),
+        "--ray",
+        "tracking.iters=3",
+        "seed=1",
+    ]
+    suite.main(argv)
+    assert seen["cluster"] == "" and seen["extra_overrides"] == ["device=cpu", "tracking.iters=3", "seed=1"]
+    suite.main([*argv[:-3], "--ray", "ray://head:10001", "seed=1"])
+    assert seen["cluster"] == "ray://head:10001" and seen["extra_overrides"] == ["device=cpu", "seed=1"]
+    suite.main(argv[:-3])
+    assert seen["cluster"] is None
+
+
+def test_ray_with_another_gpu_than_cuda0_is_refused(capsys):
+    assert suite.main(["--ray", "--device", "cuda:1"]) == 2
+    assert "each task sees its own GPU as cuda:0" in capsys.readouterr().err
+
+
+def test_peer_metrics_named_in_the_tables(result):
+    """The peers' numbers each under a name that says whose they are (SplaTAM's "SSIM" is MS-SSIM)."""
+    out, _ = result
+    t = _tables((out / "eval.md").read_text())
+    for label in ("SSIM raw ↑", "SSIM 3DGS zero-padded (MonoGS's) ↑", "MS-SSIM (SplaTAM's SSIM) ↑", "LPIPS AlexNet ↓"):
+        assert ("Rendering", "synthetic", label, "rgs") in t, label

@@ -36,6 +36,7 @@ from rgs_warp.datasets import DatasetError, generates_scene, open_dataset
 from rgs_warp.eval import (
     LPIPS,
     ate_keyframes_and_all,
+    cached_alexnet_path,
     compensate_exposure,
     eval_frame_indices,
     photometric_metrics,
@@ -667,7 +668,8 @@ def evaluate_run(
             depths.append(np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0))
             ref_depths.append(frame.depth)
     if renders:
-        lpips = LPIPS(cfg.eval.lpips_alexnet_path or None, cfg.eval.lpips_linear_path or None)
+        alexnet = cfg.eval.lpips_alexnet_path or cached_alexnet_path()
+        lpips = LPIPS(alexnet, cfg.eval.lpips_linear_path or None)
         metrics["photometric"] = photometric_metrics(
             renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas
         )

@@ -3,6 +3,7 @@
 from rgs_warp.eval.ate import ate, ate_keyframes_and_all, umeyama_alignment
 from rgs_warp.eval.photometric import (
     LPIPS,
+    cached_alexnet_path,
     compensate_exposure,
     depth_l1_cm,
     eval_frame_indices,
@@ -18,6 +19,7 @@ from rgs_warp.eval.report import plot_trajectory_topview, write_report
 
 __all__ = [
     "LPIPS",
+    "cached_alexnet_path",
     "compensate_exposure",
     "fit_exposure",
     "ate",

@@ -150,6 +150,22 @@ def eval_frame_indices(n_frames: int, keyframe_indices: Sequence[int], every: in
     return candidates[~np.isin(candidates, np.asarray(keyframe_indices, dtype=np.int64))]
 
 
+# torchvision's ImageNet AlexNet, the backbone the ``lpips`` package loads (``LPIPS(net="alex")``
+# downloads it into torch's hub cache on first use).
+ALEXNET_FILE = "alexnet-owt-7be5be79.pth"
+
+
+def cached_alexnet_path() -> Path | None:
+    """The AlexNet weights of torch's hub cache (``$TORCH_HOME/hub/checkpoints``), where the ``lpips``
+    package and torchvision keep them, or None when they are not there (nothing is downloaded)."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    path = Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_FILE
+    return path if path.is_file() else None
+
+
 class LPIPS:
     """LPIPS with the AlexNet backbone (Zhang et al. 2018, v0.1 linear heads), in plain torch.
 
@@ -180,7 +196,10 @@ class LPIPS:
             return
         self._torch = torch
         if alexnet_path is None:
-            self.reason = "no AlexNet weights path configured"
+            self.reason = (
+                f"no AlexNet weights path configured (eval.lpips_alexnet_path; a run also looks for {ALEXNET_FILE} "
+                "in torch's hub cache, where the lpips package keeps it)"
+            )
             return
         if not Path(alexnet_path).is_file():
             self.reason = f"AlexNet weights not found at {alexnet_path}"

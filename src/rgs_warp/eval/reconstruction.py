@@ -105,11 +105,16 @@ def tsdf_fuse(
 
 def sample_surface(mesh: o3d.geometry.TriangleMesh, n_samples: int, rng: np.random.Generator) -> np.ndarray:
     """``n_samples`` points (n, 3) uniform over the mesh's surface area: triangles drawn with
-    probability proportional to area, then uniform barycentric coordinates (sqrt trick)."""
+    probability proportional to area, then uniform barycentric coordinates (sqrt trick).  The
+    triangles are drawn from their order by coordinates, not the mesh's order: Open3D's parallel TSDF
+    extraction lists the same triangles in a different order from one run to the next, which made
+    the same surface give other samples (Acc. 8.40 against 8.44 cm, measured)."""
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     triangles = np.asarray(mesh.triangles, dtype=np.int64)
     if len(triangles) == 0:
         raise ValueError("cannot sample an empty mesh")
+    corners = vertices[triangles].reshape(len(triangles), 9)
+    triangles = triangles[np.lexsort(corners.T[::-1])]
     a, b, c = (vertices[triangles[:, k]] for k in range(3))
     areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     if areas.sum() <= 0.0:

@@ -12,6 +12,12 @@ folders go to ``<out>/eval_runs/``.
 A run that raises (an absent dataset, a method not implemented yet) is recorded with its error and
 the suite goes on; a metric a run could not compute (None with ``<name>_na_reason``, see
 ``eval.report``) shows as "n/a" with the reason as a footnote.
+
+``--sweep SPEC.yaml`` runs an ablation written as one file (``load_sweep``: scenes, methods, repeats,
+overrides, named override sets and/or a grid); each method with each override set is a row of the
+tables. ``--ray [ADDRESS]`` runs one Ray task per run (``_run_on_ray``: a GPU each on CUDA, else a
+CPU) and gathers the records back into the same tables; without it the runs go one after another
+here, as they always did.
 """
 
 from __future__ import annotations
@@ -19,7 +25,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -35,6 +43,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from rgs_warp.config import ConfigError, group_options, load_config  # noqa: E402
@@ -102,9 +111,9 @@ METRICS = (
         2,
     ),
     # the peers' SSIMs, named apart: MonoGS's (3DGS's zero-padded) and SplaTAM's "SSIM" (MS-SSIM)
-    Metric("ssim_3dgs", ("photometric", "ssim_3dgs"), "SSIM 3DGS zero-padded", "Rendering", False, 3),
-    Metric("ms_ssim", ("photometric", "ms_ssim"), "MS-SSIM", "Rendering", False, 3),
-    Metric("lpips", ("photometric", "lpips"), "LPIPS", "Rendering", True, 3),
+    Metric("ssim_3dgs", ("photometric", "ssim_3dgs"), "SSIM 3DGS zero-padded (MonoGS's)", "Rendering", False, 3),
+    Metric("ms_ssim", ("photometric", "ms_ssim"), "MS-SSIM (SplaTAM's SSIM)", "Rendering", False, 3),
+    Metric("lpips", ("photometric", "lpips"), "LPIPS AlexNet", "Rendering", True, 3),
     Metric("depth_l1_cm", ("photometric", "depth_l1_cm"), "Depth L1 (cm)", "Rendering", True, 2),
     Metric("acc_cm", ("mesh", "acc_cm"), "Acc. (cm)", "Reconstruction", True, 2),
     Metric("comp_cm", ("mesh", "comp_cm"), "Comp. (cm)", "Reconstruction", True, 2),
@@ -161,11 +170,131 @@ def default_plan(device: str, data_root: Path | None = None, quick: bool = False
 
 
 # ---------------------------------------------------------------------------------------------------
+# sweeps
+
+SWEEP_KEYS = ("name", "scenes", "methods", "repeats", "overrides", "variants", "grid")
+
+
+def _yaml_value(value) -> str:
+    return ("true" if value else "false") if isinstance(value, bool) else str(value)
+
+
+def sweep_variants(variants: list[dict] | None, grid: dict | None) -> list[dict] | None:
+    """The override sets of a sweep, ``[{"name", "overrides"}]``: ``variants`` as given (a set
+    without a name is named by its overrides joined, or "default" when it has none), each combined
+    with every point of ``grid`` (``{key: [values]}``, their product; a point is named by its
+    overrides joined); None when neither is given (the rows are then the methods alone)."""
+    if not variants and not grid:
+        return None
+    points = [[]]
+    for key, values in (grid or {}).items():
+        points = [[*p, f"{key}={_yaml_value(v)}"] for p in points for v in values]
+    out = []
+    for v in variants or [{"name": "", "overrides": []}]:
+        for p in points:
+            overrides = [*v.get("overrides", []), *p]
+            name = " ".join(x for x in (v.get("name") or " ".join(v.get("overrides", [])), " ".join(p)) if x)
+            out.append({"name": name or "default", "overrides": overrides})
+    return out
+
+
+def load_sweep(path: Path, device: str, data_root: Path | None = None, quick: bool = False) -> dict:
+    """A sweep spec (YAML) as the suite runs it: ``{"name", "plan", "methods", "repeats",
+    "variants"}``.  The spec's keys: ``scenes`` (a list; a scene of the suite's plan for ``device``
+    keeps the plan's sizing, any other dataset config runs as configured; an item may be ``{scene:
+    ..., overrides: [...]}`` to add overrides for that scene), ``methods`` (default ``[rgs]``),
+    ``repeats`` (default 1), ``overrides`` (every run), ``variants`` (a list of ``{name,
+    overrides}``) and ``grid`` (``{key: [values]}``), the override sets (``sweep_variants``), and
+    ``name`` (default the file's stem).  A run's overrides, later ones winning: the plan's for the
+    scene, the spec's ``overrides``, the scene's own, the method and seed, the command line's, the
+    override set.  Raises ConfigError naming what is wrong; every override set is checked with
+    ``load_config`` before anything runs."""
+    path = Path(path)
+    try:
+        spec = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"cannot read the sweep {path}: {e}") from e
+    if not isinstance(spec, dict) or not spec.get("scenes"):
+        raise ConfigError(f"sweep {path}: needs a mapping with a non-empty 'scenes' list")
+    unknown = sorted(set(spec) - set(SWEEP_KEYS))
+    if unknown:
+        raise ConfigError(f"sweep {path}: unknown key(s) {', '.join(unknown)}; valid: {', '.join(SWEEP_KEYS)}")
+    methods = list(spec.get("methods") or ["rgs"])
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise ConfigError(f"sweep {path}: unknown method(s) {', '.join(map(str, bad))}; valid: {', '.join(METHODS)}")
+    repeats = spec.get("repeats", 1)
+    if not isinstance(repeats, int) or repeats < 1:
+        raise ConfigError(f"sweep {path}: repeats must be an integer >= 1, not {repeats!r}")
+    overrides = [str(o) for o in spec.get("overrides") or []]
+    variants = spec.get("variants")
+    grid = spec.get("grid")
+    if variants is not None and not (
+        isinstance(variants, list) and all(isinstance(v, dict) and set(v) <= {"name", "overrides"} for v in variants)
+    ):
+        raise ConfigError(f"sweep {path}: variants must be a list of {{name, overrides}}")
+    if grid is not None and not (isinstance(grid, dict) and all(isinstance(v, list) and v for v in grid.values())):
+        raise ConfigError(f"sweep {path}: grid must map each key to a non-empty list of values")
+    sets = sweep_variants(
+        [{"name": str(v.get("name") or ""), "overrides": [str(o) for o in v.get("overrides") or []]} for v in variants]
+        if variants
+        else None,
+        grid,
+    )
+    slugs = [variant_slug(v["name"]) for v in sets or []]
+    if len(set(slugs)) != len(slugs):
+        raise ConfigError(f"sweep {path}: two override sets have the same name (as folder names: {slugs})")
+
+    spec_root = load_config(overrides).data_root
+    if data_root is None and spec_root:  # the spec's own data_root=
+        data_root = Path(spec_root)
+    by_scene = {e["scene"]: e for e in default_plan(device, data_root, quick)}
+    root = [f"data_root={Path(data_root).resolve()}"] if data_root is not None else []
+    plan = []
+    for item in spec["scenes"]:
+        scene, own = (item.get("scene"), item.get("overrides") or []) if isinstance(item, dict) else (item, [])
+        own = [*overrides, *map(str, own)]
+        if scene in by_scene:
+            entry = dict(by_scene[scene])
+            plan.append({**entry, "overrides": [*entry["overrides"], *own]})
+        elif scene in group_options("dataset"):
+            plan.append(_entry(scene, [*root, *own]))
+        else:
+            known = sorted(set(by_scene) | set(group_options("dataset")))
+            raise ConfigError(f"sweep {path}: unknown scene {scene!r}; known: {', '.join(known)}")
+    for v in sets or [{"overrides": []}]:
+        load_config([*plan[0]["overrides"], *v["overrides"]])
+    return {
+        "name": str(spec.get("name") or path.stem),
+        "plan": plan,
+        "methods": methods,
+        "repeats": repeats,
+        "variants": sets,
+    }
+
+
+# ---------------------------------------------------------------------------------------------------
 # running
 
 
-def _run_name(scene: str, method: str, repeat: int) -> str:
-    return f"{scene.replace('/', '-')}-{method}-{repeat}"
+def _run_name(scene: str, method: str, repeat: int, variant: dict | None = None) -> str:
+    middle = "" if variant is None else "-" + variant_slug(variant["name"])
+    return f"{scene.replace('/', '-')}-{method}{middle}-{repeat}"
+
+
+def variant_slug(name: str) -> str:
+    """An override set's name as a folder name component: runs of other characters than letters,
+    digits and ``.=+-`` become one ``_``."""
+    return re.sub(r"[^A-Za-z0-9.=+-]+", "_", name).strip("_") or "_"
+
+
+def row_label(method: str, variant: str | None) -> str:
+    """The tables' row of a method run with an override set of a sweep (``rgs [short tracking]``)."""
+    return method if variant is None else f"{method} [{variant}]"
+
+
+def _row_of(record: dict) -> str:
+    return row_label(record["method"], record.get("variant"))
 
 
 def _error_text(e: BaseException) -> str:
@@ -175,14 +304,41 @@ def _error_text(e: BaseException) -> str:
 RECORD_FILE = "suite_record.json"  # in a finished run's folder: what --resume reuses
 
 
-def _one_run(
-    entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runner, extra: Sequence[str], resume: bool = False
-) -> dict:
-    name = _run_name(entry["scene"], method, repeat)
+def _run_spec(
+    entry: dict, method: str, repeat: int, runs_dir: Path, extra: Sequence[str], variant: dict | None = None
+) -> tuple[dict, list[str]]:
+    """A run's record so far (who it is, where it writes) and its overrides: the plan's, the method
+    and seed, the suite's own, then the sweep's override set (it is what the row varies: it wins)."""
+    name = _run_name(entry["scene"], method, repeat, variant)
     run_dir = runs_dir / name
     record = {"scene": entry["scene"], "method": method, "repeat": repeat, "seed": repeat, "run_dir": str(run_dir)}
     overrides = [*entry["overrides"], f"method={method}", f"seed={repeat}", *extra]
+    if variant is not None:
+        record["variant"] = variant["name"]
+        overrides += variant["overrides"]
     overrides += [f"output_dir={runs_dir}", f"run_name={name}"]
+    return record, overrides
+
+
+def _save_record(record: dict, overrides: list[str]) -> None:
+    """The record of a finished run in its folder, for --resume."""
+    run_dir = Path(record["run_dir"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / RECORD_FILE).write_text(json.dumps(to_json({**record, "overrides": overrides}), indent=1))
+
+
+def _one_run(
+    entry: dict,
+    method: str,
+    repeat: int,
+    runs_dir: Path,
+    runner: Runner,
+    extra: Sequence[str],
+    resume: bool = False,
+    variant: dict | None = None,
+) -> dict:
+    record, overrides = _run_spec(entry, method, repeat, runs_dir, extra, variant)
+    run_dir = Path(record["run_dir"])
     if resume:
         done = _finished_record(run_dir, overrides)
         if done is not None:
@@ -200,7 +356,7 @@ def _one_run(
     record["seconds"] = time.perf_counter() - t0
     record["convergence"] = _read_convergence(run_dir) if record["status"] == "ok" else None
     if record["status"] == "ok":
-        (run_dir / RECORD_FILE).write_text(json.dumps(to_json({**record, "overrides": overrides}), indent=1))
+        _save_record(record, overrides)
     return record
 
 
@@ -242,7 +398,7 @@ def _read_convergence(run_dir: Path) -> list[dict] | None:
 
 
 def _progress_line(record: dict) -> str:
-    head = f"{record['scene']} {record['method']} seed={record['seed']}: "
+    head = f"{record['scene']} {_row_of(record)} seed={record['seed']}: "
     if record["status"] != "ok":
         return head + f"error ({record['error'].splitlines()[0][:120]}) [{record['seconds']:.0f} s]"
     parts = []
@@ -262,42 +418,60 @@ def run_suite(
     extra_overrides: Sequence[str] = (),
     progress: bool = True,
     resume: bool = False,
+    variants: Sequence[dict] | None = None,
+    cluster: str | None = None,
+    gpus_per_task: float = 1.0,
 ) -> dict:
     """Run every present scene of ``plan`` with every method, ``repeats`` times (``seed=0..repeats-1``),
     aggregate and write ``out_dir/eval.json``, ``out_dir/eval.md`` and the plots; returns what
     ``eval.json`` holds. ``runner`` defaults to ``rgs_warp.run.run``; ``extra_overrides`` go to every
     run after the plan's own (``device=cuda:0``, ``tracking.iters=40``).  ``resume``: a run whose folder
     holds the record of a finished run with the same overrides is read back instead of run again (a
-    suite cut short goes on where it stopped)."""
+    suite cut short goes on where it stopped).
+
+    ``variants``: a sweep's override sets (``[{"name", "overrides"}]``, see ``load_sweep``): every
+    method runs with each, and each (method, set) is a row of the tables (``row_label``).
+    ``cluster``: None runs here, one run after another; a string runs one Ray task per run (see
+    ``_run_on_ray``): "" for ``ray.init()``'s default (``RAY_ADDRESS``, else a local cluster), else
+    the cluster's address; ``gpus_per_task`` is what a task asks for when the device is CUDA."""
     if runner is None:
         runner = run
     out_dir = Path(out_dir)
     runs_dir = out_dir / "eval_runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
     present = [e for e in plan if not e.get("absent")]
-    jobs = [(e, m, r) for e in present for m in methods for r in range(repeats)]
-    runs = []
+    sets = list(variants) if variants else [None]
+    jobs = [(e, m, r, v) for e in present for m in methods for v in sets for r in range(repeats)]
     bar = tqdm(total=len(jobs), desc="eval", unit="run", disable=not progress)
-    for entry, method, repeat in jobs:
-        bar.set_postfix_str(_run_name(entry["scene"], method, repeat))
-        runs.append(_one_run(entry, method, repeat, runs_dir, runner, extra_overrides, resume))
-        if progress:
-            bar.write(_progress_line(runs[-1]))
-        bar.update(1)
+    if cluster is None:
+        runs = []
+        for entry, method, repeat, variant in jobs:
+            bar.set_postfix_str(_run_name(entry["scene"], method, repeat, variant))
+            runs.append(_one_run(entry, method, repeat, runs_dir, runner, extra_overrides, resume, variant))
+            if progress:
+                bar.write(_progress_line(runs[-1]))
+            bar.update(1)
+    else:
+        device = _device_of(extra_overrides)
+        runs = _run_on_ray(jobs, runs_dir, runner, extra_overrides, resume, cluster, device, gpus_per_task, bar)
     bar.close()
 
     scenes = [e["scene"] for e in present]
-    aggregate = aggregate_runs(runs, scenes, methods)
+    rows = [row_label(m, None if v is None else v["name"]) for m in methods for v in sets]
+    aggregate = aggregate_runs(runs, scenes, rows)
+    header = _header(methods, repeats, extra_overrides)
+    if variants:
+        header.update(rows=rows, variants=[{"name": v["name"], "overrides": list(v["overrides"])} for v in variants])
     result = {
-        "header": _header(methods, repeats, extra_overrides),
+        "header": header,
         "plan": plan,
         "not_present": [{"scene": e["scene"], "reason": e["absent"]} for e in plan if e.get("absent")],
         "metrics": [
             {"id": m.id, "label": m.label, "group": m.group, "lower_is_better": m.lower_is_better} for m in METRICS
         ],
         "aggregate": aggregate,
-        "averages": benchmark_averages(aggregate, scenes, methods),
-        "convergence": convergence_comparison(runs, scenes, methods),
+        "averages": benchmark_averages(aggregate, scenes, rows),
+        "convergence": convergence_comparison(runs, scenes, rows),
         "runs": runs,
     }
     result["plots"] = write_plots(result, out_dir)
@@ -305,6 +479,111 @@ def run_suite(
     (out_dir / "eval.json").write_text(json.dumps(result, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     (out_dir / "eval.md").write_text(render_markdown(result), encoding="utf-8")
     return result
+
+
+class ClusterError(RuntimeError):
+    """The Ray cluster cannot run the suite's tasks (no GPU for CUDA runs)."""
+
+
+# Test hook of the Ray path: "RUN_NAME:N" makes the first N attempts of that run's task end their worker
+# process (os._exit), as a node lost or a worker killed by the OOM killer would; the attempts are
+# counted in a file next to the run folder.
+KILL_ENV = "RGS_SUITE_KILL"
+
+
+def _ray_task(
+    entry: dict, method: str, repeat: int, runs_dir: Path, runner: Runner, extra: Sequence[str], variant: dict | None
+) -> dict:
+    """One run as a Ray task: ``_one_run`` (its exceptions are its record's error; --resume was settled
+    by the driver), after the test hook ``KILL_ENV``."""
+    hook_name, _, hook_count = os.environ.get(KILL_ENV, "").rpartition(":")
+    name = _run_name(entry["scene"], method, repeat, variant)
+    if hook_name == name:
+        attempts = Path(runs_dir) / f".{name}.attempts"
+        n = int(attempts.read_text()) if attempts.is_file() else 0
+        attempts.write_text(str(n + 1))
+        if n < int(hook_count):
+            os._exit(1)
+    return _one_run(entry, method, repeat, runs_dir, runner, extra, False, variant)
+
+
+def ray_task_options(device: str, gpus_per_task: float = 1.0) -> dict:
+    """What a run's Ray task asks for: ``gpus_per_task`` GPUs (and a CPU) on CUDA, else one CPU; one
+    retry when its worker dies (a Python exception is the run's own error, recorded, never retried:
+    the CPU SLAM would fail the same way again); the test hook ``KILL_ENV`` passed on when set."""
+    resources = {"num_gpus": gpus_per_task, "num_cpus": 1} if device.startswith("cuda") else {"num_cpus": 1}
+    options = {**resources, "max_retries": 1, "retry_exceptions": False}
+    if os.environ.get(KILL_ENV):
+        options["runtime_env"] = {"env_vars": {KILL_ENV: os.environ[KILL_ENV]}}
+    return options
+
+
+def _run_on_ray(
+    jobs: list[tuple],
+    runs_dir: Path,
+    runner: Runner,
+    extra: Sequence[str],
+    resume: bool,
+    cluster: str,
+    device: str,
+    gpus_per_task: float,
+    bar: tqdm,
+) -> list[dict]:
+    """The records of ``jobs`` (``(entry, method, repeat, variant)``), in their order, each run as a Ray
+    task asking for ``gpus_per_task`` GPUs on CUDA (Ray shows a task its GPU as ``cuda:0``), else one
+    CPU.  The driver settles --resume (finished runs are not submitted), gathers the records through
+    the tasks' return values and writes each finished run's record into its own ``runs_dir``, so that
+    --resume works without a filesystem shared with the workers.  A task whose worker dies is retried
+    once by Ray; if the retry dies too the run is an error row, and the other runs go on."""
+    try:
+        import ray
+    except ImportError as e:
+        raise ImportError("--ray needs Ray: pip install 'rgs_warp[cluster]'") from e
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=cluster or None)
+    options = ray_task_options(device, gpus_per_task)
+    runs_dir = Path(runs_dir).resolve()  # the workers' working directory is not the driver's
+    task = ray.remote(_ray_task).options(**options)
+    runs: list[dict | None] = [None] * len(jobs)
+    pending = {}
+    try:
+        gpus = ray.cluster_resources().get("GPU", 0)
+        if options.get("num_gpus", 0) > gpus:  # the tasks would wait for ever
+            raise ClusterError(
+                f"the runs ask for {options['num_gpus']} GPU each (device {device}) but the Ray cluster has "
+                f"{gpus:g}: start it on GPU nodes (or check that Ray sees their GPUs), or use --device cpu"
+            )
+        for i, (entry, method, repeat, variant) in enumerate(jobs):
+            record, overrides = _run_spec(entry, method, repeat, runs_dir, extra, variant)
+            done = _finished_record(Path(record["run_dir"]), overrides) if resume else None
+            if done is not None:
+                runs[i] = done
+                bar.update(1)
+                continue
+            ref = task.remote(entry, method, repeat, runs_dir, runner, list(extra), variant)
+            pending[ref] = (i, record, overrides, time.perf_counter())
+        while pending:
+            bar.set_postfix_str(f"{len(pending)} submitted or running")
+            (ref,), _ = ray.wait(list(pending), num_returns=1)
+            i, record, overrides, t0 = pending.pop(ref)
+            try:
+                runs[i] = ray.get(ref)
+            except Exception as e:  # the task's worker died twice, or Ray could not run it at all
+                error = "Ray task failed: " + _error_text(e)
+                record.update(status="error", error=error, traceback=traceback.format_exc(), metrics=None)
+                record.update(seconds=time.perf_counter() - t0, convergence=None)
+                runs[i] = record
+            else:
+                if runs[i]["status"] == "ok" and not (Path(runs[i]["run_dir"]) / RECORD_FILE).is_file():
+                    _save_record(runs[i], overrides)
+            if not bar.disable:
+                bar.write(_progress_line(runs[i]))
+            bar.update(1)
+    finally:
+        if started:
+            ray.shutdown()
+    return runs
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -351,12 +630,13 @@ def _aggregate_cell(records: list[dict], path: tuple[str, ...]) -> dict:
 
 def aggregate_runs(runs: list[dict], scenes: Sequence[str], methods: Sequence[str]) -> dict:
     """``{scene: {method: {metric id: {mean, std, n, runs, values, na_reasons, n_na, errors,
-    n_failed}}}}`` over the repeats of each (scene, method)."""
+    n_failed}}}}`` over the repeats of each (scene, method); in a sweep ``methods`` are the rows
+    (``row_label``: a method with an override set)."""
     out: dict = {}
     for scene in scenes:
         out[scene] = {}
         for method in methods:
-            records = [r for r in runs if r["scene"] == scene and r["method"] == method]
+            records = [r for r in runs if r["scene"] == scene and _row_of(r) == method]
             out[scene][method] = {m.id: _aggregate_cell(records, m.path) for m in METRICS}
     return out
 
@@ -409,11 +689,12 @@ def convergence_comparison(runs: list[dict], scenes: Sequence[str], methods: Seq
     "runs"}}}}`` for every scene with convergence curves: target_db = the lowest over the methods of
     their mean final initialization PSNR (``final_init_psnr``) less ``CONVERGENCE_MARGIN_DB``;
     ``iterations`` = the mean over the repeats of ``iterations_to_reach(curve, target_db)`` (None when
-    no repeat reached it), ``values`` the repeats' own, ``n`` how many reached it of ``runs`` curves."""
+    no repeat reached it), ``values`` the repeats' own, ``n`` how many reached it of ``runs`` curves.
+    In a sweep ``methods`` are the rows (``row_label``)."""
     out: dict = {}
     for scene in scenes:
         curves = {
-            m: [r["convergence"] for r in runs if r["scene"] == scene and r["method"] == m and r.get("convergence")]
+            m: [r["convergence"] for r in runs if r["scene"] == scene and _row_of(r) == m and r.get("convergence")]
             for m in methods
         }
         finals = {m: [v for v in map(final_init_psnr, c) if v is not None] for m, c in curves.items()}
@@ -489,6 +770,11 @@ def _header(methods: Sequence[str], repeats: int, extra_overrides: Sequence[str]
     }
 
 
+def table_rows(result: dict) -> list[str]:
+    """The rows of the tables: the methods, or in a sweep each method with each override set."""
+    return result["header"].get("rows", result["header"]["methods"])
+
+
 class _Footnotes:
     """Markdown footnotes ``[^k]``, one per distinct text."""
 
@@ -546,7 +832,7 @@ def _scene_cell(cell: dict, metric: Metric, mark: str | None, notes: _Footnotes)
 
 
 def _table(result: dict, group: str, bench: str, notes: _Footnotes) -> list[str]:
-    methods = result["header"]["methods"]
+    methods = table_rows(result)
     scenes = [s for s in result["aggregate"] if benchmark_of(s) == bench]
     columns = [s.split("/", 1)[1] for s in scenes] + ["Avg."]
     lines = ["| Metric | Method | " + " | ".join(columns) + " |", "|---|---|" + "---:|" * len(columns)]
@@ -592,8 +878,16 @@ def render_markdown(result: dict) -> str:
         "↓ lower is better, ↑ higher is better",
         f"- methods: {', '.join(h['methods'])}",
         f"- overrides for every run: {' '.join(h['extra_overrides']) or '(none)'}",
-        "",
     ]
+    if h.get("variants"):
+        lines.append(
+            "- override sets of the sweep (rows `method [set]`; a set's overrides come after those for every run):"
+        )
+        lines += [
+            f"  - {v['name']}: `{' '.join(v['overrides'])}`" if v["overrides"] else f"  - {v['name']}: (none)"
+            for v in h["variants"]
+        ]
+    lines.append("")
     benches = list(dict.fromkeys(benchmark_of(s) for s in result["aggregate"]))
     for group in dict.fromkeys(m.group for m in METRICS):
         lines += [f"## {group}", ""]
@@ -611,7 +905,7 @@ def render_markdown(result: dict) -> str:
     for r in result["runs"]:
         status = "ok" if r["status"] == "ok" else "error " + notes.ref("run failed: " + r["error"])
         folder = Path(r["run_dir"]).name
-        lines.append(f"| {r['scene']} | {r['method']} | {r['seed']} | {status} | {r['seconds']:.1f} | {folder} |")
+        lines.append(f"| {r['scene']} | {_row_of(r)} | {r['seed']} | {status} | {r['seconds']:.1f} | {folder} |")
     lines.append("")
     if notes.texts:
         lines += ["## Notes", "", *notes.lines(), ""]
@@ -623,7 +917,7 @@ def _convergence_section(result: dict) -> list[str]:
     comparison = result["convergence"]
     if not comparison:
         return []
-    methods = result["header"]["methods"]
+    methods = table_rows(result)
     lines = [
         "## Convergence",
         "",
@@ -662,7 +956,7 @@ def _convergence_section(result: dict) -> list[str]:
 
 def _bar_plot(result: dict, metric: Metric, path: Path) -> bool:
     """Grouped bars (scene x method) of a metric's means with std error bars; False if no numbers."""
-    scenes, methods = list(result["aggregate"]), result["header"]["methods"]
+    scenes, methods = list(result["aggregate"]), table_rows(result)
     cells = {(s, k): result["aggregate"][s][k][metric.id] for s in scenes for k in methods}
     if not any(c["n"] for c in cells.values()):
         return False
@@ -693,16 +987,17 @@ def _convergence_plot(result: dict, path: Path) -> bool:
     if not curves:
         return False
     scenes = list(dict.fromkeys(r["scene"] for r in curves))
-    colours = {k: f"C{i}" for i, k in enumerate(result["header"]["methods"])}
+    colours = {k: f"C{i}" for i, k in enumerate(table_rows(result))}
     fig, axes = plt.subplots(2, len(scenes), figsize=(4.5 * len(scenes), 6.5), dpi=150, squeeze=False, sharex="col")
     for col, scene in enumerate(scenes):
         top, bottom = axes[0, col], axes[1, col]
         labelled = set()
         for r in (r for r in curves if r["scene"] == scene):
             it = [p["iteration"] for p in r["convergence"]]
-            label = None if r["method"] in labelled else r["method"]
-            labelled.add(r["method"])
-            style = {"color": colours.get(r["method"], "gray"), "linewidth": 1.0, "alpha": 0.8}
+            row = _row_of(r)
+            label = None if row in labelled else row
+            labelled.add(row)
+            style = {"color": colours.get(row, "gray"), "linewidth": 1.0, "alpha": 0.8}
             top.plot(it, [p["psnr_db"] for p in r["convergence"]], label=label, **style)
             bottom.plot(it, [p["gaussians"] for p in r["convergence"]], **style)
         target = result.get("convergence", {}).get(scene, {}).get("target_db")
@@ -741,19 +1036,58 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--device", default="auto", help="cpu, cuda:0 or auto (a GPU when Warp sees one); default auto")
     p.add_argument("--repeats", type=int, default=None, help="runs per scene and method, seeds 0.. (default 3)")
-    p.add_argument("--methods", default="rgs,baseline", help="comma-separated methods (default rgs,baseline)")
-    p.add_argument("--out", type=Path, default=Path("experiments/results"), help="output folder")
+    p.add_argument("--methods", default=None, help="comma-separated methods (default rgs,baseline)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default experiments/results)")
     p.add_argument("--quick", action="store_true", help=f"smoke run: 1 repeat, {QUICK_MAX_FRAMES} frames a sequence")
     p.add_argument("--scenes", default="", help="comma-separated scenes of the plan to run (default all present)")
     p.add_argument("--resume", action="store_true", help="reuse the runs of an earlier suite with the same overrides")
+    p.add_argument(
+        "--sweep",
+        type=Path,
+        default=None,
+        help="a sweep spec (YAML: scenes, methods, repeats, overrides, variants / grid): its scenes, methods and "
+        "repeats unless given here, one table row per method and override set; output in "
+        "experiments/results/sweeps/<name> unless --out",
+    )
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="ADDRESS",
+        help="one Ray task per run (pip install 'rgs_warp[cluster]'): without ADDRESS ray.init()'s default "
+        "(RAY_ADDRESS, else a local cluster), else the cluster's address (auto, ray://head:10001; a key=value "
+        "right after --ray is an override, not an address)",
+    )
+    p.add_argument(
+        "--gpus-per-task", type=float, default=1.0, help="GPUs a Ray task asks for on CUDA (default 1; 0.5 packs two)"
+    )
     p.add_argument("overrides", nargs="*", metavar="key=value")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
-    repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if args.ray and "=" in args.ray:  # "--ray key=value": argparse took the first override as the address
+        args.overrides.insert(0, args.ray)
+        args.ray = ""
+    device = _device_of([f"device={args.device}"])
+    if args.ray is not None and device.startswith("cuda:") and device != "cuda:0":
+        print("error: with --ray each task sees its own GPU as cuda:0; use --device cuda:0", file=sys.stderr)
+        return 2
+    sweep = None
+    if args.sweep is not None:
+        try:
+            cfg = load_config([f"device={device}", *args.overrides])
+            root = Path(cfg.data_root) if cfg.data_root else None
+            sweep = load_sweep(args.sweep, device, root, quick=args.quick)
+        except ConfigError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    default_repeats = sweep["repeats"] if sweep else (1 if args.quick else 3)
+    repeats = args.repeats if args.repeats is not None else default_repeats
+    default_methods = ",".join(sweep["methods"]) if sweep else "rgs,baseline"
+    methods = [m.strip() for m in (args.methods or default_methods).split(",") if m.strip()]
     if repeats < 1 or not methods:
         print("error: need --repeats >= 1 and at least one method", file=sys.stderr)
         return 2
@@ -766,7 +1100,6 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
-    device = _device_of([f"device={args.device}"])
     extra = [f"device={device}", *args.overrides]
     try:
         cfg = load_config(extra)
@@ -774,7 +1107,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     data_root = Path(cfg.data_root) if cfg.data_root else None
-    plan = default_plan(device, data_root, quick=args.quick)
+    plan = sweep["plan"] if sweep else default_plan(device, data_root, quick=args.quick)
     if args.scenes:
         wanted = [w.strip() for w in args.scenes.split(",") if w.strip()]
         known = [e["scene"] for e in plan]
@@ -783,9 +1116,25 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: unknown scene(s) {', '.join(unknown)}; the plan has {', '.join(known)}", file=sys.stderr)
             return 2
         plan = [e for e in plan if e["scene"] in wanted]
-    result = run_suite(plan, methods, repeats, args.out, extra_overrides=extra, resume=args.resume)
+    default_out = Path("experiments/results") / ("sweeps/" + sweep["name"] if sweep else "")
+    out = args.out if args.out is not None else default_out
+    try:
+        result = run_suite(
+            plan,
+            methods,
+            repeats,
+            out,
+            extra_overrides=extra,
+            resume=args.resume,
+            variants=sweep["variants"] if sweep else None,
+            cluster=args.ray,
+            gpus_per_task=args.gpus_per_task,
+        )
+    except (ImportError, ClusterError) as e:  # --ray without Ray, or without the GPUs the runs need
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     ok = sum(r["status"] == "ok" for r in result["runs"])
-    print(f"{ok} of {len(result['runs'])} runs ok; report {args.out / 'eval.md'}")
+    print(f"{ok} of {len(result['runs'])} runs ok; report {out / 'eval.md'}")
     return 0 if ok else 1
 
 
