@@ -96,6 +96,11 @@ class TrackingConfig:
     # the gain, and the mapper feeds the bias back: kernels/tracking.py brightness_sums); 0: Eq. 7's
     # w_alpha weights instead
     brightness_min_alpha: float = 0.98
+    # The exposure (g, b) a keyframe and the frame-fill seeds are coloured with: "keyframes" (affine,
+    # the reduced major axis against the older keyframes' colours at the same surface points, each in
+    # the first keyframe's exposure, so the map's colour stays in that exposure; RGB-D; exposure.py)
+    # or "map" (the brightness model's (g, b) against the map's render above)
+    exposure_from: str = "map"
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
@@ -385,6 +390,7 @@ CHOICES = {
     "mode": ("rgbd", "mono"),
     "method": ("rgs", "baseline"),
     "tracking.brightness": ("gain", "affine", "off"),
+    "tracking.exposure_from": ("map", "keyframes"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic"),
 }
 

@@ -25,6 +25,7 @@ import warp as wp
 
 from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
 from rgs_warp.config import Config, check_config, check_image_size, resolve_device
+from rgs_warp.exposure import KeyframeExposure
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
@@ -88,6 +89,9 @@ class SLAM:
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
+        self.exposure = None  # tracking.exposure_from "map": the tracker's (g, b) colour the seeds
+        if cfg.tracking.exposure_from == "keyframes" and self.mode == "rgbd":
+            self.exposure = KeyframeExposure(camera, cfg.keyframes.buffer_size, dev)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         self.seeder = Seeder(
@@ -201,6 +205,8 @@ class SLAM:
         else:
             if pose_ok:
                 t1 = time.perf_counter()
+                if self.exposure is not None:
+                    exposure = self.exposure.estimate(self.keyframes, *self.tracker.frame, T, exposure)
                 result.seeded = self.seeder.fill_frame(self.map, i, *self.tracker.frame, T, exposure, decision.coverage)
                 self.stats["seeding_s"] += time.perf_counter() - t1
             if self.cfg.mapping.frame_iters > 0 and len(self.keyframes):
@@ -243,6 +249,8 @@ class SLAM:
     def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult) -> None:
         cfg, kf = self.cfg, self.keyframes
         slot = kf.add(i, T, rgb, depth, exposure)
+        if self.exposure is not None:
+            kf.exposure[slot] = self.exposure.estimate(kf, kf.rgb[slot], kf.depth[slot], T, exposure, exclude=slot)
         self._archive(slot)
         self.keyframe_indices.append(i)
         t0 = time.perf_counter()
