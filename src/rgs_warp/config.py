@@ -98,9 +98,10 @@ class TrackingConfig:
     brightness_min_alpha: float = 0.98
     # The exposure (g, b) a keyframe and the frame-fill seeds are coloured with: "keyframes" (affine,
     # the reduced major axis against the older keyframes' colours at the same surface points, each in
-    # the first keyframe's exposure, so the map's colour stays in that exposure; RGB-D; exposure.py)
-    # or "map" (the brightness model's (g, b) against the map's render above)
-    exposure_from: str = "map"
+    # the first keyframe's exposure, so the map's colour stays in that exposure; RGB-D only, mono uses
+    # "map"; exposure.py) or "map" (the brightness model's (g, b) against the map's render above, which
+    # the gain model reads with the bias folded into the gain: the map's contrast drifts)
+    exposure_from: str = "keyframes"
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel

@@ -89,7 +89,7 @@ class SLAM:
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
-        self.exposure = None  # tracking.exposure_from "map": the tracker's (g, b) colour the seeds
+        self.exposure = None  # tracking.exposure_from "map" or mono: the tracker's (g, b) colour the seeds
         if cfg.tracking.exposure_from == "keyframes" and self.mode == "rgbd":
             self.exposure = KeyframeExposure(camera, cfg.keyframes.buffer_size, dev)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
