@@ -101,6 +101,12 @@ class TrackingConfig:
     # the gain, and the mapper feeds the bias back: kernels/tracking.py brightness_sums); 0: Eq. 7's
     # w_alpha weights instead
     brightness_min_alpha: float = 0.98
+    # The exposure (g, b) a keyframe and the frame-fill seeds are coloured with: "keyframes" (affine,
+    # the reduced major axis against the older keyframes' colours at the same surface points, each in
+    # the first keyframe's exposure, so the map's colour stays in that exposure; RGB-D only, mono uses
+    # "map"; exposure.py) or "map" (the brightness model's (g, b) against the map's render above, which
+    # the gain model reads with the bias folded into the gain: the map's contrast drifts)
+    exposure_from: str = "keyframes"
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
@@ -206,7 +212,10 @@ class SeedingConfig:
 
 @dataclass
 class MappingConfig:
-    iters: int = 60  # K_m, per keyframe (Table 1)
+    # K_m, per keyframe: Table 1 has 60 steps over the whole window; 120 steps of one view each fit
+    # better at 40 % of the renders (H100, 3 seeds: office +0.2 dB, 7-Scenes +0.7 dB, same ATE,
+    # +15-23 % frames/s; experiments/results/perf.md)
+    iters: int = 120
     # after each frame that is not a keyframe, this many more iterations over the current window: the
     # map keeps improving between keyframes (with asynchronous mapping this would be free); 0 = off
     frame_iters: int = 0
@@ -224,7 +233,7 @@ class MappingConfig:
     window: int = 5  # keyframes in the sliding window (Table 1)
     # views of the window rendered per mapping iteration, a fresh random subset each time (0: every view,
     # Table 1's joint window step); fewer views make an iteration cheaper in proportion
-    views_per_iter: int = 0
+    views_per_iter: int = 1
     init_iters: int = 1050  # initialization (Table 1)
     init_window: int = 5  # frames of the initial window (Table 1)
     lr_color: float = 2e-3  # Table 1 (the DC colour)
@@ -408,6 +417,7 @@ CHOICES = {
     "mode": ("rgbd", "mono"),
     "method": ("rgs", "baseline"),
     "tracking.brightness": ("gain", "affine", "off"),
+    "tracking.exposure_from": ("map", "keyframes"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 
@@ -889,6 +899,7 @@ CPU_SIZED = {
     "tracking.iters": 20,
     "mapping.init_iters": 100,
     "mapping.iters": 15,
+    "mapping.views_per_iter": 0,
     "mapping.window": 3,
 }
 # Keys that size a run: when the command line sets any of them, none of CPU_SIZED is applied (the user

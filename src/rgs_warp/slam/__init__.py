@@ -27,6 +27,7 @@ import warp as wp
 
 from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
 from rgs_warp.config import Config, check_config, check_image_size, resolve_device
+from rgs_warp.exposure import KeyframeExposure
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
@@ -93,6 +94,9 @@ class SLAM:
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
+        self.exposure = None  # tracking.exposure_from "map" or mono: the tracker's (g, b) colour the seeds
+        if cfg.tracking.exposure_from == "keyframes" and self.mode == "rgbd":
+            self.exposure = KeyframeExposure(camera, cfg.keyframes.buffer_size, dev)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         self.seeder = Seeder(
@@ -256,6 +260,8 @@ class SLAM:
 
     def _fill_frame(self, i: int, rgb, depth, T: np.ndarray, exposure, result: FrameResult) -> None:
         t1 = time.perf_counter()
+        if self.exposure is not None:  # tracking.exposure_from=keyframes: against the older keyframes
+            exposure = self.exposure.estimate(self.keyframes, rgb, depth, T, exposure)
         result.seeded = self.seeder.fill_frame(self.map, i, rgb, depth, T, exposure)
         self.stats["seeding_s"] += time.perf_counter() - t1
 
@@ -311,6 +317,8 @@ class SLAM:
         """Keyframe ``i`` into the buffer, seeded, its window mapped and maintained (a mapping job)."""
         cfg, kf = self.cfg, self.keyframes
         slot = kf.add(i, T, rgb, depth, exposure)
+        if self.exposure is not None:
+            kf.exposure[slot] = self.exposure.estimate(kf, kf.rgb[slot], kf.depth[slot], T, exposure, exclude=slot)
         self._archive(slot)
         t0 = time.perf_counter()
         self.seeder.join_pending(self.map)
