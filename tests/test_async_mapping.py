@@ -120,6 +120,31 @@ def test_a_failing_job_is_raised_in_the_callers_thread():
         worker.submit("fill", lambda: None)
 
 
+@pytest.mark.slow
+def test_a_failed_worker_still_lets_the_slam_save(tmp_path, device, monkeypatch):
+    """A mapping job that raises surfaces at the next frame, and ``save`` still writes what was
+    tracked (the run's crash path saves before re-raising)."""
+    from rgs_warp import SLAM, open_dataset
+
+    cfg = load_config([*OVERRIDES, "dataset.max_frames=10", "mapping.asynchronous=true", f"device={device}"])
+    ds = open_dataset(cfg, device=device)
+    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+    for i in range(cfg.mapping.init_window):  # the synchronous initial window
+        slam.track(ds[i].rgb, ds[i].depth)
+
+    def broken(*args, **kwargs):
+        raise FloatingPointError("broken mapping step")
+
+    monkeypatch.setattr(slam.mapper, "optimize", broken)  # keyframe jobs
+    monkeypatch.setattr(slam.seeder, "fill_frame", broken)  # frame fills
+    with pytest.raises(RuntimeError, match="mapping worker failed"):
+        for i in range(cfg.mapping.init_window, len(ds)):
+            slam.track(ds[i].rgb, ds[i].depth)
+        slam.finish()
+    slam.save(tmp_path / "saved")
+    assert (tmp_path / "saved" / "trajectory.txt").is_file() and (tmp_path / "saved" / "map.ply").is_file()
+
+
 def test_back_pressure_waits_for_the_worker():
     worker, release = MappingWorker(DeviceTurns()), threading.Event()
     worker.submit("keyframe", release.wait)

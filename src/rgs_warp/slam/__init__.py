@@ -464,11 +464,11 @@ class SLAM:
             with self.publisher.read() as published:
                 return self._tracking_renderer.forward(published, camera, T_WC, background)
 
-    def wait_for_mapping(self) -> None:
+    def wait_for_mapping(self, check: bool = True) -> None:
         """Return when the mapping worker has done every job queued so far (at once without one);
-        raises a job's exception."""
+        with ``check``, raises a job's exception."""
         if self.worker is not None:
-            self.worker.drain()
+            self.worker.drain(check)
 
     def _archive(self, slot: int) -> None:
         if self.archive is not None:
@@ -495,8 +495,8 @@ class SLAM:
         """Write ``trajectory.txt``, ``keyframes.npz``, ``map.ply``, ``config.yaml`` (each atomically;
         ``SaveError`` names a file that failed and what was saved) and with ``state`` the checkpoint's
         ``state.npz``: ``slam.storage.save_slam`` says what each holds.  Waits for the mapping
-        worker first."""
-        self.wait_for_mapping()
+        worker first (a worker that failed does not stop the save: what was tracked is kept)."""
+        self.wait_for_mapping(check=False)
         return save_slam(self, directory, state)
 
     @classmethod

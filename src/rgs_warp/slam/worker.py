@@ -178,10 +178,11 @@ class MappingWorker:
             self._cv.wait_for(lambda: self._queued.get(kind, 0) < n or self._error is not None)
         self.check()
 
-    def drain(self) -> None:
-        """Wait until every submitted job has run; raise the first job's exception, if any."""
+    def drain(self, check: bool = True) -> None:
+        """Wait until every submitted job has run; with ``check``, raise the first job's exception."""
         self._jobs.join()
-        self.check()
+        if check:
+            self.check()
 
     def check(self) -> None:
         if self._error is not None:
