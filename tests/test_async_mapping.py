@@ -13,6 +13,7 @@ from rgs_warp.config import load_config
 from rgs_warp.run import run
 from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher, TornMapError
 from rgs_warp.types import GaussianMap
+from test_slam import OVERRIDES  # the CPU-sized office run of the end-to-end tests
 
 
 def _map_of(n: int, value: float, device) -> GaussianMap:
@@ -153,17 +154,6 @@ def test_back_pressure_waits_for_the_worker():
     threading.Timer(0.05, release.set).start()
     worker.wait_until_fewer("keyframe", 1)
     assert worker.queued("keyframe") == 0
-
-
-OVERRIDES = [
-    "dataset=synthetic/office0",
-    "dataset.width=160",
-    "dataset.height=90",
-    "dataset.max_frames=20",
-    "mapping.init_iters=60",
-    "mapping.iters=15",
-    "mapping.window=3",
-]
 
 
 @pytest.mark.slow

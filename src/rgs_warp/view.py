@@ -353,10 +353,7 @@ class Viewer:
     def _render(self, slam, camera: Camera, T_WC: np.ndarray):
         """``slam.render``: with asynchronous mapping it renders the published map in tracking's turn,
         never the map the worker is writing."""
-        res = slam.render(T_WC, camera)
-        if res.overflowed:  # a view that needs more tile intersections than the last: that render grew them
-            res = slam.render(T_WC, camera)
-        return res
+        return slam.render(T_WC, camera)  # whole even after a smaller view (SLAM.render renders again)
 
     def _update_panel(self, slam, now: float) -> None:
         """Frame | render | residual of the newest frame (live) or keyframe (saved run)."""

@@ -453,16 +453,23 @@ class SLAM:
 
     def render(self, T_WC: np.ndarray, camera: Camera | None = None) -> RenderResult:
         """Render the map from a camera-to-world pose (default camera: the SLAM's); the result's
-        images are the renderer's buffers, valid until the next render.  With asynchronous mapping:
-        the latest published version, rendered in tracking's turn (from any thread)."""
+        images are the renderer's buffers, valid until the next render.  A view that needs more tile
+        intersections than the renderer's buffers hold (sized by its previous render) is rendered
+        again, whole.  With asynchronous mapping: the latest published version, rendered in
+        tracking's turn (from any thread)."""
         camera, background = camera or self.camera, self.cfg.render.background
+
+        def whole(renderer: Renderer, gmap: GaussianMap) -> RenderResult:
+            res = renderer.forward(gmap, camera, T_WC, background)
+            return renderer.forward(gmap, camera, T_WC, background) if res.overflowed else res
+
         if self.worker is None:
-            return self.renderer.forward(self.map, camera, T_WC, background)
+            return whole(self.renderer, self.map)
         with self.turns.tracking():
             if self.publisher.version == 0 and len(self.map):
                 self.publisher.publish(self.map)
             with self.publisher.read() as published:
-                return self._tracking_renderer.forward(published, camera, T_WC, background)
+                return whole(self._tracking_renderer, published)
 
     def wait_for_mapping(self, check: bool = True) -> None:
         """Return when the mapping worker has done every job queued so far (at once without one);

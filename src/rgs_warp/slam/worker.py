@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import queue
 import threading
-import time
 from collections.abc import Callable
 from contextlib import contextmanager
 
@@ -100,7 +99,6 @@ class MapPublisher:
         self._lock = threading.Lock()
         self._front = 0
         self.version = 0  # publications so far
-        self.published_at = 0.0  # time.perf_counter() of the latest
 
     def publish(self, working: GaussianMap, write_hook: Callable[[], None] | None = None) -> int:
         """Copy ``working``'s live parameters into a free buffer and publish it; returns the version.
@@ -124,7 +122,6 @@ class MapPublisher:
                 self._seq[b] += 1
                 self._front = b
                 self.version += 1
-                self.published_at = time.perf_counter()
         return self.version
 
     @contextmanager
