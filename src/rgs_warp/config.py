@@ -101,12 +101,14 @@ class TrackingConfig:
     # the gain, and the mapper feeds the bias back: kernels/tracking.py brightness_sums); 0: Eq. 7's
     # w_alpha weights instead
     brightness_min_alpha: float = 0.98
-    # The exposure (g, b) a keyframe and the frame-fill seeds are coloured with: "keyframes" (affine,
-    # the reduced major axis against the older keyframes' colours at the same surface points, each in
-    # the first keyframe's exposure, so the map's colour stays in that exposure; RGB-D only, mono uses
-    # "map"; exposure.py) or "map" (the brightness model's (g, b) against the map's render above, which
-    # the gain model reads with the bias folded into the gain: the map's contrast drifts)
-    exposure_from: str = "keyframes"
+    # The exposure (g, b) a keyframe and the frame-fill seeds are coloured with: "map" (the brightness
+    # model's (g, b) against the map's render above, which the gain model reads with the bias folded
+    # into the gain: under a strong drift the map's contrast drifts) or "keyframes" (affine, the reduced
+    # major axis against the older keyframes' colours at the same surface points, each in the first
+    # keyframe's exposure, so the map's colour stays in that exposure; RGB-D only; exposure.py). On an
+    # H100 (a074fb1, 3 seeds) "keyframes" gave the office +0.19 dB but broke 7-Scenes tracking (ATE
+    # median 11.5 against 4.3 cm): experiments/results/fidelity.md
+    exposure_from: str = "map"
     downscale: int = 1  # tracking resolution = image / downscale
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
