@@ -6,6 +6,7 @@ report and figures.
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import importlib.util
 import itertools
@@ -166,10 +167,57 @@ def memory_mib(device) -> float | None:
 
 
 def peak_memory_mib(device) -> float | None:
+    """The high-water mark of Warp's memory pool in MiB (since ``start_peak_memory``); None on the CPU."""
     device = wp.get_device(device)
     if not device.is_cuda or not wp.is_mempool_enabled(device):
         return None
     return wp.get_mempool_used_mem_high(device) / 2**20
+
+
+# CUmemPool_attribute CU_MEMPOOL_ATTR_USED_MEM_HIGH (cuda.h): set to 0, the mark restarts at the memory in use
+_CU_MEMPOOL_ATTR_USED_MEM_HIGH = 8
+
+
+def _reset_mempool_high(ordinal: int) -> bool:
+    """Reset the high-water mark of CUDA device ``ordinal``'s default memory pool (the pool Warp
+    allocates from) through the CUDA driver; False where the driver or a call is missing or fails."""
+    try:
+        cuda = ctypes.CDLL("nvcuda.dll" if sys.platform == "win32" else "libcuda.so.1")
+        dev, pool, zero = ctypes.c_int(), ctypes.c_void_p(), ctypes.c_uint64(0)
+        return (
+            cuda.cuDeviceGet(ctypes.byref(dev), ctypes.c_int(ordinal)) == 0
+            and cuda.cuDeviceGetDefaultMemPool(ctypes.byref(pool), dev) == 0
+            and cuda.cuMemPoolSetAttribute(pool, _CU_MEMPOOL_ATTR_USED_MEM_HIGH, ctypes.byref(zero)) == 0
+        )
+    except (OSError, AttributeError):
+        return False
+
+
+def start_peak_memory(device) -> float | None:
+    """Start measuring a run's peak memory; returns the floor (MiB) a peak must exceed to be this run's
+    (0 after a reset), None on the CPU.  The pool's high-water mark spans the process, and the suite
+    runs several runs in one process (Ray reuses its workers too): without the reset every run after a
+    bigger one reported that one's peak (session 12: 4801 MiB for 7-Scenes runs of 2.3 GiB).  Where the
+    driver cannot reset it, a run that stays under the mark it found has no peak of its own to report."""
+    device = wp.get_device(device)
+    if not device.is_cuda or not wp.is_mempool_enabled(device):
+        return None
+    _reset_mempool_high(device.ordinal)
+    high, current = wp.get_mempool_used_mem_high(device), wp.get_mempool_used_mem_current(device)
+    return 0.0 if high <= current else high / 2**20
+
+
+def run_peak_memory(device, floor_mib: float | None) -> tuple[float | None, str | None]:
+    """(the run's peak memory in MiB, None) or (None, why it is n/a); ``floor_mib`` from ``start_peak_memory``."""
+    mem = peak_memory_mib(device)
+    if mem is None:
+        return None, "measured on CUDA devices only (Warp's memory pool)"
+    if floor_mib and mem <= floor_mib:
+        return None, (
+            f"an earlier run in this process left the memory pool's high-water mark at {floor_mib:.0f} MiB, "
+            "above this run's peak, and the CUDA driver could not reset it"
+        )
+    return mem, None
 
 
 @dataclass
@@ -303,6 +351,7 @@ def _run_frames(
     save and the evaluation; what ``run`` and ``resume`` share.  ``stream``: the frames of a stream
     (``ds`` is then its source; no checkpoints).  Closes ``bar``."""
     t_start = time.perf_counter() - state.elapsed_s
+    peak_floor = start_peak_memory(slam.device)
     bar.start_frames(None if stream is not None else len(ds), state.next_frame)
     # a line per frame, readable while it runs; a resumed run appends to the lines up to its checkpoint
     log = (run_dir / "log.jsonl").open("a" if state.next_frame else "w", encoding="utf-8", buffering=1)
@@ -366,7 +415,9 @@ def _run_frames(
         bar.phase("evaluating")
         tracking = tracking_section(state.tracked, state.lost)
         scored = ds if kept is None else kept
-        metrics = evaluate_run(cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary())
+        metrics = evaluate_run(
+            cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary(), peak_floor
+        )
     except OSError as e:
         if isinstance(e, SaveError):
             raise
@@ -600,10 +651,11 @@ def evaluate_run(
     wall_s: float,
     tracking: dict | None = None,
     kernels: dict | None = None,
+    peak_floor_mib: float | None = 0.0,
 ) -> dict:
     """Metrics of a finished run (supplement §3) written with ``write_report``; ``tracking``: the
     section of ``tracking_section``; ``kernels``: ``KernelLoads.summary()`` (the seconds the run spent
-    compiling Warp kernels, part of ``wall_s``)."""
+    compiling Warp kernels, part of ``wall_s``); ``peak_floor_mib``: ``start_peak_memory``'s floor."""
     _, est = slam.trajectory()
     n = len(est)
     metrics: dict = {
@@ -618,10 +670,9 @@ def evaluate_run(
         "tracking_fps": (n - 1) / slam.stats["tracking_s"] if slam.stats["tracking_s"] > 0 else None,
         "wall_s": wall_s,
     }
-    mem = peak_memory_mib(slam.device)
-    metrics["peak_memory_mib"] = mem
-    if mem is None:
-        metrics["peak_memory_mib_na_reason"] = "measured on CUDA devices only (Warp's memory pool)"
+    metrics["peak_memory_mib"], reason = run_peak_memory(slam.device, peak_floor_mib)
+    if reason:
+        metrics["peak_memory_mib_na_reason"] = reason
     if metrics["tracking_fps"] is None:
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
