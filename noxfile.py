@@ -43,7 +43,7 @@ def eval(session):
 
 @nox.session
 def bench(session):
-    """GPU benchmarks (rasterizer vs gsplat, tracking iteration); results as JSON under
+    """GPU benchmarks (rasterizer vs gsplat, tracking iteration, evaluation metrics); results as JSON under
     experiments/results/bench/. Needs a CUDA GPU (and gsplat for the comparison)."""
     _install(session)
     probe = session.run("python", "-c", "import warp as wp; wp.init(); print(wp.is_cuda_available())", silent=True)
@@ -53,3 +53,4 @@ def bench(session):
     env = {"PYTHONPATH": os.path.abspath("src")}
     session.run("python", "experiments/bench/raster.py", "--out", out, env=env)
     session.run("python", "experiments/bench/tracking.py", "--out", out, env=env)
+    session.run("python", "experiments/bench/eval_metrics.py", "--out", out, env=env)

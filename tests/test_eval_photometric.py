@@ -15,6 +15,7 @@ from rgs_warp.eval import (
     depth_l1_cm,
     eval_frame_indices,
     fit_exposure,
+    metric_device,
     ms_ssim,
     photometric_metrics,
     psnr,
@@ -257,6 +258,27 @@ def test_peer_ssim_variants(frames):
     out = photometric_metrics([small], [small])
     assert out["ms_ssim"] is None and "161 px" in out["ms_ssim_na_reason"]
     assert out["ssim_3dgs"] == pytest.approx(1.0)
+
+
+def test_the_metrics_on_a_torch_device_are_the_hosts(frames):
+    # A GPU run computes PSNR and the SSIMs with torch on its GPU (float64, the same sums in another
+    # order); torch's CPU runs that code here, against the NumPy / SciPy code of the host path.
+    a, b = frames
+    rng = np.random.default_rng(1)
+    noisy = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
+    for x, y in [(b, a), (noisy, a), (a[:37, 5:300, 1], b[:37, 5:300, 1]), (a[::3, ::2], noisy[::3, ::2])]:
+        assert ssim(x, y, "cpu") == pytest.approx(ssim(x, y), abs=1e-12)
+        assert ssim_3dgs(x, y, "cpu") == pytest.approx(ssim_3dgs(x, y), abs=1e-12)
+        assert psnr(x, y, "cpu") == pytest.approx(psnr(x, y), abs=1e-10)
+    assert psnr(a, a, "cpu") == float("inf")
+    alpha = np.ones(a.shape[:2])
+    host = photometric_metrics([b, noisy], [a, a], alphas=[alpha, alpha])
+    on_torch = photometric_metrics([b, noisy], [a, a], alphas=[alpha, alpha], device="cpu")
+    assert host.keys() == on_torch.keys()
+    for key, value in host.items():
+        if isinstance(value, float):
+            assert on_torch[key] == pytest.approx(value, abs=1e-10), key
+    assert metric_device("cpu") is None  # a CPU run keeps the host code
 
 
 def test_alexnet_weights_found_in_torch_hub_cache(tmp_path, monkeypatch):

@@ -40,6 +40,7 @@ from rgs_warp.eval import (
     cached_alexnet_path,
     compensate_exposure,
     eval_frame_indices,
+    metric_device,
     photometric_metrics,
     plot_trajectory_topview,
     psnr,
@@ -721,10 +722,11 @@ def evaluate_run(
     if renders:
         alexnet = cfg.eval.lpips_alexnet_path or cached_alexnet_path()
         lpips = LPIPS(alexnet, cfg.eval.lpips_linear_path or None)
+        on = metric_device(slam.device)
         metrics["photometric"] = photometric_metrics(
-            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas
+            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas, on
         )
-        metrics["photometric"].update(keyframe_fit(ds, slam, est))
+        metrics["photometric"].update(keyframe_fit(ds, slam, est, on))
         save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)
     else:
         metrics["photometric"] = None
@@ -759,16 +761,16 @@ def mesh_section(cfg: Config, ds, slam: SLAM, run_dir: Path) -> dict:
     return {"mesh": mesh_metrics(rec, o3d.io.read_triangle_mesh(str(mesh_path)))}
 
 
-def keyframe_fit(ds, slam: SLAM, est: np.ndarray) -> dict:
+def keyframe_fit(ds, slam: SLAM, est: np.ndarray, device: str | None = None) -> dict:
     """How well the map fits what it was trained on: the mean PSNR of the renders at every keyframe's
     pose against its frame, raw and exposure-compensated (``keyframe_psnr_db``,
-    ``keyframe_psnr_compensated_db``)."""
+    ``keyframe_psnr_compensated_db``); ``device``: the torch device of ``psnr``."""
     raw, compensated = [], []
     for i in slam.keyframe_indices:
         res = slam.render(est[i])
         render, ref = np.clip(res.color.numpy(), 0.0, 1.0), ds[int(i)].rgb
-        raw.append(psnr(render, ref))
-        compensated.append(psnr(compensate_exposure(render, ref, res.alpha.numpy()), ref))
+        raw.append(psnr(render, ref, device))
+        compensated.append(psnr(compensate_exposure(render, ref, res.alpha.numpy()), ref, device))
     return {"keyframe_psnr_db": float(np.mean(raw)), "keyframe_psnr_compensated_db": float(np.mean(compensated))}
 
 

@@ -7,6 +7,11 @@ This equals ``skimage.metrics.structural_similarity(gaussian_weights=True, sigma
 use_sample_covariance=False, data_range=1)``. It is single-scale SSIM; the peers' variants are here
 too, each under its own name: ``ssim_3dgs`` (the zero-padded 'same' variant of the 3DGS training
 code, which MonoGS reports) and ``ms_ssim`` (multi-scale, pytorch-msssim, which SplaTAM reports).
+
+``device``: PSNR and the SSIMs also run with torch on a GPU (``device="cuda:0"``), in float64 like
+the host code, so the numbers agree with the host's to rounding (the same sums in another order;
+tested on torch's CPU). On the host they cost about 2.6 s a 1200x680 frame on two cores, which made
+the evaluation two thirds of a GPU run's time (experiments/results/sweeps.md).
 """
 
 from __future__ import annotations
@@ -33,12 +38,44 @@ def _check_pair(img: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return img, ref
 
 
-def psnr(img: np.ndarray, ref: np.ndarray) -> float:
+def psnr(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> float:
     """Peak signal-to-noise ratio in dB of images in [0, 1] (peak 1), MSE over all pixels and
-    channels; ``inf`` for identical images."""
+    channels; ``inf`` for identical images.  ``device``: a torch device to compute it on."""
     img, ref = _check_pair(img, ref)
-    mse = float(np.mean((img - ref) ** 2))
+    if device is None:
+        mse = float(np.mean((img - ref) ** 2))
+    else:
+        x, y = _to_torch(img, device), _to_torch(ref, device)
+        mse = float(((x - y) ** 2).mean())
     return float("inf") if mse == 0.0 else -10.0 * np.log10(mse)
+
+
+def _to_torch(img: np.ndarray, device: str):
+    """An HxW(xC) float64 image as a 1xCxHxW torch tensor on ``device``."""
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(np.atleast_3d(img).transpose(2, 0, 1))).to(device)[None]
+
+
+def _ssim_torch(img: np.ndarray, ref: np.ndarray, device: str, pad: int) -> float:
+    """``ssim`` (``pad`` 0: the valid region) or ``ssim_3dgs`` (``pad`` = the window's radius: zero
+    padding) with torch on ``device``, in float64: the five local moments of all channels blurred
+    together by one grouped separable convolution."""
+    import torch
+    import torch.nn.functional as F
+
+    x, y = _to_torch(img, device), _to_torch(ref, device)
+    c = x.shape[1]
+    moments = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    k = moments.shape[1]
+    w = torch.from_numpy(_gaussian_window_1d()).to(device)
+    moments = F.conv2d(moments, w.view(1, 1, 1, -1).repeat(k, 1, 1, 1), padding=(0, pad), groups=k)
+    moments = F.conv2d(moments, w.view(1, 1, -1, 1).repeat(k, 1, 1, 1), padding=(pad, 0), groups=k)
+    mu_x, mu_y, exx, eyy, exy = moments.split(c, dim=1)
+    var_x, var_y, cov_xy = exx - mu_x**2, eyy - mu_y**2, exy - mu_x * mu_y
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return float(ssim_map.mean())
 
 
 def _gaussian_window_1d() -> np.ndarray:
@@ -55,11 +92,14 @@ def _filter_valid(x: np.ndarray, window: np.ndarray) -> np.ndarray:
     return y[r:-r, r:-r]
 
 
-def ssim(img: np.ndarray, ref: np.ndarray) -> float:
-    """Mean SSIM of images in [0, 1] (HxW or HxWxC; channels averaged); see the module docstring."""
+def ssim(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> float:
+    """Mean SSIM of images in [0, 1] (HxW or HxWxC; channels averaged); see the module docstring.
+    ``device``: a torch device to compute it on."""
     img, ref = _check_pair(img, ref)
     if min(img.shape[:2]) < SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {img.shape[:2]}")
+    if device is not None:
+        return _ssim_torch(img, ref, device, pad=0)
     window = _gaussian_window_1d()
     mu_x, mu_y = _filter_valid(img, window), _filter_valid(ref, window)
     var_x = _filter_valid(img * img, window) - mu_x**2
@@ -70,11 +110,14 @@ def ssim(img: np.ndarray, ref: np.ndarray) -> float:
     return float(ssim_map.mean())
 
 
-def ssim_3dgs(img: np.ndarray, ref: np.ndarray) -> float:
+def ssim_3dgs(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> float:
     """SSIM as the 3DGS training code computes it (MonoGS reports this one): the same Gaussian window
     and constants as ``ssim``, but 'same' filtering with zero padding, so every pixel counts in the
-    mean and the border's statistics take zeros in (it reads a little lower near the border)."""
+    mean and the border's statistics take zeros in (it reads a little lower near the border).
+    ``device``: a torch device to compute it on."""
     img, ref = _check_pair(img, ref)
+    if device is not None:
+        return _ssim_torch(img, ref, device, pad=(SSIM_WINDOW - 1) // 2)
     window = _gaussian_window_1d()
 
     def same(x: np.ndarray) -> np.ndarray:
@@ -91,16 +134,16 @@ def ssim_3dgs(img: np.ndarray, ref: np.ndarray) -> float:
 MS_SSIM_MIN_SIDE = (SSIM_WINDOW - 1) * 2**4 + 1
 
 
-def ms_ssim(img: np.ndarray, ref: np.ndarray) -> float | None:
+def ms_ssim(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> float | None:
     """Multi-scale SSIM (Wang et al. 2003) with pytorch-msssim's defaults, data range 1: what SplaTAM
-    reports as "SSIM".  None for images smaller than ``MS_SSIM_MIN_SIDE`` on their shorter side."""
-    import torch
+    reports as "SSIM".  None for images smaller than ``MS_SSIM_MIN_SIDE`` on their shorter side.
+    In float32, as pytorch-msssim is used; on torch's CPU unless ``device``."""
     from pytorch_msssim import ms_ssim as _ms_ssim
 
     img, ref = _check_pair(img, ref)
     if min(img.shape[:2]) < MS_SSIM_MIN_SIDE:
         return None
-    x, y = (torch.from_numpy(np.atleast_3d(a).transpose(2, 0, 1)[None].astype(np.float32)) for a in (img, ref))
+    x, y = (_to_torch(a, device or "cpu").float() for a in (img, ref))
     return float(_ms_ssim(x, y, data_range=1.0, size_average=True))
 
 
@@ -148,6 +191,19 @@ def eval_frame_indices(n_frames: int, keyframe_indices: Sequence[int], every: in
         raise ValueError(f"every must be >= 1, got {every}")
     candidates = np.arange(0, n_frames, every)
     return candidates[~np.isin(candidates, np.asarray(keyframe_indices, dtype=np.int64))]
+
+
+def metric_device(device) -> str | None:
+    """The torch device the image metrics of a run on Warp ``device`` use: the same GPU when torch
+    has CUDA, else None (the host; torch's CPU is slower there than NumPy and SciPy)."""
+    import warp as wp
+
+    device = wp.get_device(device)
+    if not device.is_cuda:
+        return None
+    import torch
+
+    return f"cuda:{device.ordinal}" if torch.cuda.is_available() else None
 
 
 # torchvision's ImageNet AlexNet, the backbone the ``lpips`` package loads (``LPIPS(net="alex")``
@@ -279,6 +335,7 @@ def photometric_metrics(
     depths_m: Sequence[np.ndarray] | None = None,
     ref_depths_m: Sequence[np.ndarray] | None = None,
     alphas: Sequence[np.ndarray] | None = None,
+    device: str | None = None,
 ) -> dict:
     """Means over the scored frames (pick them with ``eval_frame_indices``) of PSNR, SSIM, LPIPS
     and depth L1, for ``write_report``: ``psnr_db`` and ``ssim`` of the raw render, and
@@ -286,7 +343,8 @@ def photometric_metrics(
     (``compensate_exposure``, fitted where ``alphas`` >= 0.5), with the mean fitted gain
     ``exposure_gain`` (1 where the map's colour is the frames' exposure); peers' SSIM variants of the
     raw render, each named: ``ssim_3dgs`` (zero-padded, MonoGS) and ``ms_ssim`` (SplaTAM's "SSIM").
-    A metric that cannot be computed is None with its reason under ``<name>_na_reason``."""
+    A metric that cannot be computed is None with its reason under ``<name>_na_reason``.  ``device``: a
+    torch device for PSNR and the SSIMs (``metric_device``; the host's numbers to rounding)."""
     if len(renders) != len(refs) or not renders:
         raise ValueError(f"need matching non-empty render/reference lists, got {len(renders)}, {len(refs)}")
     alphas = [None] * len(renders) if alphas is None else alphas
@@ -294,16 +352,21 @@ def photometric_metrics(
     compensated = [
         np.clip(g * np.asarray(x, np.float64) + b, 0, 1) for x, (g, b) in zip(renders, exposures, strict=True)
     ]
+    d = device
+
+    def mean(metric, images) -> float:
+        return float(np.mean([metric(x, y, d) for x, y in zip(images, refs, strict=True)]))
+
     out: dict = {
         "n_frames": len(renders),
-        "psnr_db": float(np.mean([psnr(x, y) for x, y in zip(renders, refs, strict=True)])),
-        "ssim": float(np.mean([ssim(x, y) for x, y in zip(renders, refs, strict=True)])),
-        "psnr_compensated_db": float(np.mean([psnr(x, y) for x, y in zip(compensated, refs, strict=True)])),
-        "ssim_compensated": float(np.mean([ssim(x, y) for x, y in zip(compensated, refs, strict=True)])),
+        "psnr_db": mean(psnr, renders),
+        "ssim": mean(ssim, renders),
+        "psnr_compensated_db": mean(psnr, compensated),
+        "ssim_compensated": mean(ssim, compensated),
         "exposure_gain": float(np.mean([g for g, _ in exposures])),
-        "ssim_3dgs": float(np.mean([ssim_3dgs(x, y) for x, y in zip(renders, refs, strict=True)])),
+        "ssim_3dgs": mean(ssim_3dgs, renders),
     }
-    multi = [ms_ssim(x, y) for x, y in zip(renders, refs, strict=True)]
+    multi = [ms_ssim(x, y, d) for x, y in zip(renders, refs, strict=True)]
     out["ms_ssim"] = None if None in multi else float(np.mean(multi))
     if out["ms_ssim"] is None:
         out["ms_ssim_na_reason"] = f"MS-SSIM needs images of at least {MS_SSIM_MIN_SIDE} px on the shorter side"
