@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from rgs_warp.compile import preload
 from rgs_warp.config import (
     Config,
     ConfigError,
@@ -288,6 +289,7 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, source=
     bar = RunProgress(getattr(source, "name", f"{cfg.dataset.type}/{cfg.dataset.name}"), enabled=progress)
     with watch_kernel_loads(bar.kernel_load) as kernels:
         try:
+            preload(device)  # on a GPU: every kernel module now, in parallel, not one by one as reached
             if source is None:
                 bar.phase("generating the scene (first use)" if generates_scene(cfg) else "opening the dataset")
             ds = open_dataset(cfg, device=device) if source is None else source
@@ -585,6 +587,7 @@ def resume(
     bar = RunProgress(f"{cfg.dataset.type}/{cfg.dataset.name}", enabled=progress)
     with watch_kernel_loads(bar.kernel_load) as kernels:
         try:
+            preload(device)
             bar.phase("opening the dataset")
             ds = open_dataset(cfg, device=device)
             if _is_stream(ds):
