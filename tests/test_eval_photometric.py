@@ -185,8 +185,8 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     assert loaded["align_T"] == np.eye(4).tolist()
     markdown = md_path.read_text()
     assert (
-        "| psnr (dB) | ssim | psnr_compensated (dB) | ssim_compensated | exposure_gain | ssim_3dgs | ms_ssim | lpips |"
-        in markdown
+        "| psnr (dB) | ssim | psnr_compensated (dB) | ssim_compensated | exposure_gain | psnr_tracked_exposure (dB) "
+        "| ssim_tracked_exposure | ssim_3dgs | ms_ssim | lpips |" in markdown
     )
     assert f"n/a ({out['lpips_na_reason']})" in markdown
     assert "| keyframes | 1.235 | 12 |" in markdown and "| all_frames | 2.5 |  |" in markdown
@@ -258,6 +258,25 @@ def test_peer_ssim_variants(frames):
     out = photometric_metrics([small], [small])
     assert out["ms_ssim"] is None and "161 px" in out["ms_ssim_na_reason"]
     assert out["ssim_3dgs"] == pytest.approx(1.0)
+
+
+def test_scores_at_the_tracked_exposure(frames):
+    # the render at the (g, b) tracking estimated for the frame: no fit against the frame; n/a without
+    a, b = frames
+    render = np.clip((a - 0.05) / 1.3, 0, 1)  # the map's colour; the frame saw it at g = 1.3, b = 0.05
+    out = photometric_metrics([render, b], [a, b], tracked_exposures=[(1.3, 0.05), (1.0, 0.0)])
+    assert out["psnr_tracked_exposure_db"] == pytest.approx(
+        (psnr(np.clip(1.3 * render + 0.05, 0, 1), a) + float("inf")) / 2
+    )
+    out = photometric_metrics([render], [a], tracked_exposures=[(1.3, 0.05)])
+    assert out["psnr_tracked_exposure_db"] > out["psnr_db"] + 5.0
+    assert out["ssim_tracked_exposure"] == pytest.approx(ssim(np.clip(1.3 * render + 0.05, 0, 1), a))
+    wrong = photometric_metrics([render], [a], tracked_exposures=[(1.0, 0.0)])
+    assert wrong["psnr_tracked_exposure_db"] == pytest.approx(wrong["psnr_db"])
+    none = photometric_metrics([render], [a])
+    assert none["psnr_tracked_exposure_db"] is None and none["psnr_tracked_exposure_db_na_reason"]
+    with pytest.raises(ValueError, match="one tracked exposure per render"):
+        photometric_metrics([render, b], [a, b], tracked_exposures=[(1.0, 0.0)])
 
 
 def test_the_metrics_on_a_torch_device_are_the_hosts(frames):

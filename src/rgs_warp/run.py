@@ -233,6 +233,9 @@ class RunState:
     frames_total: int = 0
     gt_poses: list = field(default_factory=list)
     frame_losses: list[float] = field(default_factory=list)
+    # each frame's affine exposure (gain, bias) as its tracking estimated it, None where it was not
+    # tracked (the first frame, the monocular bootstrap's waiting ones, unusable input)
+    exposures: list = field(default_factory=list)
     tracked: int = 0  # frames tracked or lost (the first frame and the monocular bootstrap's waiting ones are not)
     lost: list[tuple[int, str]] = field(default_factory=list)
     elapsed_s: float = 0.0
@@ -419,7 +422,7 @@ def _run_frames(
         tracking = tracking_section(state.tracked, state.lost)
         scored = ds if kept is None else kept
         metrics = evaluate_run(
-            cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary(), peak_floor
+            cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary(), peak_floor, state.exposures
         )
     except OSError as e:
         if isinstance(e, SaveError):
@@ -445,9 +448,11 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     memory = memory_mib(slam.device)
     if memory is not None:
         entry["memory_mib"] = round(memory, 1)
-    if result.tracking is not None:
-        entry.update(loss=result.tracking.loss, lost=result.tracking.lost, gain=result.tracking.gain)
-        state.frame_losses.append(result.tracking.loss)
+    tracking = result.tracking
+    if tracking is not None:
+        entry.update(loss=tracking.loss, lost=tracking.lost, gain=tracking.gain, bias=tracking.bias)
+        state.frame_losses.append(tracking.loss)
+    state.exposures.append(None if tracking is None else [tracking.gain, tracking.bias])
     state.tracked += result.tracking is not None or result.lost
     if result.lost:  # tracking lost, or the frame's input unusable (then not tracked)
         entry.update(lost=True, lost_reason=result.lost_reason)
@@ -656,10 +661,13 @@ def evaluate_run(
     tracking: dict | None = None,
     kernels: dict | None = None,
     peak_floor_mib: float | None = 0.0,
+    exposures: list | None = None,
 ) -> dict:
     """Metrics of a finished run (supplement §3) written with ``write_report``; ``tracking``: the
     section of ``tracking_section``; ``kernels``: ``KernelLoads.summary()`` (the seconds the run spent
-    compiling Warp kernels, part of ``wall_s``); ``peak_floor_mib``: ``start_peak_memory``'s floor."""
+    compiling Warp kernels, part of ``wall_s``); ``peak_floor_mib``: ``start_peak_memory``'s floor;
+    ``exposures``: each frame's tracked (gain, bias) (``RunState.exposures``), for the scores at the
+    tracked exposure."""
     _, est = slam.trajectory()
     n = len(est)
     metrics: dict = {
@@ -726,8 +734,11 @@ def evaluate_run(
         alexnet = cfg.eval.lpips_alexnet_path or cached_alexnet_path()
         lpips = LPIPS(alexnet, cfg.eval.lpips_linear_path or None)
         on = metric_device(slam.device)
+        tracked = None
+        if exposures is not None and len(exposures) >= n:
+            tracked = [tuple(exposures[int(i)] or (1.0, 0.0)) for i in idx]
         metrics["photometric"] = photometric_metrics(
-            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas, on
+            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas, on, tracked
         )
         metrics["photometric"].update(keyframe_fit(ds, slam, est, on))
         save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)

@@ -336,6 +336,7 @@ def photometric_metrics(
     ref_depths_m: Sequence[np.ndarray] | None = None,
     alphas: Sequence[np.ndarray] | None = None,
     device: str | None = None,
+    tracked_exposures: Sequence[tuple[float, float]] | None = None,
 ) -> dict:
     """Means over the scored frames (pick them with ``eval_frame_indices``) of PSNR, SSIM, LPIPS
     and depth L1, for ``write_report``: ``psnr_db`` and ``ssim`` of the raw render, and
@@ -343,6 +344,9 @@ def photometric_metrics(
     (``compensate_exposure``, fitted where ``alphas`` >= 0.5), with the mean fitted gain
     ``exposure_gain`` (1 where the map's colour is the frames' exposure); peers' SSIM variants of the
     raw render, each named: ``ssim_3dgs`` (zero-padded, MonoGS) and ``ms_ssim`` (SplaTAM's "SSIM").
+    ``psnr_tracked_exposure_db`` and ``ssim_tracked_exposure``: the render at the exposure (g, b) that
+    tracking estimated for each frame (``tracked_exposures``), as the SLAM itself would show the frame:
+    nothing fitted to the frame at evaluation time.
     A metric that cannot be computed is None with its reason under ``<name>_na_reason``.  ``device``: a
     torch device for PSNR and the SSIMs (``metric_device``; the host's numbers to rounding)."""
     if len(renders) != len(refs) or not renders:
@@ -364,8 +368,19 @@ def photometric_metrics(
         "psnr_compensated_db": mean(psnr, compensated),
         "ssim_compensated": mean(ssim, compensated),
         "exposure_gain": float(np.mean([g for g, _ in exposures])),
-        "ssim_3dgs": mean(ssim_3dgs, renders),
     }
+    if tracked_exposures is None:
+        out["psnr_tracked_exposure_db"] = out["ssim_tracked_exposure"] = None
+        out["psnr_tracked_exposure_db_na_reason"] = "no tracked exposures given"
+        out["ssim_tracked_exposure_na_reason"] = "no tracked exposures given"
+    else:
+        if len(tracked_exposures) != len(renders):
+            raise ValueError(f"need one tracked exposure per render, got {len(tracked_exposures)} for {len(renders)}")
+        pairs = zip(renders, tracked_exposures, strict=True)
+        at_tracked = [np.clip(g * np.asarray(x, np.float64) + b, 0, 1) for x, (g, b) in pairs]
+        out["psnr_tracked_exposure_db"] = mean(psnr, at_tracked)
+        out["ssim_tracked_exposure"] = mean(ssim, at_tracked)
+    out["ssim_3dgs"] = mean(ssim_3dgs, renders)
     multi = [ms_ssim(x, y, d) for x, y in zip(renders, refs, strict=True)]
     out["ms_ssim"] = None if None in multi else float(np.mean(multi))
     if out["ms_ssim"] is None:

@@ -100,6 +100,15 @@ METRICS = (
         False,
         2,
     ),
+    # at the exposure tracking estimated for each frame: what the SLAM itself shows of the frame
+    Metric(
+        "psnr_tracked_exposure_db",
+        ("photometric", "psnr_tracked_exposure_db"),
+        "PSNR at the tracked exposure (dB)",
+        "Rendering",
+        False,
+        2,
+    ),
     Metric("ssim", ("photometric", "ssim"), "SSIM raw", "Rendering", False, 3),
     Metric("ssim_compensated", ("photometric", "ssim_compensated"), "SSIM exposure-compensated", "Rendering", False, 3),
     Metric(
