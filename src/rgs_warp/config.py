@@ -114,9 +114,9 @@ class TrackingConfig:
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
     depth_edge_spread: float = 0.05  # downscaling: block depth invalid above this relative spread
     # Motion check (tracking.py, ``motion_inconsistency``): a frame is lost when its tracked translation
-    # since the last frame falls below motion_min_ratio x the constant-velocity prediction's while its
-    # tracked rotation agrees with the prediction's (within half of it): the camera still turns as before,
-    # so the image still moves, but the pose hardly travels.  That is how monocular tracking collapses
+    # since the last frame falls below motion_min_ratio x the constant-velocity prediction's while the
+    # camera still turns (at least half the predicted rotation): the image still moves, but the pose
+    # hardly travels.  That is how monocular tracking collapses
     # (issue 22: 0.01-0.72 of the true translation on the office while the rotation stayed right); a real
     # stop stops the rotation too.  auto: on in mode=mono (whose translation only the map constrains),
     # off in rgbd (measured depth pins it); on / off force it.
