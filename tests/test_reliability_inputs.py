@@ -345,6 +345,10 @@ def test_cli_bad_intrinsics_one_error_no_run_folder(tmp_path, capsys):
         ("dataset.stride=0", r"dataset.stride: 0 is out of range"),
         ("matching.min_depth_m=20", r"matching.min_depth_m \(20.0\) must not exceed matching.max_depth_m \(10.0\)"),
         ("seed=-1", r"seed: -1 is out of range: it must be in \[0, 2147483647\]"),
+        ("tracking.motion_min_ratio=1.5", r"tracking.motion_min_ratio: 1.5 is out of range: it must be in \[0, 1\]"),
+        ("tracking.motion_min_step_m=-0.01", r"tracking.motion_min_step_m: -0.01 is out of range: it must be >= 0"),
+        ("tracking.motion_min_rotation_deg=-1", r"tracking.motion_min_rotation_deg: -1.0 is out of range"),
+        ("tracking.motion_check=yes", r"tracking.motion_check: 'yes' is not one of auto, on, off"),
     ],
 )
 def test_config_values_are_checked(override, message):

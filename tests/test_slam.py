@@ -2,6 +2,7 @@
 pipeline cannot reach, save / load, and the library entry point with device arrays."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -285,6 +286,45 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
         slam = SLAM(load_config([*base, "keyframes.iou_threshold=0.0", off]), camera, device=device)
         results = [slam.process(f.rgb, f.depth, f.timestamp) for f in frames]
         assert all(r.seeded == 0 for r in results[5:]) and len(slam.seeder.pending) == 0, off
+
+
+@pytest.mark.slow
+def test_collapsed_translation_is_lost_and_not_mapped(device, monkeypatch):
+    """The tracker's estimate is forced to collapse from frame 6 on: each frame's translation since the
+    motion model's last pose scaled by 0.05, its rotation kept, while the images go on moving.  The
+    motion check (on here; its default in mono) flags every such frame lost, none becomes a keyframe
+    or seeds, and the motion model goes on from its prediction.  RGB-D stands in for mono: it tracks
+    the rotation to the 0.1 deg the check compares, where a CPU-sized mono run does not."""
+    from rgs_warp.geometry import invert_pose
+    from rgs_warp.tracking import Tracker
+
+    n, first = 10, 6
+    cfg = load_config([*OVERRIDES, "mapping.init_iters=20", "mapping.iters=3", "tracking.motion_check=on"])
+    camera, frames = _frames(cfg, n)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    read_back = Tracker._read_back
+
+    def collapsed(tracker):
+        hist, poses_CW = read_back(tracker)
+        if len(slam.poses) >= first:
+            T_last = tracker._poses[-1]
+            step = invert_pose(T_last) @ invert_pose(poses_CW[-1])
+            step[:3, 3] *= 0.05
+            poses_CW[-1] = invert_pose(T_last @ step)
+        return hist, poses_CW
+
+    monkeypatch.setattr(Tracker, "_read_back", collapsed)
+    for f in frames:
+        predicted = slam.tracker.predict()
+        r = slam.process(f.rgb, f.depth, f.timestamp)
+        if r.index < first:
+            assert not r.lost, (r.index, r.lost_reason)
+            continue
+        assert r.lost and r.tracking.motion_inconsistent, (r.index, r.lost_reason)
+        assert re.match(r"motion check: the translation collapsed to 0\.\d\d x", r.lost_reason), r.lost_reason
+        assert not r.keyframe and r.keyframe_reason == "not mapped: tracked motion inconsistent" and r.seeded == 0
+        np.testing.assert_allclose(slam.tracker._poses[-1], predicted, atol=1e-12)  # the prediction goes on
+    assert max(slam.keyframe_indices) < first
 
 
 @pytest.mark.slow

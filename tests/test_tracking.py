@@ -17,7 +17,7 @@ from rgs_warp.eval import ate
 from rgs_warp.geometry import invert_pose, se3_exp
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.render import Renderer
-from rgs_warp.tracking import Tracker, pose_error
+from rgs_warp.tracking import Tracker, motion_inconsistency, pose_error
 from rgs_warp.types import Camera
 
 
@@ -353,13 +353,16 @@ def scene(device):
     gmap = map_from_rgbd(frames, wide, stride=2, sigma_per_spacing=0.5, device=device)
     renderer = Renderer(device)
 
-    def observe(i: int, camera=cam):
-        res = renderer.forward(gmap, camera, seq.poses[i])
+    def view(T_WC: np.ndarray, camera=cam):
+        res = renderer.forward(gmap, camera, T_WC)
         alpha = res.alpha.numpy()
         depth = np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
         return res.color.numpy().copy(), depth
 
-    return {"camera": cam, "poses": seq.poses, "map": gmap, "observe": observe}
+    def observe(i: int, camera=cam):
+        return view(seq.poses[i], camera)
+
+    return {"camera": cam, "poses": seq.poses, "map": gmap, "observe": observe, "view": view}
 
 
 def _perturbed(T_WC, t_m, r_deg, seed):
@@ -486,3 +489,88 @@ def test_constant_velocity_prediction_stays_rigid(device, scene):
         tracker.reset(T, T_prev)
     np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(T, T0 @ np.linalg.matrix_power(step, 41), atol=1e-6)
+
+
+# ---- the motion check (tracking.motion_check) -----------------------------------------------------
+def test_motion_check_flags_a_collapsed_translation_not_a_stop():
+    cfg = TrackingConfig()
+    step = se3_exp(np.array([0.03, 0.0, 0.02, 0.0, 0.06, 0.01]))  # 3.6 cm, 3.5 deg: room0's pace
+    T_prev = se3_exp(np.array([0.5, 1.0, -0.2, 0.1, 0.2, 0.3]))
+    T_last = T_prev @ step
+    collapsed = step.copy()
+    collapsed[:3, 3] *= 0.05
+    reason = motion_inconsistency(T_prev, T_last, T_last @ collapsed, cfg)
+    assert reason.startswith("motion check: the translation collapsed to 0.05 x"), reason
+    assert motion_inconsistency(T_prev, T_last, T_last @ step, cfg) == ""  # on the prediction
+    half = step.copy()
+    half[:3, 3] *= 0.5
+    assert motion_inconsistency(T_prev, T_last, T_last @ half, cfg) == ""  # slowing down, not collapsing
+    # a camera that stops stops turning too: not a collapse
+    assert motion_inconsistency(T_prev, T_last, T_last, cfg) == ""
+    # translation collapsed but the turn slowed to under half of the predicted one: stopping, not collapsing
+    slowing = collapsed.copy()
+    slowing[:3, :3] = se3_exp(np.array([0, 0, 0, 0.0, 0.024, 0.004]))[:3, :3]  # 0.4 of the turn
+    assert motion_inconsistency(T_prev, T_last, T_last @ slowing, cfg) == ""
+    slowing[:3, :3] = se3_exp(np.array([0, 0, 0, 0.0, 0.036, 0.006]))[:3, :3]  # 0.6 of it: still turning
+    assert motion_inconsistency(T_prev, T_last, T_last @ slowing, cfg).startswith("motion check")
+    # below either floor the ratio is not judged
+    slow = step.copy()
+    slow[:3, 3] *= 0.1  # 3.6 mm a frame
+    slow_collapsed = slow.copy()
+    slow_collapsed[:3, 3] *= 0.05
+    assert motion_inconsistency(T_prev, T_prev @ slow, T_prev @ slow @ slow_collapsed, cfg) == ""
+    no_turn = step.copy()
+    no_turn[:3, :3] = np.eye(3)
+    flat = no_turn.copy()
+    flat[:3, 3] *= 0.05
+    assert motion_inconsistency(T_prev, T_prev @ no_turn, T_prev @ no_turn @ flat, cfg) == ""
+
+
+@pytest.mark.parametrize("mode, check", [("mono", "auto"), ("mono", "off"), ("rgbd", "auto")])
+def test_tracking_whose_translation_collapses_is_lost(device, scene, mode, check):
+    """The camera goes on turning as before while its translation drops to 0.05 of the step (frames
+    rendered at such poses): the monocular tracker follows, and its motion check (on by default in
+    mono, off by default in rgbd and when set off) flags the frame lost."""
+    poses, view = scene["poses"], scene["view"]
+    tracker = Tracker(TrackingConfig(motion_check=check), scene["camera"], device, mode=mode)
+    tracker.reset(poses[1], poses[0])
+    for i in (2, 3):  # on the true path: tracked well, no alarm
+        rgb, depth = scene["observe"](i)
+        result = tracker.track(rgb, depth, scene["map"])
+        assert not result.lost and pose_error(result.T_WC, poses[i])[0] < 2e-3, (i, result.reason)
+    step = invert_pose(poses[3]) @ poses[4]
+    step[:3, 3] *= 0.05
+    T_true = poses[3] @ step
+    rgb, depth = view(T_true)
+    T_last, T_start = result.T_WC, tracker.predict()
+    result = tracker.track(rgb, depth, scene["map"])
+    assert pose_error(result.T_WC, T_true)[0] < 5e-3  # tracked: the image does say so
+    if mode == "mono" and check == "auto":
+        assert result.lost and result.motion_inconsistent, result.reason
+        assert result.reason.startswith("motion check: the translation collapsed"), result.reason
+        # the motion model goes on from the prediction, not from the collapsed pose
+        np.testing.assert_allclose(tracker.predict(), T_start @ invert_pose(T_last) @ T_start, atol=1e-9)
+    else:
+        assert not result.lost and not result.motion_inconsistent, result.reason
+
+
+def test_motion_check_setting_is_checked(device, scene):
+    with pytest.raises(ValueError, match="motion_check"):
+        Tracker(TrackingConfig(motion_check="yes"), scene["camera"], device)
+
+
+@pytest.mark.slow
+def test_mono_tracking_on_the_true_path_raises_no_motion_alarm(device, scene):
+    """Frames on room0's true path (3.7 cm and 3.9 deg a frame, speeding up and slowing down), tracked
+    from the constant-velocity prediction in mono, where the motion check is on: each is tracked well,
+    and none is flagged."""
+    poses = scene["poses"]
+    tracker = Tracker(TrackingConfig(), scene["camera"], device, mode="mono")
+    assert tracker.motion_check
+    tracker.reset(poses[1], poses[0])
+    for i in range(2, 9):
+        rgb, _ = scene["observe"](i)
+        result = tracker.track(rgb, None, scene["map"])
+        dt, dr = pose_error(result.T_WC, poses[i])
+        assert dt < 2e-3 and dr < 0.1, (i, dt, dr)  # well tracked, so an alarm would be false
+        assert not result.lost and not result.motion_inconsistent, (i, result.reason)

@@ -28,7 +28,7 @@ from rgs_warp.kernels.math import REDUCE_BLOCK
 from rgs_warp.render import Renderer
 from rgs_warp.types import Camera, GaussianMap
 
-__all__ = ["Tracker", "TrackingResult", "pose_error"]
+__all__ = ["Tracker", "TrackingResult", "motion_inconsistency", "pose_error"]
 
 
 @dataclass
@@ -40,12 +40,15 @@ class TrackingResult:
     Eq. 3-4 at the last iteration; converged: over the last quarter of the steps the twist
     gradient kept flipping sign (Adam's |m_hat| / sqrt(v_hat) below ``CONVERGED_CONSISTENCY``) and
     the frame is not lost; lost: the map does not
-    explain the frame (too little coverage, too large a residual) or the estimate diverged; reason: why;
+    explain the frame (too little coverage, too large a residual), the estimate diverged, or its motion
+    is inconsistent with the motion model's (``motion_inconsistent``); reason: why;
     diverged: the estimate was not finite, or moved implausibly far from the start pose
     (``MAX_CORRECTION_M``, ``MAX_CORRECTION_DEG``): it is discarded and ``T_WC`` is the start pose;
     iters: Adam steps taken; residual: weighted mean |I - g I_hat - b| per channel; loss_history:
     loss per iteration; alpha: the accumulated opacity of the last render (tracking resolution), for
-    the keyframe selector, valid until the tracker's renderer renders again.
+    the keyframe selector, valid until the tracker's renderer renders again; motion_inconsistent: lost by
+    the motion check (``tracking.motion_check``, ``motion_inconsistency``): the translation collapsed
+    while the rotation went on as predicted, so the pose is not to be mapped.
     """
 
     T_WC: np.ndarray
@@ -61,6 +64,7 @@ class TrackingResult:
     loss_history: np.ndarray
     alpha: wp.array
     diverged: bool = False
+    motion_inconsistent: bool = False
 
 
 # Converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps its
@@ -71,6 +75,11 @@ CONVERGED_CONSISTENCY = 0.4
 # Adam steps is an optimisation that ran away (e.g. a far too high tracking.lr), not camera motion.
 MAX_CORRECTION_M = 1.0
 MAX_CORRECTION_DEG = 45.0
+# Motion check: the camera "still turns" when its tracked rotation since the last frame is at least
+# this fraction of the constant-velocity prediction's (a camera that stops turns far less; the office's
+# collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
+STILL_TURNING = 0.5
+MOTION_CHECKS = ("auto", "on", "off")
 BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
 
 
@@ -99,10 +108,15 @@ class Tracker:
             raise ValueError(
                 f"tracking.brightness must be one of {', '.join(BRIGHTNESS_MODELS)}, got {cfg.brightness!r}"
             )
+        if cfg.motion_check not in MOTION_CHECKS:
+            raise ValueError(
+                f"tracking.motion_check must be one of {', '.join(MOTION_CHECKS)}, got {cfg.motion_check!r}"
+            )
         if cfg.iters < 1 or cfg.downscale < 1:
             raise ValueError(f"need tracking.iters >= 1 and tracking.downscale >= 1, got {cfg.iters}, {cfg.downscale}")
         self.cfg = cfg
         self.mode = mode
+        self.motion_check = cfg.motion_check == "on" or (cfg.motion_check == "auto" and mode == "mono")
         self.device = wp.get_device(device)
         self.camera = camera
         self.track_camera = camera.scaled(cfg.downscale)
@@ -329,13 +343,17 @@ class Tracker:
             device=dev,
         )
 
-    def _finish(self, T_init_WC: np.ndarray) -> TrackingResult:
-        cfg = self.cfg
+    def _read_back(self) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's one read-back: the per-iteration sums (``tk.H_*`` columns) and the
+        world-to-camera pose after each step."""
         wp.copy(self._history_host, self._history)
         wp.copy(self._pose_history_host, self._pose_history)
         wp.synchronize_device(self.device)
-        hist = self._history_host.numpy().copy()
-        poses_CW = np.array(self._pose_history_host.numpy(), dtype=np.float64)
+        return self._history_host.numpy().copy(), np.array(self._pose_history_host.numpy(), dtype=np.float64)
+
+    def _finish(self, T_init_WC: np.ndarray) -> TrackingResult:
+        cfg = self.cfg
+        hist, poses_CW = self._read_back()
         T_WC = (
             _nearest_rigid(invert_pose(poses_CW[-1]))
             if np.all(np.isfinite(poses_CW[-1]))
@@ -349,7 +367,7 @@ class Tracker:
         consistency = float(hist[-tail:, tk.H_CONSISTENCY].mean())
         before = invert_pose(poses_CW[-1 - tail]) if cfg.iters > tail else T_init_WC
         moved_m, moved_deg = pose_error(T_WC, before)
-        lost, converged, diverged = True, False, False
+        lost, converged, diverged, motion_inconsistent = True, False, False, False
         correction_m, correction_deg = pose_error(T_WC, T_init_WC)
         if not (np.all(np.isfinite(T_WC)) and np.isfinite(last[tk.H_LOSS])):
             diverged, reason = True, "diverged: non-finite pose or loss; the estimate is discarded"
@@ -363,6 +381,8 @@ class Tracker:
             reason = f"map covers {valid_ratio:.1%} of the view (< {cfg.min_valid_ratio:.0%})"
         elif residual > cfg.max_residual:
             reason = f"photometric residual {residual:.3f} > {cfg.max_residual}"
+        elif self.motion_check and len(self._poses) == 2 and (why := motion_inconsistency(*self._poses, T_WC, cfg)):
+            reason, motion_inconsistent = why, True
         else:
             lost = False
             converged = consistency < CONVERGED_CONSISTENCY
@@ -388,7 +408,34 @@ class Tracker:
             loss_history=hist[:, tk.H_LOSS].copy(),
             alpha=self._last_render.alpha,
             diverged=diverged,
+            motion_inconsistent=motion_inconsistent,
         )
+
+
+def motion_inconsistency(T_prev_WC: np.ndarray, T_last_WC: np.ndarray, T_WC: np.ndarray, cfg: TrackingConfig) -> str:
+    """Why the tracked pose ``T_WC`` breaks the constant-velocity motion of the two poses before it
+    (camera-to-world), or "" where it does not or the motion is too small to tell.
+
+    The prediction repeats the last step ``T_prev^-1 T_last`` from ``T_last``; the tracked step is
+    ``T_last^-1 T_WC``.  Inconsistent: the tracked step's translation is below
+    ``cfg.motion_min_ratio`` x the predicted step's while the camera still turns (its rotation at least
+    ``STILL_TURNING`` x the predicted one's): the image moves on but the pose hardly travels, the monocular collapse of
+    issue 22 (scale is defined only by the map there).  A camera that stops stops turning too, and
+    passes.  Only steps of at least ``cfg.motion_min_step_m`` and ``cfg.motion_min_rotation_deg`` are
+    judged."""
+    predicted, step = invert_pose(T_prev_WC) @ T_last_WC, invert_pose(T_last_WC) @ T_WC
+    predicted_m, step_m = float(np.linalg.norm(predicted[:3, 3])), float(np.linalg.norm(step[:3, 3]))
+    predicted_deg, step_deg = rotation_angle_deg(predicted[:3, :3]), rotation_angle_deg(step[:3, :3])
+    if predicted_m < cfg.motion_min_step_m or predicted_deg < cfg.motion_min_rotation_deg:
+        return ""
+    ratio = step_m / predicted_m
+    if ratio >= cfg.motion_min_ratio or step_deg < STILL_TURNING * predicted_deg:
+        return ""
+    return (
+        f"motion check: the translation collapsed to {ratio:.2f} x the constant-velocity prediction "
+        f"({1e3 * step_m:.1f} of {1e3 * predicted_m:.1f} mm; < {cfg.motion_min_ratio:g}) while the camera "
+        f"still turns ({step_deg:.2f} deg against {predicted_deg:.2f} deg predicted)"
+    )
 
 
 def _nearest_rigid(T: np.ndarray) -> np.ndarray:

@@ -167,7 +167,10 @@ class SLAM:
         dtype that is not floating point, colour outside [0, 1] or negative depth raise ValueError
         and change nothing; pixels that are not finite are masked and counted (``nonfinite_rgb``,
         ``nonfinite_depth``); a frame with too few usable pixels is refused as the first frame and
-        lost (``lost_reason``) later, at the last good pose, as is one whose tracking diverged."""
+        lost (``lost_reason``) later, at the last good pose, as is one whose tracking diverged.  A frame
+        whose tracked motion fails the motion check (``tracking.motion_check``: the translation collapsed)
+        is lost at the tracker's estimate and neither a keyframe nor seeded, and the motion model goes on
+        from its prediction."""
         if isinstance(rgb, Frame):
             rgb, depth, timestamp = rgb.rgb, rgb.depth, rgb.timestamp
         if T_init_WC is not None and T_WC is not None:
@@ -227,6 +230,8 @@ class SLAM:
         is_kf, reason = decision.is_keyframe, decision.reason + (" (pose given)" if given and i else "")
         if 0 < i < self._init_window_end:
             is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}{', pose given' if given else ''})"
+        if tracking is not None and tracking.motion_inconsistent:  # a collapsed pose must not seed the map
+            is_kf, reason = False, "not mapped: tracked motion inconsistent"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
