@@ -17,7 +17,7 @@ from rgs_warp.eval import ate
 from rgs_warp.geometry import invert_pose, se3_exp
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.render import Renderer
-from rgs_warp.tracking import Tracker, motion_inconsistency, pose_error
+from rgs_warp.tracking import SETTLED_DEG, SETTLED_M, Tracker, motion_inconsistency, pose_error, settled_iters
 from rgs_warp.types import Camera
 
 
@@ -574,3 +574,16 @@ def test_mono_tracking_on_the_true_path_raises_no_motion_alarm(device, scene):
         dt, dr = pose_error(result.T_WC, poses[i])
         assert dt < 2e-3 and dr < 0.1, (i, dt, dr)  # well tracked, so an alarm would be false
         assert not result.lost and not result.motion_inconsistent, (i, result.reason)
+
+
+def test_settled_iters_counts_the_steps_until_the_pose_stays_put():
+    # world-to-camera poses after each of 10 steps: moving 1 mm a step until step 5, then within the
+    # tolerance of the last; the count is the steps taken before it stayed (what an early stop saves)
+    final = se3_exp(np.array([0.1, 0.0, 0.0, 0.0, 0.02, 0.0]))
+    steps = [final @ se3_exp(np.array([1e-3 * (5 - k), 0, 0, 0, 0, 0])) if k < 5 else final for k in range(10)]
+    steps[7] = final @ se3_exp(np.array([0.5 * SETTLED_M, 0, 0, 0, 0, 0]))  # jitter within the tolerance
+    assert settled_iters(np.array(steps)) == 5
+    steps[8] = final @ se3_exp(np.array([0, 0, 0, np.radians(2 * SETTLED_DEG), 0, 0]))  # a late turn
+    assert settled_iters(np.array(steps)) == 9
+    assert settled_iters(np.array([final] * 4)) == 0
+    assert settled_iters(np.array([final, final, np.full((4, 4), np.nan)])) == 3

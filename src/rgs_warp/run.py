@@ -236,6 +236,8 @@ class RunState:
     # each frame's affine exposure (gain, bias) as its tracking estimated it, None where it was not
     # tracked (the first frame, the monocular bootstrap's waiting ones, unusable input)
     exposures: list = field(default_factory=list)
+    # each tracked frame's Adam steps until its pose stayed put (``TrackingResult.settled_iters``)
+    settled_iters: list[int] = field(default_factory=list)
     tracked: int = 0  # frames tracked or lost (the first frame and the monocular bootstrap's waiting ones are not)
     lost: list[tuple[int, str]] = field(default_factory=list)
     elapsed_s: float = 0.0
@@ -419,7 +421,7 @@ def _run_frames(
         _save_run(cfg, slam, run_dir)
         wall = time.perf_counter() - t_start
         bar.phase("evaluating")
-        tracking = tracking_section(state.tracked, state.lost)
+        tracking = tracking_section(state.tracked, state.lost, state.settled_iters, cfg.tracking.iters)
         scored = ds if kept is None else kept
         metrics = evaluate_run(
             cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary(), peak_floor, state.exposures
@@ -451,7 +453,9 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     tracking = result.tracking
     if tracking is not None:
         entry.update(loss=tracking.loss, lost=tracking.lost, gain=tracking.gain, bias=tracking.bias)
+        entry["settled_iters"] = tracking.settled_iters
         state.frame_losses.append(tracking.loss)
+        state.settled_iters.append(tracking.settled_iters)
     state.exposures.append(None if tracking is None else [tracking.gain, tracking.bias])
     state.tracked += result.tracking is not None or result.lost
     if result.lost:  # tracking lost, or the frame's input unusable (then not tracked)
@@ -611,10 +615,17 @@ def resume(
         return _run_frames(cfg, ds, slam, run_dir, state, bar, kernels, viewer=viewer)
 
 
-def tracking_section(tracked: int, lost: list[tuple[int, str]]) -> dict:
+def tracking_section(
+    tracked: int, lost: list[tuple[int, str]], settled: list[int] | None = None, iters: int | None = None
+) -> dict:
     """The report's ``tracking`` section: how many of the ``tracked`` frames were lost (``lost``: frame
-    index and the tracker's reason of each) and the first of them."""
+    index and the tracker's reason of each) and the first of them; with ``settled`` (each tracked
+    frame's ``settled_iters``) their median and 90th percentile against the ``iters`` steps taken."""
     section: dict = {"tracked_frames": tracked, "lost_frames": len(lost)}
+    if settled:
+        section["settled_iters_p50"] = float(np.percentile(settled, 50))
+        section["settled_iters_p90"] = float(np.percentile(settled, 90))
+        section["iters"] = iters
     if lost:
         section["first_lost_frame"], section["first_lost_reason"] = lost[0]
     else:
