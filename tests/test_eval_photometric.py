@@ -262,7 +262,7 @@ def test_peer_ssim_variants(frames):
 
 def test_scores_at_the_tracked_exposure(frames):
     # the render at the (g, b) tracking estimated for the frame: no fit against the frame; n/a without
-    a, b = frames
+    a, b = (f[:120, :160] for f in frames)
     render = np.clip((a - 0.05) / 1.3, 0, 1)  # the map's colour; the frame saw it at g = 1.3, b = 0.05
     out = photometric_metrics([render, b], [a, b], tracked_exposures=[(1.3, 0.05), (1.0, 0.0)])
     assert out["psnr_tracked_exposure_db"] == pytest.approx(
@@ -282,7 +282,7 @@ def test_scores_at_the_tracked_exposure(frames):
 def test_the_metrics_on_a_torch_device_are_the_hosts(frames):
     # A GPU run computes PSNR and the SSIMs with torch on its GPU (float64, the same sums in another
     # order); torch's CPU runs that code here, against the NumPy / SciPy code of the host path.
-    a, b = frames
+    a, b = (f[:200, :320] for f in frames)  # MS-SSIM's five scales need 161 px: it runs too
     rng = np.random.default_rng(1)
     noisy = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
     for x, y in [(b, a), (noisy, a), (a[:37, 5:300, 1], b[:37, 5:300, 1]), (a[::3, ::2], noisy[::3, ::2])]:

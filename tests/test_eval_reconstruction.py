@@ -88,6 +88,7 @@ def test_rendered_depth_matches_real_frame(replica):
     assert depth_l1_cm(_render_depth_m(mesh, shifted_pose, REPLICA_CAMERA), real_m) > 2.0
 
 
+@pytest.mark.slow  # 7 s of open3d fusion on the CPU
 def test_tsdf_of_rendered_depth_is_accurate(replica):
     mesh, poses_c2w, _ = replica
     camera = REPLICA_CAMERA.scaled(4)
