@@ -330,6 +330,37 @@ def test_collapsed_translation_is_lost_and_not_mapped(device, monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("relocalize", ["on", "off"])
+def test_a_lost_frame_is_relocalised_from_the_keyframes(device, relocalize):
+    """Frame 8 starts tracking 50 m off its path (a teleport: the map out of view, the frame lost by its
+    coverage); relocalisation tracks it again from the last good pose and the nearest keyframes'
+    poses, and finds it, the motion model restarting there, so frame 9 is tracked as usual.  Off
+    (RGB-D's default), frame 8 stays lost.  RGB-D stands in for mono (on there by default), whose
+    CPU-sized runs track too poorly."""
+    from rgs_warp.tracking import pose_error
+
+    cfg = load_config([*OVERRIDES, "mapping.init_iters=20", "mapping.iters=3", f"tracking.relocalize={relocalize}"])
+    camera, frames = _frames(cfg, 10)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    for f in frames[:8]:
+        r = slam.process(f.rgb, f.depth, f.timestamp)
+        assert not r.lost
+    accuracy = pose_error(r.T_WC, frames[7].pose_gt)[0] + 0.02  # this tiny map's (6.5 cm at frame 7) and 2 cm
+    teleport = frames[8].pose_gt.copy()
+    teleport[:3, 3] += [50.0, 0.0, 0.0]
+    r = slam.process(frames[8].rgb, frames[8].depth, frames[8].timestamp, T_init_WC=teleport)
+    if relocalize == "off":
+        assert r.lost and "relocalis" not in r.lost_reason, r.lost_reason
+        return
+    assert not r.lost, r.lost_reason
+    assert r.tracking.reason.startswith("relocalised from "), r.tracking.reason
+    assert pose_error(r.T_WC, frames[8].pose_gt)[0] < accuracy  # not 50 m: found again
+    np.testing.assert_allclose(slam.tracker.predict(), r.T_WC)  # the motion model restarts there
+    r9 = slam.process(frames[9].rgb, frames[9].depth, frames[9].timestamp)
+    assert not r9.lost and pose_error(r9.T_WC, frames[9].pose_gt)[0] < accuracy, r9.lost_reason
+
+
+@pytest.mark.slow
 def test_own_data_without_ground_truth(tmp_path, device):
     """A sequence of one's own in the TUM layout with cam_params.json and no groundtruth.txt runs end
     to end with dataset.require_pose=false: trajectory, map and photometric metrics, ATE not scored

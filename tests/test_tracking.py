@@ -596,3 +596,23 @@ def test_settled_iters_counts_the_steps_until_the_pose_stays_put():
     assert settled_iters(np.array(steps)) == 9
     assert settled_iters(np.array([final] * 4)) == 0
     assert settled_iters(np.array([final, final, np.full((4, 4), np.nan)])) == 3
+
+
+@pytest.mark.slow
+def test_relocalize_takes_the_candidate_that_holds_and_restores_the_model_when_none_does(device, scene):
+    poses = scene["poses"]
+    tracker = Tracker(TrackingConfig(iters=15), scene["camera"], device)
+    tracker.reset(poses[2], poses[1])
+    before = tracker.state_dict()
+    rgb, depth = scene["observe"](3)
+    far = poses[3].copy()
+    far[:3, 3] += [50.0, 0.0, 0.0]  # the map out of view: lost
+    lost = tracker.track(rgb, depth, scene["map"], T_init_WC=far)
+    assert lost.lost
+    after = tracker.state_dict()["motion_poses"]
+    assert tracker.relocalize(rgb, depth, scene["map"], [far, far], before) is None
+    np.testing.assert_array_equal(tracker.state_dict()["motion_poses"], after)  # as the lost try left it
+    result, k = tracker.relocalize(rgb, depth, scene["map"], [poses[2], far], before)
+    assert k == 0 and not result.lost and pose_error(result.T_WC, poses[3])[0] < 2e-3
+    np.testing.assert_array_equal(tracker.predict(), result.T_WC)  # restarted there, no velocity
+    assert float(result.alpha.numpy().mean()) > 0.5  # the chosen pose's render, not the last try's

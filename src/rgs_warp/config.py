@@ -132,6 +132,11 @@ class TrackingConfig:
     # motion_min_rotation_deg: below them tracking noise (~1 mm, 0.05 deg) is a large part of the ratio
     motion_min_step_m: float = 0.005
     motion_min_rotation_deg: float = 0.2
+    # Relocalisation (issue 22): a lost frame is tracked again from the last good pose and from the
+    # poses of the (up to three) keyframes nearest it, and the best try that is not lost (lowest loss) is its pose;
+    # the motion model then restarts there (zero velocity).  auto: on in mode=mono, off in rgbd (where a
+    # lost frame is mostly one the map does not cover yet); on / off force it.
+    relocalize: str = "auto"
 
 
 @dataclass
@@ -440,6 +445,7 @@ CHOICES = {
     "tracking.brightness": ("gain", "affine", "off"),
     "tracking.exposure_from": ("map", "keyframes"),
     "tracking.motion_check": ("auto", "on", "off"),
+    "tracking.relocalize": ("auto", "on", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 

@@ -225,6 +225,30 @@ class Tracker:
             self._iteration(gmap, k, use_depth)
         return self._finish(T_init)
 
+    def relocalize(
+        self, rgb, depth, gmap: GaussianMap, candidates: list[np.ndarray], state_before: dict
+    ) -> tuple[TrackingResult, int] | None:
+        """Track the frame again from each camera-to-world pose of ``candidates`` (e.g. keyframes'), the
+        motion model as in ``state_before`` (``state_dict`` before the lost try) for each; the best try
+        that is not lost (lowest loss) and its candidate's index, the motion model restarted at its pose
+        and ``alpha`` that of its render; None, the motion model as the lost try left it, if none holds."""
+        after = self.state_dict()
+        best = None
+        for k, T in enumerate(candidates):
+            self.load_state_dict(state_before)
+            result = self.track(rgb, depth, gmap, T_init_WC=T)
+            if not result.lost and (best is None or result.loss < best[0].loss):
+                best = (result, k)
+        if best is None:
+            self.load_state_dict(after)
+            return None
+        result, k = best
+        self.reset(result.T_WC)  # the velocity before the loss is not this pose's
+        if k != len(candidates) - 1:  # alpha is the last render's: render the chosen pose again
+            self.exposure(gmap, result.T_WC)
+            result.alpha = self._last_render.alpha
+        return result, k
+
     def load_frame(self, rgb, depth) -> None:
         """Stage a frame on the device without tracking it (``frame`` then returns it); ``track``
         does this itself.  ``depth`` is ignored in "mono"."""
@@ -270,6 +294,11 @@ class Tracker:
         wp.copy(self._T_WC, self._T_WC_host)
         self._history.zero_()
         self._render_and_brightness(gmap, 0)
+        # the renderer sizes its intersection buffers by the previous render's: after a view that saw
+        # little of the map (a lost try, a jump to a given pose) this one can overflow them; once more
+        if self.renderer.intersections_overflowed():
+            self._history.zero_()
+            self._render_and_brightness(gmap, 0)
         wp.copy(self._history_host, self._history)
         wp.synchronize_device(self.device)
         row = self._history_host.numpy()[0]

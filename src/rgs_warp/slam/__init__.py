@@ -42,6 +42,8 @@ from rgs_warp.triangulation import Triangulator
 from rgs_warp.types import Camera, Frame, GaussianMap
 
 METHODS = ("rgs", "baseline")
+# A lost frame is tracked again from the poses of this many keyframes nearest its last good pose.
+RELOCALIZE_CANDIDATES = 3
 
 
 @dataclass
@@ -91,6 +93,8 @@ class SLAM:
         # tracking's own renderer; asynchronous mapping also renders the published map with it
         self._tracking_renderer = Renderer(dev)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=self._tracking_renderer)
+        relocalize = cfg.tracking.relocalize
+        self.relocalize = relocalize == "on" or (relocalize == "auto" and self.mode == "mono")
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
@@ -220,7 +224,10 @@ class SLAM:
             decision = self.selector.should_add(self.tracker.alpha, T)
         else:
             tr0 = time.perf_counter()
+            before = self.tracker.state_dict()
             tracking = self.tracker.track(rgb, depth, tmap, T_init_WC)
+            if tracking.lost and self.relocalize and len(self.keyframes):
+                tracking = self._relocalized(rgb, depth, tmap, tracking, before)
             self.stats["tracking_s"] += time.perf_counter() - tr0
             if tracking.diverged:  # neither the map nor the trajectory gets the estimate
                 result = FrameResult(i, self.poses[-1].copy(), tracking, False, "not mapped: tracking diverged")
@@ -248,6 +255,24 @@ class SLAM:
                 if self.worker is None or self.worker.queued("refine") == 0:
                     self._run("refine", self._refine_window, result)
         return self._record(result, timestamp, t0)
+
+    def _relocalized(self, rgb, depth, tmap: GaussianMap, lost: TrackingResult, before: dict) -> TrackingResult:
+        """``lost`` tracked again (``Tracker.relocalize``) from the last good pose and from the poses of
+        the ``RELOCALIZE_CANDIDATES`` keyframes nearest it: the result that holds, its reason saying
+        where it started, or ``lost``, its reason saying that relocalisation failed too."""
+        kf = self.keyframes
+        here = self.poses[-1]
+        slots = sorted(kf.slots(), key=lambda s: float(np.linalg.norm(kf.poses[s][:3, 3] - here[:3, 3])))
+        slots = slots[:RELOCALIZE_CANDIDATES]
+        names = ["the last good pose"] + [f"keyframe {int(kf.frame_ids[s])}" for s in slots]
+        candidates = [here.copy()] + [kf.poses[s].copy() for s in slots]
+        found = self.tracker.relocalize(rgb, depth, tmap, candidates, before)
+        if found is None:
+            lost.reason += f"; relocalisation from {', '.join(names)} failed too"
+            return lost
+        result, k = found
+        result.reason = f"relocalised from {names[k]} ({lost.reason}); " + result.reason
+        return result
 
     def _run(self, kind: str, job, *args) -> None:
         """Run a mapping job now (synchronous) or queue it for the worker (its arguments then owned)."""
