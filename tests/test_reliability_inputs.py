@@ -349,6 +349,7 @@ def test_cli_bad_intrinsics_one_error_no_run_folder(tmp_path, capsys):
         ("tracking.motion_min_step_m=-0.01", r"tracking.motion_min_step_m: -0.01 is out of range: it must be >= 0"),
         ("tracking.motion_min_rotation_deg=-1", r"tracking.motion_min_rotation_deg: -1.0 is out of range"),
         ("tracking.motion_check=yes", r"tracking.motion_check: 'yes' is not one of auto, on, off"),
+        ("tracking.relocalize=always", r"tracking.relocalize: 'always' is not one of auto, on, off"),
     ],
 )
 def test_config_values_are_checked(override, message):
