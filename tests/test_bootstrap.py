@@ -229,6 +229,7 @@ def office_pair(device):
     return {"camera": cam, "rgb": (rgb0, rgbk), "depth0": depth0, "T_0k": T_0k}, result
 
 
+@pytest.mark.slow  # the office pair takes 5 s to build
 def test_bootstrap_recovers_pose_and_depth(office_pair):
     truth, r = office_pair
     T = truth["T_0k"]
@@ -287,6 +288,7 @@ def test_bootstrap_rejects_pairs_without_parallax(device):
     assert valid.mean() > 0.5
 
 
+@pytest.mark.slow  # the office pair takes 5 s to build
 def test_to_triangulated_points_seeds_both_keyframes(office_pair, device):
     truth, r = office_pair
     cam = truth["camera"]

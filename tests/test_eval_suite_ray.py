@@ -97,6 +97,7 @@ def test_a_run_killed_twice_is_an_error_row_and_resume_redoes_only_it(tmp_path, 
     assert finished.stat().st_mtime_ns == written  # the finished run was not run again
 
 
+@pytest.mark.slow  # starting the local Ray cluster takes 6 s: with the other Ray tests
 def test_cuda_runs_on_a_cluster_without_gpus_fail_at_once(tmp_path, cluster, capsys):
     """Not a sweep whose tasks wait for ever for a GPU: an error that says why, before any run."""
     spec = _sweep(tmp_path, "synthetic/room0")
