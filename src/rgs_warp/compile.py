@@ -52,8 +52,15 @@ def preload(device: str, workers: int | None = None) -> None:
     at a time (default: one per CPU core).  Every launch of rgs_warp uses the modules' default block
     size (256 threads, ``REDUCE_BLOCK``, ``PROJECT_BLOCK`` and 16x16 tiles alike), the one variant this
     loads.  No-op on the CPU, whose tiled kernels need a second variant of their modules."""
-    if not wp.get_device(device).is_cuda:
+    device = wp.get_device(device)
+    if not device.is_cuda:
         return
+    # Warp takes a single GPU's primary context (and makes the device's stream) on first use, unlocked.
+    # Left to force_load's threads, several take it at once and each makes a stream: the device then
+    # captures CUDA graphs on one and zeroes memory on another, and the first capture fails with CUDA
+    # error 906 (a run crashed so on every one-GPU machine; with two GPUs Warp's peer-access check
+    # takes the contexts first).  So this thread takes it before them.
+    _ = device.context
     modules = [wp.get_module(importlib.import_module(name).__name__) for name in kernel_modules()]
     wp.force_load(device=device, modules=modules, max_workers=_workers(workers))
 

@@ -1,0 +1,42 @@
+"""On a GPU only (skipped without CUDA; run it on the lent machine with ``pytest -m gpu``): after
+``preload`` in a fresh process, the device's stream in Python is the one Warp's native code issues
+memory operations on, and a CUDA graph that allocates and zeroes an array captures and replays.
+Both failed on a one-GPU machine when force_load's threads took the primary context concurrently
+(every run there crashed in its first capture with CUDA error 906)."""
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import warp as wp
+
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA GPU")]
+
+SCRIPT = textwrap.dedent(
+    """
+    import warp as wp
+    wp.config.quiet = True
+    from rgs_warp.compile import preload
+    from warp._src.context import runtime
+    preload("cuda:0", workers=16)
+    dev = wp.get_device("cuda:0")
+    native = runtime.core.wp_cuda_context_get_stream(dev.context)
+    print("streams", native, dev.stream.cuda_stream)
+    assert native == dev.stream.cuda_stream, "the device's stream in Python is not the native current stream"
+    with wp.ScopedCapture(device=dev) as capture:
+        a = wp.zeros(1000, dtype=float, device=dev)
+        wp.launch(_fill, dim=1000, inputs=[a], device=dev)
+    wp.capture_launch(capture.graph)
+    assert float(a.numpy().sum()) == 1000.0
+    print("capture ok")
+    """
+)
+
+
+def test_preload_then_capture_in_a_fresh_process():
+    kernel = "@wp.kernel\ndef _fill(a: wp.array(dtype=float)):\n    a[wp.tid()] = 1.0\n"
+    code = SCRIPT.replace("from rgs_warp.compile import preload", kernel + "from rgs_warp.compile import preload")
+    for _ in range(3):  # a race: a fresh process each time
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0 and "capture ok" in out.stdout, out.stdout[-2000:] + out.stderr[-3000:]
