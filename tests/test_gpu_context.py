@@ -17,6 +17,11 @@ SCRIPT = textwrap.dedent(
     """
     import warp as wp
     wp.config.quiet = True
+
+    @wp.kernel
+    def _fill(a: wp.array(dtype=float)):
+        a[wp.tid()] = 1.0
+
     from rgs_warp.compile import preload
     from warp._src.context import runtime
     preload("cuda:0", workers=16)
@@ -34,9 +39,9 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_preload_then_capture_in_a_fresh_process():
-    kernel = "@wp.kernel\ndef _fill(a: wp.array(dtype=float)):\n    a[wp.tid()] = 1.0\n"
-    code = SCRIPT.replace("from rgs_warp.compile import preload", kernel + "from rgs_warp.compile import preload")
+def test_preload_then_capture_in_a_fresh_process(tmp_path):
+    script = tmp_path / "preload_capture.py"  # a file: Warp reads a kernel's source from it
+    script.write_text(SCRIPT, encoding="utf-8")
     for _ in range(3):  # a race: a fresh process each time
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
         assert out.returncode == 0 and "capture ok" in out.stdout, out.stdout[-2000:] + out.stderr[-3000:]
