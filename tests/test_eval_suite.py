@@ -489,3 +489,22 @@ def test_peer_metrics_named_in_the_tables(result):
     t = _tables((out / "eval.md").read_text())
     for label in ("SSIM raw ↑", "SSIM 3DGS zero-padded (MonoGS's) ↑", "MS-SSIM (SplaTAM's SSIM) ↑", "LPIPS AlexNet ↓"):
         assert ("Rendering", "synthetic", label, "rgs") in t, label
+
+
+def test_git_commit_names_edited_code(tmp_path):
+    # a number measured on edited code must not carry the bare commit (the lent GPU machine runs the
+    # working tree over an older .git: its suites said 16a5048 for code two commits newer)
+    import subprocess
+
+    from rgs_warp.eval.report import git_commit
+
+    assert git_commit(tmp_path) == "unknown"
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(tmp_path)]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (tmp_path / "a.txt").write_text("1")
+    subprocess.run([*git, "add", "a.txt"], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "c"], check=True)
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    assert git_commit(tmp_path) == head
+    (tmp_path / "a.txt").write_text("2")
+    assert git_commit(tmp_path) == head + "+changes"

@@ -23,10 +23,10 @@ SCRIPT = textwrap.dedent(
         a[wp.tid()] = 1.0
 
     from rgs_warp.compile import preload
-    from warp._src.context import runtime
+    from warp._src import context
     preload("cuda:0", workers=16)
     dev = wp.get_device("cuda:0")
-    native = runtime.core.wp_cuda_context_get_stream(dev.context)
+    native = context.runtime.core.wp_cuda_context_get_stream(dev.context)
     print("streams", native, dev.stream.cuda_stream)
     assert native == dev.stream.cuda_stream, "the device's stream in Python is not the native current stream"
     with wp.ScopedCapture(device=dev) as capture:

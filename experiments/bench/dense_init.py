@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import warp as wp
 from rgs_warp.config import MatchingConfig, SeedingConfig, TriangulationConfig
 from rgs_warp.datasets import SyntheticDataset
 from rgs_warp.eval import psnr
+from rgs_warp.eval.report import git_commit
 from rgs_warp.geometry import invert_pose
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
@@ -103,7 +103,7 @@ def run(args) -> dict:
     g, b = exposure[ids[0]]
     image = np.clip(g * out.color.numpy() + b, 0.0, 1.0)
     covered = out.alpha.numpy() > 0.5
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = git_commit()
     return {
         "scene": args.scene,
         "resolution": [cam.width, cam.height],

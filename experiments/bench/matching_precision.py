@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -32,6 +31,7 @@ import warp as wp
 
 from rgs_warp.config import MatchingConfig, load_config
 from rgs_warp.datasets import ReplicaDataset, SevenScenesDataset
+from rgs_warp.eval.report import git_commit
 from rgs_warp.geometry import invert_pose
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
@@ -165,15 +165,6 @@ def datasets():
     }
 
 
-def commit_hash() -> str:
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True)
-        return rev.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
-    except OSError:
-        return "unknown"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--backbones", nargs="+", default=["classic", "xfeat", "dinov2"])
@@ -184,7 +175,7 @@ def main() -> None:
     args = ap.parse_args()
     wp.init()
     data = datasets()
-    results = {"commit": commit_hash(), "device": str(wp.get_device(args.device)), "backbones": {}}
+    results = {"commit": git_commit(), "device": str(wp.get_device(args.device)), "backbones": {}}
     results["ground_truth_check"] = {name: ground_truth_check(cam, fr, plan) for name, (cam, fr, plan) in data.items()}
     for name in args.backbones:
         cfg = load_config([f"matching.backbone={name}", *args.set]).matching

@@ -27,7 +27,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from rgs_warp.eval.report import git_commit
 from rgs_warp.render import Renderer
 from rgs_warp.types import Camera, GaussianMap
 
@@ -290,12 +290,7 @@ def main() -> None:
     args = parser.parse_args()
     wp.init()
     device = wp.get_device("cuda:0" if wp.get_cuda_device_count() else "cpu")
-    commit = os.environ.get("RGS_COMMIT")
-    if commit is None:
-        try:
-            commit = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], text=True).strip()
-        except (OSError, subprocess.CalledProcessError):
-            commit = "unknown"
+    commit = os.environ.get("RGS_COMMIT") or git_commit()
     rows = []
     rng = np.random.default_rng(1)
     grads_np = (

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tarfile
 from pathlib import Path
@@ -30,6 +29,7 @@ import numpy as np
 
 from rgs_warp import SLAM
 from rgs_warp.config import load_config
+from rgs_warp.eval.report import git_commit
 from rgs_warp.run import run
 from rgs_warp.types import Camera
 
@@ -37,13 +37,6 @@ DEFAULT_CASES = [
     "office_rgbd:dataset=synthetic/office0_replica_size",
     "office_mono:dataset=synthetic/office0_replica_size,mode=mono",
 ]
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    except OSError:
-        return "unknown"
 
 
 def case_configs(cases: list[str], common: str, out: Path):
@@ -75,7 +68,7 @@ def main(argv=None) -> int:
         except Exception as e:  # record and go on with the next case
             results[name] = {"error": f"{type(e).__name__}: {e}"}
             print(f"{name}: FAILED {e}", file=sys.stderr)
-        (out / "slam.json").write_text(json.dumps({"commit": commit(), "results": results}, indent=2, default=str))
+        (out / "slam.json").write_text(json.dumps({"commit": git_commit(), "results": results}, indent=2, default=str))
     header = f"{'case':<16} {'frames':>6} {'kf':>4} {'gaussians':>9} {'ATE cm':>7} {'PSNR':>6} {'SSIM':>6}"
     header += f" {'fps':>6} {'trk fps':>7} {'MiB':>6}"
     print(header)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from raster import CAMERA, room_scene  # noqa: E402  (the rasterizer benchmark's workload)
 
 from rgs_warp.config import TrackingConfig  # noqa: E402
+from rgs_warp.eval.report import git_commit  # noqa: E402
 from rgs_warp.geometry import invert_pose, se3_exp  # noqa: E402
 from rgs_warp.render import Renderer  # noqa: E402
 from rgs_warp.tracking import Tracker, pose_error  # noqa: E402
@@ -68,10 +68,7 @@ def main() -> None:
     if args.small:
         camera = Camera(fx=80.0, fy=80.0, cx=79.5, cy=44.5, width=160, height=90)
         n, reps, warmup = 3000, 5, 1
-    try:
-        commit = subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], text=True).strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = os.environ.get("RGS_COMMIT", "unknown")
+    commit = os.environ.get("RGS_COMMIT") or git_commit()
 
     scene = room_scene(n)
     gmap = GaussianMap.from_numpy(

@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from dataclasses import asdict, replace
@@ -46,13 +45,6 @@ def machine(device: str = "cpu") -> str:
     except (OSError, StopIteration):
         model = platform.processor() or "unknown CPU"
     return f"{model}, {os.cpu_count()} logical cores (Warp cpu device, single-threaded kernels)"
-
-
-def commit() -> str:
-    try:
-        return subprocess.check_output(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True).strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def build_map(seq, camera, frame_ids, stride: int, refine_iters: int, device, refit: str = "colours"):
@@ -230,6 +222,7 @@ def main() -> None:
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
+    from rgs_warp.eval.report import git_commit
 
     device = args.device
     t_start = time.perf_counter()
@@ -246,7 +239,7 @@ def main() -> None:
     print(f"map: {len(gmap or [])} Gaussians from frames {map_ids} ({time.perf_counter() - t_start:.0f} s)", flush=True)
     report = {
         "machine": machine(device),
-        "commit": commit(),
+        "commit": git_commit(),
         "warp": wp.config.version,
         "scene": asdict(cfg) | {"camera": asdict(camera)},
         "map": {"gaussians": len(gmap or []), "frames": map_ids, "stride": args.map_stride}

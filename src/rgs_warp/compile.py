@@ -55,11 +55,11 @@ def preload(device: str, workers: int | None = None) -> None:
     device = wp.get_device(device)
     if not device.is_cuda:
         return
-    # Warp takes a single GPU's primary context (and makes the device's stream) on first use, unlocked.
-    # Left to force_load's threads, several take it at once and each makes a stream: the device then
-    # captures CUDA graphs on one and zeroes memory on another, and the first capture fails with CUDA
-    # error 906 (a run crashed so on every one-GPU machine; with two GPUs Warp's peer-access check
-    # takes the contexts first).  So this thread takes it before them.
+    # Warp takes a GPU's primary context, and sets the stream its native code issues work on, at first
+    # use (on a one-GPU machine: with two, its peer-access check at init takes them).  Taken inside
+    # force_load's threads, the native stream stayed the legacy one while Python's device.stream was
+    # Warp's own, and every run's first CUDA graph capture failed (CUDA error 906, session 13,
+    # tests/test_gpu_context.py).  So this thread takes it before them.
     _ = device.context
     modules = [wp.get_module(importlib.import_module(name).__name__) for name in kernel_modules()]
     wp.force_load(device=device, modules=modules, max_workers=_workers(workers))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
 from pathlib import Path
 
 import matplotlib
@@ -24,6 +25,23 @@ from rgs_warp.io.atomic import write_text_atomic  # noqa: E402
 NA_SUFFIX = "_na_reason"
 # Unit suffix of a metric name -> unit shown in the column header.
 _UNITS = {"_cm": "cm", "_m": "m", "_db": "dB", "_pct": "%", "_s": "s", "_ms": "ms", "_fps": "fps", "_mib": "MiB"}
+
+
+def git_commit(path: Path | str | None = None) -> str:
+    """The commit of the checkout holding ``path`` (default: this package), "+changes" appended where
+    tracked files differ from it (a number measured on edited code must not carry the bare commit);
+    "unknown" outside a git checkout."""
+    cwd = Path(path) if path is not None else Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10
+        )
+        if head.returncode != 0 or not head.stdout.strip():
+            return "unknown"
+        diff = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=cwd, capture_output=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head.stdout.strip() + ("+changes" if diff.returncode == 1 else "")
 
 
 def to_json(value):

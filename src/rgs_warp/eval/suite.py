@@ -29,7 +29,6 @@ import os
 import platform
 import re
 import shutil
-import subprocess
 import sys
 import time
 import traceback
@@ -47,7 +46,7 @@ import yaml  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from rgs_warp.config import ConfigError, group_options, load_config  # noqa: E402
-from rgs_warp.eval.report import NA_SUFFIX, to_json  # noqa: E402
+from rgs_warp.eval.report import NA_SUFFIX, git_commit, to_json  # noqa: E402
 from rgs_warp.run import check_evaluation_imports, run  # noqa: E402
 from rgs_warp.slam import METHODS  # noqa: E402
 
@@ -729,20 +728,6 @@ def convergence_comparison(runs: list[dict], scenes: Sequence[str], methods: Seq
 # report
 
 
-def _git_commit() -> str:
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
-
-
 def _device_of(extra_overrides: Sequence[str]) -> str:
     try:
         device = load_config(list(extra_overrides)).device
@@ -770,7 +755,7 @@ def _header(methods: Sequence[str], repeats: int, extra_overrides: Sequence[str]
     device = _device_of(extra_overrides)
     return {
         "date": datetime.now().isoformat(timespec="seconds"),
-        "commit": _git_commit(),
+        "commit": git_commit(),
         "device": device,
         "device_name": _device_name(device),
         "repeats": repeats,
