@@ -18,7 +18,7 @@ from rgs_warp.geometry import invert_pose, se3_exp
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.render import Renderer
 from rgs_warp.tracking import SETTLED_DEG, SETTLED_M, Tracker, motion_inconsistency, pose_error, settled_iters
-from rgs_warp.types import Camera
+from rgs_warp.types import Camera, GaussianMap
 
 
 def _history(rows: int, device) -> wp.array:
@@ -616,3 +616,39 @@ def test_relocalize_takes_the_candidate_that_holds_and_restores_the_model_when_n
     assert k == 0 and not result.lost and pose_error(result.T_WC, poses[3])[0] < 2e-3
     np.testing.assert_array_equal(tracker.predict(), result.T_WC)  # restarted there, no velocity
     assert float(result.alpha.numpy().mean()) > 0.5  # the chosen pose's render, not the last try's
+
+
+@pytest.mark.slow
+def test_graph_replays_give_the_eager_steps_poses(device, scene):
+    """The frame's steps replayed from a captured graph (Warp's CPU graph here, a CUDA graph on a GPU)
+    give the eager loop's poses bit for bit: through a capture, replays, a map of another size (captured
+    anew) and the first map again (its graph kept).  Then the map's Gaussians grow in place until a
+    replay overflows the intersection buffers it reserved: that frame is tracked again eagerly."""
+    poses, cam = scene["poses"], scene["camera"]
+    arrays = scene["map"].to_numpy()
+    names = ("means", "rotations", "log_scales", "opacity_logits", "sh")
+    gmap = GaussianMap.from_numpy(*(arrays[k] for k in names), device=device)
+    smaller = GaussianMap.from_numpy(*(arrays[k][: len(gmap) * 3 // 4] for k in names), device=device)
+    eager = Tracker(TrackingConfig(graph="off"), cam, device)
+    graphed = Tracker(TrackingConfig(graph="on"), cam, device)
+    assert not eager.use_graph and graphed.use_graph
+    for i, m in enumerate([gmap, gmap, gmap, smaller, smaller, gmap, gmap], start=1):
+        if i == 7:  # Gaussians 2.5x wider: more tiles each than the graph reserved
+            m.log_scales.assign(m.log_scales.numpy() + np.float32(np.log(2.5)))
+        rgb, depth = scene["observe"](i)
+        T0 = _perturbed(poses[i], 0.01, 1.0, seed=i)
+        a, b = eager.track(rgb, depth, m, T0), graphed.track(rgb, depth, m, T0)
+        assert not a.lost and not b.lost, (i, a.reason, b.reason)
+        if i < 7:
+            assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain, i
+            assert m is smaller or pose_error(b.T_WC, poses[i])[0] < 1e-3, i  # (smaller: holes)
+    # 1-3: eager, capture + replay, replay; 4-5 (smaller): eager, capture + replay; 6: replay (kept);
+    # 7: the replay overflows, the frame runs eagerly (whose first render sizes the buffers exactly,
+    # where the eager tracker's first render dropped intersections: close, not equal)
+    assert graphed.graph_counts == {"eager": 3, "captured": 2, "replayed": 5, "overflowed": 1}
+    assert pose_error(a.T_WC, b.T_WC)[0] < 0.01
+
+
+def test_graph_setting_is_checked(device, scene):
+    with pytest.raises(ValueError, match="tracking.graph"):
+        Tracker(TrackingConfig(graph="yes"), scene["camera"], device)

@@ -137,6 +137,11 @@ class TrackingConfig:
     # the motion model then restarts there (zero velocity).  auto: on in mode=mono, off in rgbd (where a
     # lost frame is mostly one the map does not cover yet); on / off force it.
     relocalize: str = "auto"
+    # The frame's Adam steps run as one captured graph (a CUDA graph on a GPU, Warp's CPU graph on the
+    # CPU), replayed each frame while the map's size and the renderer's buffers stay the same, and
+    # captured again when they change: one launch instead of about 15 per step.  auto: on on CUDA
+    # devices, off on the CPU (where launches cost little); on / off force it.
+    graph: str = "auto"
 
 
 @dataclass
@@ -446,6 +451,7 @@ CHOICES = {
     "tracking.exposure_from": ("map", "keyframes"),
     "tracking.motion_check": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
+    "tracking.graph": ("auto", "on", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 

@@ -138,6 +138,9 @@ class Renderer:
         self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._last = None
+        # counts the reallocations of the buffers a render reads and writes: a captured graph holds
+        # their addresses, so one captured before a reallocation must not be replayed after it
+        self.buffers_version = 0
 
     # ---- buffers -----------------------------------------------------------------------------
     def _ensure_gaussians(self, capacity: int, num_sh: int) -> None:
@@ -145,6 +148,7 @@ class Renderer:
             return
         n = max(capacity, 1)
         kw = {"device": self.device}
+        self.buffers_version += 1
         self._xyod = wp.zeros(n, dtype=wp.vec4, **kw)
         self._depth = wp.zeros(n, dtype=wp.float32, **kw)
         self._depth_bits = self._depth.view(wp.int32)
@@ -174,6 +178,7 @@ class Renderer:
             self._keys = wp.zeros(2 * n, dtype=wp.int64, device=self.device)
             self._ids = wp.zeros(2 * n, dtype=wp.int32, device=self.device)
             self._isect_alloc = n
+            self.buffers_version += 1
         self._isect_capacity = max(self._isect_capacity, count)
 
     def _size_intersections(self, needed: int) -> None:
@@ -203,6 +208,10 @@ class Renderer:
         ``backward`` needs no extra projection pass (a tracking loop's forwards do, once one asked)."""
         return self._last is not None and self._last[4]
 
+    def intersection_count(self) -> int:
+        """Tile intersections the latest forward (eager or replayed from a graph) needed; waits for it."""
+        return self._read_count()
+
     def intersections_overflowed(self) -> bool:
         """Whether the latest forward (eager or replayed from a graph) dropped intersections."""
         return self._read_count() > self._isect_capacity
@@ -212,6 +221,7 @@ class Renderer:
         if shape == self._image_shape:
             return
         kw = {"device": self.device}
+        self.buffers_version += 1
         # the images carry .grad so that losses recorded on a wp.Tape can deposit dL/dimage there
         self._out_color = wp.zeros(shape, dtype=wp.vec3, requires_grad=True, **kw)
         self._out_depth = wp.zeros(shape, dtype=wp.float32, requires_grad=True, **kw)
@@ -259,7 +269,7 @@ class Renderer:
             self._view_host.numpy()[0] = invert_pose(np.asarray(T_WC, dtype=np.float64))
             wp.copy(self._view, self._view_host)
 
-        capturing = dev.is_cuda and dev.is_capturing
+        capturing = dev.is_capturing  # a CUDA graph, or Warp's CPU graph
         if pose_jacobians is None:
             pose_jacobians = self._last_pose_only
         # Capacity from the previous render's count (finished long ago in a loop: no stall), unless
@@ -348,6 +358,7 @@ class Renderer:
         # 128 bytes per Gaussian, so only renderers that run the pose-only backward hold them
         if pose_jacobians and self._pose_jac.shape[0] < self._gaussian_capacity:
             self._pose_jac = wp.zeros(self._gaussian_capacity, dtype=vec32, device=self.device)
+            self.buffers_version += 1
         wp.launch(
             project_gaussians,
             dim=n,

@@ -422,6 +422,9 @@ def _run_frames(
         wall = time.perf_counter() - t_start
         bar.phase("evaluating")
         tracking = tracking_section(state.tracked, state.lost, state.settled_iters, cfg.tracking.iters)
+        # frames whose steps this process ran eagerly, captured, replayed (tracking.graph), and replays
+        # that overflowed their graph's intersection buffers (tracked again eagerly)
+        tracking.update({f"graph_{k}": v for k, v in slam.tracker.graph_counts.items()})
         scored = ds if kept is None else kept
         metrics = evaluate_run(
             cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary(), peak_floor, state.exposures

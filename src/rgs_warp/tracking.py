@@ -15,6 +15,7 @@ intersection capacity reserved beforehand, ``Renderer.reserve_intersections``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,6 +83,12 @@ MAX_CORRECTION_DEG = 45.0
 # collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
 STILL_TURNING = 0.5
 MOTION_CHECKS = ("auto", "on", "off")
+# Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
+# buffers in turn, each its own graph (different addresses)
+GRAPHS_KEPT = 3
+# Intersections reserved before a capture, x the latest render's count: a replayed forward cannot grow
+# its buffers, so a frame whose view needs more than this is tracked again eagerly (and captured anew)
+GRAPH_HEADROOM = 1.3
 BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
 
 
@@ -114,6 +121,8 @@ class Tracker:
             raise ValueError(
                 f"tracking.motion_check must be one of {', '.join(MOTION_CHECKS)}, got {cfg.motion_check!r}"
             )
+        if cfg.graph not in MOTION_CHECKS:
+            raise ValueError(f"tracking.graph must be one of {', '.join(MOTION_CHECKS)}, got {cfg.graph!r}")
         if cfg.iters < 1 or cfg.downscale < 1:
             raise ValueError(f"need tracking.iters >= 1 and tracking.downscale >= 1, got {cfg.iters}, {cfg.downscale}")
         self.cfg = cfg
@@ -153,6 +162,11 @@ class Tracker:
         self._poses: list[np.ndarray] = []
         self._last_render = None
         self._frame: tuple | None = None
+        # the frame's steps as captured graphs (``_steps``): by what they were captured against
+        self.use_graph = cfg.graph == "on" or (cfg.graph == "auto" and self.device.is_cuda)
+        self._graphs: dict[tuple, tuple] = {}
+        self._eager_key: tuple | None = None
+        self.graph_counts = {"eager": 0, "captured": 0, "replayed": 0, "overflowed": 0}
 
     # ---- motion model ------------------------------------------------------------------------
     def reset(self, T_WC: np.ndarray | None = None, T_prev_WC: np.ndarray | None = None) -> None:
@@ -221,8 +235,7 @@ class Tracker:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
         self.load_frame(rgb, depth)
         self._begin(T_init)
-        for k in range(cfg.iters):
-            self._iteration(gmap, k, use_depth)
+        self._steps(gmap, use_depth, T_init)
         return self._finish(T_init)
 
     def relocalize(
@@ -329,6 +342,56 @@ class Tracker:
         self._adam_m.zero_()
         self._adam_v.zero_()
         self._history.zero_()
+
+    def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> None:
+        """The frame's ``iters`` Adam steps, launched one by one, or replayed as one captured graph.
+
+        A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
+        is kept by those (``_graph_key``).  The first frame at a new key runs eagerly (its renders size
+        the renderer's buffers), the second captures (after reserving ``GRAPH_HEADROOM`` x the
+        intersections the latest render needed) and replays, the next ones replay.  A replay whose
+        renders needed more intersections than the graph has room for is discarded with its graph,
+        and the frame's steps run again eagerly from the start pose."""
+        if not self.use_graph or len(gmap) == 0:
+            self._eager_steps(gmap, use_depth)
+            return
+        key = self._graph_key(gmap, use_depth)
+        entry = self._graphs.get(key)
+        if entry is None and key != self._eager_key:
+            self._eager_steps(gmap, use_depth)
+            self._eager_key = self._graph_key(gmap, use_depth)  # the eager renders may have grown buffers
+            return
+        if entry is None:
+            renderer = self.renderer
+            renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
+            key = self._graph_key(gmap, use_depth)
+            with wp.ScopedCapture(device=self.device) as capture:
+                for k in range(self.cfg.iters):
+                    self._iteration(gmap, k, use_depth)
+            entry = (capture.graph, renderer.intersection_capacity)
+            while len(self._graphs) >= GRAPHS_KEPT:
+                self._graphs.pop(next(iter(self._graphs)))
+            self._graphs[key] = entry
+            self.graph_counts["captured"] += 1
+        wp.capture_launch(entry[0])
+        self.graph_counts["replayed"] += 1
+        if self.renderer.intersection_count() > entry[1]:
+            self.graph_counts["overflowed"] += 1
+            self._graphs.pop(key, None)
+            self._eager_key = None
+            self._begin(T_init_WC)
+            self._eager_steps(gmap, use_depth)
+
+    def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
+        for k in range(self.cfg.iters):
+            self._iteration(gmap, k, use_depth)
+        self.graph_counts["eager"] += 1
+
+    def _graph_key(self, gmap: GaussianMap, use_depth: bool) -> tuple:
+        """What a captured graph of the steps depends on besides the arrays' contents: the map's size,
+        the addresses of its arrays and of the renderer's (``Renderer.buffers_version``)."""
+        arrays = (gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh)
+        return (len(gmap), tuple(a.ptr for a in arrays), self.renderer.buffers_version, use_depth)
 
     def _render_and_brightness(self, gmap: GaussianMap, k: int):
         """Render the map at the current pose and solve Eq. 3-4's (g, b) into history row ``k``."""
