@@ -226,7 +226,6 @@ class Tracker:
         constant-velocity prediction.  The tracked pose becomes the motion model's latest, unless the
         frame is lost, in which case the start pose takes its place.
         """
-        cfg = self.cfg
         use_depth = self.mode == "rgbd"
         if use_depth and depth is None:
             raise ValueError("rgbd tracking needs a depth image (or build the Tracker with mode='mono')")
