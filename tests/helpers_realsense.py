@@ -18,10 +18,19 @@ def _intrinsics(rs, camera):
     return intr
 
 
-def write_recording(path: Path, camera, frames, depth_units_m: float = 0.001, colour_format: str = "bgr8", fps=30):
+def write_recording(
+    path: Path,
+    camera,
+    frames,
+    depth_units_m: float = 0.001,
+    colour_format: str = "bgr8",
+    fps=30,
+    depth_to_colour=None,
+):
     """Record ``frames`` (our ``Frame``s: rgb float in [0, 1], depth metres) as a RealSense camera
     would stream them: colour as 8-bit ``colour_format``, depth as uint16 in ``depth_units_m``, both
-    with ``camera``'s intrinsics and identity extrinsics.  Returns the file's path."""
+    with ``camera``'s intrinsics, and ``depth_to_colour`` (R, t: a depth-camera point p is R p + t in
+    the colour camera's coordinates; default none) as the depth stream's extrinsics.  Returns the file's path."""
     import pyrealsense2 as rs
 
     device = rs.software_device()
@@ -38,7 +47,9 @@ def write_recording(path: Path, camera, frames, depth_units_m: float = 0.001, co
         sensors.append(sensor)
     sensors[0].add_read_only_option(rs.option.depth_units, depth_units_m)
     extrinsics = rs.extrinsics()
-    extrinsics.rotation, extrinsics.translation = [1, 0, 0, 0, 1, 0, 0, 0, 1], [0, 0, 0]
+    R, t = depth_to_colour if depth_to_colour is not None else (np.eye(3), np.zeros(3))
+    # librealsense stores the rotation column-major
+    extrinsics.rotation, extrinsics.translation = [float(v) for v in np.asarray(R).T.ravel()], [float(v) for v in t]
     profiles[0].register_extrinsics_to(profiles[1], extrinsics)
     device.create_matcher(rs.matchers.default)
     recorder = rs.recorder(str(path), device)

@@ -9,9 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rgs_warp.datasets import DatasetError, ReplicaDataset, SevenScenesDataset, TUMDataset
-from rgs_warp.datasets.base import downscale_depth
+from rgs_warp.datasets.base import downscale_depth, reproject_depth
 from rgs_warp.datasets.replica import read_matrix_lines
-from rgs_warp.datasets.sevenscenes import reproject_depth
 from rgs_warp.datasets.tum import TUM_CAMERAS, associate, read_tum_list
 from rgs_warp.io.trajectory import write_tum_trajectory
 from rgs_warp.types import Camera
@@ -134,6 +133,25 @@ def test_reproject_depth_plane_and_occlusion():
     np.testing.assert_allclose(out[near_ok], 1.2, atol=1e-5)
     # the same camera and no offset give the image back
     np.testing.assert_array_equal(reproject_depth(depth, src, src, np.zeros(3)), depth)
+
+
+def test_reproject_depth_rotation():
+    """A quarter turn about the optical axis of a square camera maps pixel (u, v) to (39 - v, u)
+    exactly: the depth image comes back rotated, each pixel's depth unchanged.  With a shift along
+    the axis every depth grows by the shift."""
+    cam = Camera(fx=50.0, fy=50.0, cx=19.5, cy=19.5, width=40, height=40)
+    depth = np.random.default_rng(0).uniform(1.0, 3.0, (40, 40)).astype(np.float32)
+    depth[5, 7] = 0.0  # no depth: nothing lands
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # (x, y) -> (-y, x)
+    out = reproject_depth(depth, cam, cam, np.zeros(3), rotation=quarter)
+    v, u = np.mgrid[0:40, 0:40]
+    expected = np.zeros_like(depth)
+    expected[u, 39 - v] = depth[v, u]
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+    assert out[7, 39 - 5] == 0.0
+    far = reproject_depth(depth, cam, cam, np.array([0.0, 0.0, 0.5]), rotation=np.eye(3))
+    inner = far > 0
+    assert inner.sum() > 300 and np.all(far[inner] >= 1.5 - 1e-6)
 
 
 def test_sevenscenes_registration(shared_data):

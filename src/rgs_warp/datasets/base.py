@@ -84,6 +84,42 @@ def check_pose(T: np.ndarray, where: str) -> np.ndarray:
     return out
 
 
+def reproject_depth(
+    depth: np.ndarray, source: Camera, target: Camera, offset_m: np.ndarray, rotation: np.ndarray | None = None
+) -> np.ndarray:
+    """Depth image of pinhole camera ``source`` (metres, 0 invalid) seen from pinhole camera ``target``,
+    whose coordinates are ``rotation`` (3x3, default the identity) times the source's plus ``offset_m``:
+    every valid pixel's surface point lands on the target pixel nearest its projection, and where
+    several land the nearest surface wins.  Target pixels no point lands on are 0 (occluded, outside
+    the source's view, or between samples).  7-Scenes registers its depth to the colour camera with
+    it, the RealSense source a recording's depth."""
+    h, w = depth.shape
+    z = depth.astype(np.float32).ravel()
+    ray_x = (np.arange(w, dtype=np.float32) - source.cx) / source.fx  # per column / row, broadcast below
+    ray_y = (np.arange(h, dtype=np.float32) - source.cy) / source.fy
+    x = (ray_x[None, :] * depth).ravel().astype(np.float32)
+    y = (ray_y[:, None] * depth).ravel().astype(np.float32)
+    if rotation is not None:
+        R = np.asarray(rotation, dtype=np.float32)
+        x, y, z = (
+            R[0, 0] * x + R[0, 1] * y + R[0, 2] * z,
+            R[1, 0] * x + R[1, 1] * y + R[1, 2] * z,
+            R[2, 0] * x + R[2, 1] * y + R[2, 2] * z,
+        )
+    valid = depth.ravel() > 0.0
+    x, y = x + np.float32(offset_m[0]), y + np.float32(offset_m[1])
+    zt = z + np.float32(offset_m[2])
+    keep = valid & (zt > 1e-6)
+    x, y, zt = x[keep], y[keep], zt[keep]
+    ut = np.rint(target.fx * x / zt + target.cx).astype(np.int32)
+    vt = np.rint(target.fy * y / zt + target.cy).astype(np.int32)
+    inside = (ut >= 0) & (ut < target.width) & (vt >= 0) & (vt < target.height)
+    out = np.full(target.height * target.width, np.inf, dtype=np.float32)
+    np.minimum.at(out, vt[inside] * target.width + ut[inside], zt[inside])  # the nearest surface wins
+    out[np.isinf(out)] = 0.0
+    return out.reshape(target.height, target.width)
+
+
 def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
     h, w = rgb.shape[0] // factor, rgb.shape[1] // factor
     return np.ascontiguousarray(

@@ -18,7 +18,7 @@ import re
 import numpy as np
 
 from rgs_warp.config import DatasetConfig
-from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
+from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb, reproject_depth
 from rgs_warp.types import Camera, Frame
 
 # The dataset's stated calibration (Kinect v1, 640x480): the depth camera's.
@@ -124,27 +124,3 @@ class SevenScenesDataset(RGBDDataset):
         colour_in_depth = np.eye(4)
         colour_in_depth[:3, 3] = -self._offset  # the colour camera's centre in depth-camera coordinates
         return item[1] @ colour_in_depth
-
-
-def reproject_depth(depth: np.ndarray, source: Camera, target: Camera, offset_m: np.ndarray) -> np.ndarray:
-    """Depth image of camera ``source`` (metres, 0 invalid) seen from camera ``target``, whose
-    coordinates are the source's plus ``offset_m`` (no rotation): every valid pixel's surface point
-    lands on the target pixel nearest its projection, and where several land the nearest surface
-    wins.  Target pixels no point lands on are 0 (occluded, outside the source's view, or between
-    samples)."""
-    h, w = depth.shape
-    z = depth.astype(np.float32).ravel()
-    ray_x = (np.arange(w, dtype=np.float32) - source.cx) / source.fx  # per column / row, broadcast below
-    ray_y = (np.arange(h, dtype=np.float32) - source.cy) / source.fy
-    x = (ray_x[None, :] * depth + offset_m[0]).ravel().astype(np.float32)
-    y = (ray_y[:, None] * depth + offset_m[1]).ravel().astype(np.float32)
-    zt = z + np.float32(offset_m[2])
-    keep = (z > 0.0) & (zt > 1e-6)
-    x, y, zt = x[keep], y[keep], zt[keep]
-    ut = np.rint(target.fx * x / zt + target.cx).astype(np.int32)
-    vt = np.rint(target.fy * y / zt + target.cy).astype(np.int32)
-    inside = (ut >= 0) & (ut < target.width) & (vt >= 0) & (vt < target.height)
-    out = np.full(target.height * target.width, np.inf, dtype=np.float32)
-    np.minimum.at(out, vt[inside] * target.width + ut[inside], zt[inside])  # the nearest surface wins
-    out[np.isinf(out)] = 0.0
-    return out.reshape(target.height, target.width)

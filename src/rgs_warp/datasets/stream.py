@@ -10,13 +10,15 @@ gives a ``RealSenseSource`` for ``dataset.type=realsense``; ``run(cfg, source=..
 from __future__ import annotations
 
 import importlib
+import queue
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError
+from rgs_warp.datasets.base import DatasetError, reproject_depth
 from rgs_warp.types import Camera, Frame
 
 
@@ -136,9 +138,12 @@ class RealSenseSource(CallbackSource):
     """RGB-D frames from an Intel RealSense camera through pyrealsense2: a live D4xx (``recording``
     None; ``width`` x ``height`` at ``fps``, ``serial`` picks one of several cameras) or a recording
     (``recording``: the file ``rs.recorder`` or the RealSense Viewer wrote), played back frame by
-    frame (not in real time).  Depth is aligned to the colour camera by librealsense (``rs.align``),
-    the camera is the colour stream's intrinsics, depth is the raw values x the device's depth scale.
-    ``skip_frames`` drops the first frames of a live camera (auto-exposure settling)."""
+    frame (not in real time).  The camera is the colour stream's intrinsics (undistorted where it
+    reports distortion), depth is the raw values x the device's depth scale, registered to the colour
+    camera: by librealsense (``rs.align``) for a live camera; for a recording by ``reproject_depth``
+    with the recorded intrinsics and extrinsics, on every frame pair the file holds
+    (``RecordingFrames``).  ``skip_frames`` drops the first frames of a live camera (auto-exposure
+    settling)."""
 
     def __init__(
         self,
@@ -155,67 +160,73 @@ class RealSenseSource(CallbackSource):
     ):
         rs = import_realsense() if rs is None else rs
         self._timeout_ms = timeout_ms
-        config = rs.config()
+        self._skip = skip_frames
+        self._stopped = False
+        self._recording = self._pipeline = None
         if recording:
             path = Path(recording).expanduser()
             if not path.is_file():
                 raise DatasetError(f"RealSense recording {path} does not exist")
-            config.enable_device_from_file(str(path), repeat_playback=False)
+            self._recording = RecordingFrames(rs, path, timeout_ms)
+            self.depth_scale_m = self._recording.depth_scale_m
+            camera = camera_from_intrinsics(self._recording.colour_intrinsics)
             name = path.name
         else:
+            config = rs.config()
             if serial:
                 config.enable_device(serial)
             config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
             config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
             name = f"live {serial or 'camera'}"
-        self._pipeline = rs.pipeline()
-        try:
-            profile = self._pipeline.start(config)
-        except RuntimeError as e:
-            raise DatasetError(f"RealSense {name}: cannot start streaming: {e}") from None
-        device = profile.get_device()
-        self._live = not recording
-        self._playback = None
-        if recording:  # every frame, as fast as SLAM takes them: paused while SLAM works on one
-            self._playback = device.as_playback()
-            self._playback.set_real_time(False)
-        self.depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
-        colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
-        camera = camera_from_intrinsics(colour.get_intrinsics())
+            self._pipeline = rs.pipeline()
+            try:
+                profile = self._pipeline.start(config)
+            except RuntimeError as e:
+                raise DatasetError(f"RealSense {name}: cannot start streaming: {e}") from None
+            device = profile.get_device()
+            self.depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
+            colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
+            camera = camera_from_intrinsics(colour.get_intrinsics())
+            self._align = rs.align(rs.stream.color)
         self._undistort_maps = None
         if camera.distortion:
             self._undistort_maps = cv2.initUndistortRectifyMap(
                 camera.K, np.array(camera.distortion), None, camera.K, (camera.width, camera.height), cv2.CV_32FC1
             )
             camera = camera.undistorted()
-        self._align = rs.align(rs.stream.color)
-        self._skip = skip_frames
-        self._stopped = False
         super().__init__(camera, self._next, max_frames=max_frames, name=f"realsense {name}")
 
     def _next(self) -> Frame | None:
-        while True:
-            if self._stopped:
-                return None
-            if self._playback is not None:
-                self._playback.resume()
-            ok, frames = self._pipeline.try_wait_for_frames(self._timeout_ms)
-            if self._playback is not None and ok:
-                self._playback.pause()
-            if not ok:  # a recording's end (or a live camera that stopped sending)
-                if self._live:
-                    raise DatasetError(f"{self.name}: no frames for {self._timeout_ms} ms")
+        if self._stopped:
+            return None
+        if self._recording is not None:
+            pair = self._recording.next_pair()
+            if pair is None:  # the recording's end
                 self.close()
                 return None
+            depth, colour = pair
+            fmt = str(colour.get_profile().format()).rsplit(".", 1)[-1]
+            frame = frame_from_images(
+                np.asanyarray(colour.get_data()),
+                fmt,
+                None,
+                1.0,
+                colour.get_timestamp(),
+                undistort_maps=self._undistort_maps,
+            )
+            frame.depth = self._recording.registered_depth(depth, self.camera)
+            return frame
+        while True:
+            ok, frames = self._pipeline.try_wait_for_frames(self._timeout_ms)
+            if not ok:
+                raise DatasetError(f"{self.name}: no frames for {self._timeout_ms} ms")
             if self._skip > 0:
                 self._skip -= 1
                 continue
             aligned = self._align.process(frames)
             colour, depth = aligned.get_color_frame(), aligned.get_depth_frame()
             if not colour or not depth:
-                # a set without one of the two streams: librealsense's syncer learns the streams from
-                # the frames it sees, so a recording's first depth image may come alone (then skipped)
-                continue
+                continue  # a set without one of the two streams
             fmt = str(colour.get_profile().format()).rsplit(".", 1)[-1]
             return frame_from_images(
                 np.asanyarray(colour.get_data()),
@@ -230,7 +241,137 @@ class RealSenseSource(CallbackSource):
         """Stop streaming (also at a recording's end)."""
         if not self._stopped:
             self._stopped = True
+            if self._recording is not None:
+                self._recording.close()
+                return
             try:
                 self._pipeline.stop()
             except RuntimeError:
                 pass
+
+
+class RecordingFrames:
+    """Every depth and colour frame of a RealSense recording, in order, paired by time.
+
+    The recording plays back as fast as it is read (``set_real_time(False)``) into each sensor's
+    callback, which hands the frame to a queue of ``QUEUE`` frames and waits while it is full: the
+    playback waits for the reader, so no frame is dropped however slowly the SLAM takes them.  (The
+    pipeline API drops what its one-set queue cannot hold, and pausing the playback between sets,
+    which session 12 did, lost or repeated sets now and then.)  The playback is paused while the
+    sensors start, so the first frames of the stream started last are not read before it listens.
+    A depth and a colour frame within half a frame period of each other are a pair; a frame left
+    without a partner (a stream that skipped one) is dropped."""
+
+    QUEUE = 4
+
+    def __init__(self, rs, path: Path, timeout_ms: int = 5000):
+        self._rs, self.path, self._timeout_s = rs, path, timeout_ms / 1000.0
+        try:
+            self._device = rs.context().load_device(str(path))
+        except RuntimeError as e:
+            raise DatasetError(f"RealSense recording {path}: cannot open it: {e}") from None
+        self._playback = self._device.as_playback()
+        self._playback.set_real_time(False)
+        chosen: dict = {}  # stream type -> (sensor, profile)
+        for sensor in self._device.query_sensors():
+            for profile in sensor.get_stream_profiles():
+                kind = profile.stream_type()
+                if kind in (rs.stream.depth, rs.stream.color) and kind not in chosen:
+                    chosen[kind] = (sensor, profile)
+        missing = [
+            name for kind, name in ((rs.stream.depth, "depth"), (rs.stream.color, "colour")) if kind not in chosen
+        ]
+        if missing:
+            raise DatasetError(f"RealSense recording {path}: it holds no {' and no '.join(missing)} stream")
+        (depth_sensor, depth_profile), (colour_sensor, colour_profile) = (
+            chosen[rs.stream.depth],
+            chosen[rs.stream.color],
+        )
+        self.depth_scale_m = float(depth_sensor.as_depth_sensor().get_depth_scale())
+        self.depth_intrinsics = depth_profile.as_video_stream_profile().get_intrinsics()
+        self.colour_intrinsics = colour_profile.as_video_stream_profile().get_intrinsics()
+        extrinsics = depth_profile.get_extrinsics_to(colour_profile)
+        # librealsense's rotation is column-major: a depth-camera point p is R p + t in the colour camera's
+        self._rotation = np.array(extrinsics.rotation, dtype=np.float64).reshape(3, 3).T
+        self._translation = np.array(extrinsics.translation, dtype=np.float64)
+        self._depth_camera = camera_from_intrinsics(self.depth_intrinsics)
+        self._depth_undistort = None
+        if self._depth_camera.distortion:
+            cam = self._depth_camera
+            self._depth_undistort = cv2.initUndistortRectifyMap(
+                cam.K, np.array(cam.distortion), None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
+            )
+            self._depth_camera = cam.undistorted()
+        self._half_period_ms = 500.0 / max(float(colour_profile.fps()), 1.0)
+        self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE)
+        self._closed = threading.Event()
+        self._sensors = []
+        for sensor in (depth_sensor, colour_sensor):
+            if sensor not in self._sensors:
+                self._sensors.append(sensor)
+        for sensor in self._sensors:
+            sensor.open([p for (s, p) in chosen.values() if s == sensor])
+        self._playback.pause()
+        for sensor in self._sensors:
+            sensor.start(self._hand_over)
+        self._playback.resume()
+        self._pending: dict = {rs.stream.depth: None, rs.stream.color: None}
+
+    def _hand_over(self, frame) -> None:
+        """A sensor's callback (librealsense's thread): keep the frame and queue it, waiting while the
+        queue is full (the playback waits meanwhile) unless the reader closed."""
+        frame.keep()
+        while not self._closed.is_set():
+            try:
+                self._queue.put(frame, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def next_pair(self):
+        """The next (depth frame, colour frame) of one instant, or None at the recording's end."""
+        rs, pending = self._rs, self._pending
+        waited = 0.0
+        while True:
+            try:
+                frame = self._queue.get(timeout=0.05)
+            except queue.Empty:
+                if self._playback.current_status() == rs.playback_status.stopped and self._queue.empty():
+                    return None
+                waited += 0.05
+                if waited > self._timeout_s:
+                    raise DatasetError(f"RealSense recording {self.path}: no frame for {self._timeout_s:g} s") from None
+                continue
+            waited = 0.0
+            pending[frame.get_profile().stream_type()] = frame
+            depth, colour = pending[rs.stream.depth], pending[rs.stream.color]
+            if depth is None or colour is None:
+                continue
+            lag_ms = depth.get_timestamp() - colour.get_timestamp()
+            if abs(lag_ms) <= self._half_period_ms:
+                pending[rs.stream.depth] = pending[rs.stream.color] = None
+                return depth, colour
+            pending[rs.stream.depth if lag_ms < 0 else rs.stream.color] = None  # the older one has no partner
+
+    def registered_depth(self, depth_frame, colour_camera: Camera) -> np.ndarray:
+        """``depth_frame`` in metres, registered to ``colour_camera`` (the colour stream's, undistorted)."""
+        depth = np.asanyarray(depth_frame.get_data()).astype(np.float32) * np.float32(self.depth_scale_m)
+        if self._depth_undistort is not None:  # nearest: no depth between two surfaces
+            depth = cv2.remap(depth, *self._depth_undistort, cv2.INTER_NEAREST)
+        same = (
+            np.allclose(self._rotation, np.eye(3), atol=1e-9)
+            and not np.any(self._translation)
+            and self._depth_camera == colour_camera
+        )
+        if same:
+            return depth
+        return reproject_depth(depth, self._depth_camera, colour_camera, self._translation, self._rotation)
+
+    def close(self) -> None:
+        self._closed.set()
+        for sensor in self._sensors:
+            for stop in (sensor.stop, sensor.close):
+                try:
+                    stop()
+                except RuntimeError:
+                    pass
