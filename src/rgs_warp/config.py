@@ -142,6 +142,16 @@ class TrackingConfig:
     # captured again when they change: one launch instead of about 15 per step.  auto: on on CUDA
     # devices, off on the CPU (where launches cost little); on / off force it.
     graph: str = "auto"
+    # Keypoint pose prior (pose_prior.py, issue 22): ORB keypoints of the last keypoint_keyframes
+    # keyframes lifted to 3-D with the map's depth; each frame's PnP pose against them (RANSAC, at least
+    # keypoint_min_inliers agreeing matches) is where tracking starts instead of the constant-velocity
+    # prediction.  on / auto (on in mode=mono) / off.  Off by default until measured on the GPU: on the
+    # CPU (room0) PnP recovers a 16-deg turn to 0.2 deg at 640x360 but only to 1-2 deg and 1-7 cm at
+    # 160x90, where keypoints are too coarse to pin the translation (docs/decisions.md).
+    keypoint_prior: str = "off"
+    keypoint_features: int = 1000
+    keypoint_keyframes: int = 3
+    keypoint_min_inliers: int = 30
 
 
 @dataclass
@@ -452,6 +462,7 @@ CHOICES = {
     "tracking.motion_check": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
     "tracking.graph": ("auto", "on", "off"),
+    "tracking.keypoint_prior": ("auto", "on", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 

@@ -464,6 +464,8 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     if result.lost:  # tracking lost, or the frame's input unusable (then not tracked)
         entry.update(lost=True, lost_reason=result.lost_reason)
         state.lost.append((result.index, result.lost_reason))
+    if result.prior_inliers is not None:
+        entry["prior_inliers"] = result.prior_inliers
     for key in ("nonfinite_rgb", "nonfinite_depth"):
         if getattr(result, key):
             entry[key] = getattr(result, key)

@@ -33,6 +33,7 @@ from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
+from rgs_warp.pose_prior import PosePrior
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
 from rgs_warp.slam.storage import load_slam, save_slam
@@ -70,6 +71,9 @@ class FrameResult:
     # (filled from the nearest finite pixel, without depth) and depth values that were not (set to 0)
     nonfinite_rgb: int = 0
     nonfinite_depth: int = 0
+    # the keypoint pose prior (tracking.keypoint_prior): its RANSAC inliers where tracking started from
+    # its pose, 0 where it found none (tracking then started from the prediction), None when off
+    prior_inliers: int | None = None
 
 
 class SLAM:
@@ -93,6 +97,11 @@ class SLAM:
         # tracking's own renderer; asynchronous mapping also renders the published map with it
         self._tracking_renderer = Renderer(dev)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=self._tracking_renderer)
+        prior = cfg.tracking.keypoint_prior
+        self.pose_prior = None
+        if prior == "on" or (prior == "auto" and self.mode == "mono"):
+            t = cfg.tracking
+            self.pose_prior = PosePrior(camera, t.keypoint_features, t.keypoint_keyframes, t.keypoint_min_inliers)
         relocalize = cfg.tracking.relocalize
         self.relocalize = relocalize == "on" or (relocalize == "auto" and self.mode == "mono")
         tc = self.tracker.track_camera
@@ -225,6 +234,9 @@ class SLAM:
         else:
             tr0 = time.perf_counter()
             before = self.tracker.state_dict()
+            prior_inliers = None
+            if self.pose_prior is not None and T_init_WC is None:
+                T_init_WC, prior_inliers = self._prior_pose(rgb)
             tracking = self.tracker.track(rgb, depth, tmap, T_init_WC)
             if tracking.lost and self.relocalize and len(self.keyframes):
                 tracking = self._relocalized(rgb, depth, tmap, tracking, before)
@@ -240,6 +252,8 @@ class SLAM:
         if tracking is not None and tracking.motion_inconsistent:  # a collapsed pose must not seed the map
             is_kf, reason = False, "not mapped: tracked motion inconsistent"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
+        if tracking is not None:
+            result.prior_inliers = prior_inliers
         self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
             self.selector.accept(T)
@@ -374,9 +388,29 @@ class SLAM:
         self.convergence += self.mapper.convergence(
             self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
         )
+        self._add_landmarks(slot)
         if self.publisher is not None:
             self._publish()
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
+
+    def _prior_pose(self, rgb) -> tuple[np.ndarray | None, int]:
+        """Where tracking starts this frame by the keypoint prior: (its pose, its inliers), or (None, 0)
+        for the constant-velocity prediction."""
+        predicted = self.tracker.predict()
+        if predicted is None:
+            return None, 0
+        host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
+        prior = self.pose_prior.pose(host, predicted)
+        return (prior.T_WC, prior.inliers) if prior.T_WC is not None else (None, 0)
+
+    def _add_landmarks(self, slot: int) -> None:
+        """The keypoint prior's landmarks of keyframe ``slot``: its keypoints lifted with the map's
+        depth rendered at its pose (after its mapping)."""
+        if self.pose_prior is None:
+            return
+        T = self.keyframes.poses[slot].copy()
+        res = self.renderer.forward(self.map, self.camera, T)
+        self.pose_prior.add_keyframe(self.keyframes.rgb[slot].numpy(), res.depth.numpy(), res.alpha.numpy(), T)
 
     def _held_exposures(self, window: list[int]) -> list[int]:
         """The window's keyframes whose exposure mapping holds (``Mapper.optimize``'s ``fixed_exposure``):
@@ -454,6 +488,8 @@ class SLAM:
         result.mapping = self.mapper.optimize(self.keyframes, window, cfg.mapping.init_iters, psnr_every, [slot0])
         self.stats["mapping_s"] += time.perf_counter() - tm
         self.convergence += self.mapper.convergence(self.keyframes, window, result.mapping, i, "init")
+        for slot in window:
+            self._add_landmarks(slot)
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
         for j in retrack:
             if frames[j][0] is None:  # its input was unusable: the last good pose
