@@ -5,8 +5,10 @@ Renderer; ground-truth poses of the shared redkitchen frames (depth registered t
     python experiments/bench/fit_ceiling_7scenes.py CASE [CASE ...]   (cases: CASES at the bottom)
 
 Results go to $OUT/results.json (updated per case; default ./bench_out) with side-by-side images;
-RGS_DEVICE picks the device (default cpu).  Findings: experiments/results/fidelity.md, "Why the map
-does not fit the 7-Scenes keyframes" (session 13).
+RGS_DEVICE picks the device (default cpu); the *_tracked cases take the poses from a run's
+trajectory (RGS_TRAJECTORY=RUN_DIR/trajectory.txt of a 7-Scenes run, in its ground truth's world).
+Findings: experiments/results/fidelity.md, "Why the map does not fit the 7-Scenes keyframes"
+(session 13).
 
 Per view it reports PSNR of the render at the training pose: raw (the keyframe's exposure (g, b) as the
 Mapper holds it, (1, 0) unless lr_exposure), compensated (one gain + bias fitted per image, over the
@@ -196,6 +198,20 @@ def evaluate(gmap, cam, frames, poses, exposures, renderer) -> list[dict]:
     return out
 
 
+def tracked_poses(frames) -> list[np.ndarray]:
+    """The frames' poses in the run trajectory named by RGS_TRAJECTORY (TUM format), by timestamp."""
+    from rgs_warp.io.trajectory import read_tum_trajectory
+
+    stamps, poses = read_tum_trajectory(os.environ["RGS_TRAJECTORY"])
+    out = []
+    for f in frames:
+        k = int(np.argmin(np.abs(stamps - f.timestamp)))
+        if abs(stamps[k] - f.timestamp) > 1e-3:
+            raise ValueError(f"frame {f.index} (t={f.timestamp:.3f} s) is not in the trajectory")
+        out.append(poses[k].copy())
+    return out
+
+
 def side_by_side(path: Path, comp: np.ndarray, ref: np.ndarray, scale: int = 2) -> None:
     err = np.clip(np.abs(comp - ref) * 4.0, 0, 1)
     img = np.concatenate([comp, ref, err], axis=1)
@@ -212,6 +228,7 @@ def fit(
     overrides=(),
     lr_exposure=0.0,
     pose_noise=None,
+    tracked=False,
     fill_depth=False,
     png=None,
     log=print,
@@ -225,7 +242,7 @@ def fit(
     k = len(ids)
     cfg = load_config(["dataset=7scenes/redkitchen", "device=cpu", f"mapping.lr_exposure={lr_exposure}", *overrides])
     frames = [ds[i] for i in ids]
-    poses = [f.pose_gt.copy() for f in frames]
+    poses = tracked_poses(frames) if tracked else [f.pose_gt.copy() for f in frames]
     if pose_noise is not None:
         rng = np.random.default_rng(1)
         poses = [perturb(T, rng, *pose_noise) for T in poses]
@@ -274,6 +291,7 @@ def fit(
         "overrides": list(overrides),
         "lr_exposure": lr_exposure,
         "pose_noise_m_deg": pose_noise,
+        "tracked_poses": os.environ.get("RGS_TRAJECTORY") if tracked else None,
         "fill_depth": fill_depth,
         "gaussians": len(gmap),
         "seeded": seeded,
@@ -319,6 +337,10 @@ CASES = {
     # 5: poses perturbed (5 mm, 0.2 deg each, random directions)
     "c5_fastlr": lambda: fit(WINDOW, renders_per_view=250, overrides=FAST_LR, pose_noise=(0.005, 0.2)),
     "c5_small_fastlr": lambda: fit(WINDOW, renders_per_view=250, overrides=FAST_LR, pose_noise=(0.002, 0.08)),
+    # the window at the SLAM's tracked poses (RGS_TRAJECTORY): do they agree better than the ground truth?
+    "c2_tracked_fastlr": lambda: fit(
+        WINDOW, renders_per_view=500, overrides=FAST_LR, tracked=True, png="case2_tracked_fastlr.png"
+    ),
 }
 
 
