@@ -337,6 +337,11 @@ CASES = {
     # 5: poses perturbed (5 mm, 0.2 deg each, random directions)
     "c5_fastlr": lambda: fit(WINDOW, renders_per_view=250, overrides=FAST_LR, pose_noise=(0.005, 0.2)),
     "c5_small_fastlr": lambda: fit(WINDOW, renders_per_view=250, overrides=FAST_LR, pose_noise=(0.002, 0.08)),
+    # the window without mapping's depth term: does the registered depth (colour and depth not captured at
+    # the same instant) hold the Gaussians where the colour views disagree?
+    "c2_nodepth_fastlr": lambda: fit(
+        WINDOW, renders_per_view=500, overrides=[*FAST_LR, "mapping.depth_weight=0"], png="case2_nodepth_fastlr.png"
+    ),
     # the window at the SLAM's tracked poses (RGS_TRAJECTORY): do they agree better than the ground truth?
     "c2_tracked_fastlr": lambda: fit(
         WINDOW, renders_per_view=500, overrides=FAST_LR, tracked=True, png="case2_tracked_fastlr.png"
