@@ -343,6 +343,7 @@ CASES = {
         WINDOW, renders_per_view=500, overrides=[*FAST_LR, "mapping.depth_weight=0"], png="case2_nodepth_fastlr.png"
     ),
     # the window at the SLAM's tracked poses (RGS_TRAJECTORY): do they agree better than the ground truth?
+    "c2_tracked": lambda: fit(WINDOW, renders_per_view=500, tracked=True, png="case2_tracked.png"),
     "c2_tracked_fastlr": lambda: fit(
         WINDOW, renders_per_view=500, overrides=FAST_LR, tracked=True, png="case2_tracked_fastlr.png"
     ),
