@@ -344,6 +344,10 @@ CASES = {
     ),
     # the window at the SLAM's tracked poses (RGS_TRAJECTORY): do they agree better than the ground truth?
     "c2_tracked": lambda: fit(WINDOW, renders_per_view=500, tracked=True, png="case2_tracked.png"),
+    "c2_tracked_320": lambda: fit(WINDOW, factor=2, renders_per_view=250, chunk=125, tracked=True),
+    "c2_tracked_320_fastlr": lambda: fit(
+        WINDOW, factor=2, renders_per_view=250, chunk=125, overrides=FAST_LR, tracked=True, png="case2_tracked_320.png"
+    ),
     "c2_tracked_fastlr": lambda: fit(
         WINDOW, renders_per_view=500, overrides=FAST_LR, tracked=True, png="case2_tracked_fastlr.png"
     ),
