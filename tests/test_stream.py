@@ -110,6 +110,7 @@ def test_realsense_recording_end_to_end(tmp_path, device):
     assert metrics["photometric"]["psnr_db"] > 15.0
 
 
+@pytest.mark.slow  # a recording written and played back: 3 s, with the fast tier near its 2 minutes
 @pytest.mark.skipif(not HAS_REALSENSE, reason="pyrealsense2 is not installed (pip install 'rgs_warp[realsense]')")
 def test_realsense_recording_registers_depth_with_its_extrinsics(tmp_path):
     """A recording whose depth camera is turned a quarter turn about the optical axis from the colour
