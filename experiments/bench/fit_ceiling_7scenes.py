@@ -5,8 +5,9 @@ Renderer; ground-truth poses of the shared redkitchen frames (depth registered t
     python experiments/bench/fit_ceiling_7scenes.py CASE [CASE ...]   (cases: CASES at the bottom)
 
 Results go to $OUT/results.json (updated per case; default ./bench_out) with side-by-side images;
-RGS_DEVICE picks the device (default cpu); the *_tracked cases take the poses from a run's
-trajectory (RGS_TRAJECTORY=RUN_DIR/trajectory.txt of a 7-Scenes run, in its ground truth's world).
+RGS_DEVICE picks the device (default cpu), RGS_7SCENES the frames' folder (default the shared
+sample); the *_tracked cases take the poses from a run's trajectory (RGS_TRAJECTORY=RUN_DIR/
+trajectory.txt of a 7-Scenes run, in its ground truth's world).
 Findings: experiments/results/fidelity.md, "Why the map does not fit the 7-Scenes keyframes"
 (session 13).
 
@@ -41,7 +42,9 @@ from rgs_warp.seeding import Seeder  # noqa: E402
 from rgs_warp.types import GaussianMap  # noqa: E402
 
 OUT = Path(os.environ.get("OUT", "bench_out"))
-ROOT = str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "7scenes-redkitchen")
+ROOT = os.environ.get(
+    "RGS_7SCENES", str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "7scenes-redkitchen")
+)
 DEV = os.environ.get("RGS_DEVICE", "cpu")
 _DS: dict[int, SevenScenesDataset] = {}
 
@@ -240,7 +243,7 @@ def fit(
     ds = dataset(factor)
     cam = ds.camera
     k = len(ids)
-    cfg = load_config(["dataset=7scenes/redkitchen", "device=cpu", f"mapping.lr_exposure={lr_exposure}", *overrides])
+    cfg = load_config(["dataset=7scenes/redkitchen", f"device={DEV}", f"mapping.lr_exposure={lr_exposure}", *overrides])
     frames = [ds[i] for i in ids]
     poses = tracked_poses(frames) if tracked else [f.pose_gt.copy() for f in frames]
     if pose_noise is not None:
@@ -344,6 +347,10 @@ CASES = {
     ),
     # the window at the SLAM's tracked poses (RGS_TRAJECTORY): do they agree better than the ground truth?
     "c2_tracked": lambda: fit(WINDOW, renders_per_view=500, tracked=True, png="case2_tracked.png"),
+    "c2_tracked_640": lambda: fit(WINDOW, factor=1, renders_per_view=500, chunk=125, tracked=True),
+    "c2_tracked_640_fastlr": lambda: fit(
+        WINDOW, factor=1, renders_per_view=500, chunk=125, overrides=FAST_LR, tracked=True, png="case2_tracked_640.png"
+    ),
     "c2_tracked_320": lambda: fit(WINDOW, factor=2, renders_per_view=250, chunk=125, tracked=True),
     "c2_tracked_320_fastlr": lambda: fit(
         WINDOW, factor=2, renders_per_view=250, chunk=125, overrides=FAST_LR, tracked=True, png="case2_tracked_320.png"
