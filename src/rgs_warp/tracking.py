@@ -82,7 +82,7 @@ MAX_CORRECTION_DEG = 45.0
 # this fraction of the constant-velocity prediction's (a camera that stops turns far less; the office's
 # collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
 STILL_TURNING = 0.5
-MOTION_CHECKS = ("auto", "on", "off")
+SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
 GRAPHS_KEPT = 3
@@ -117,12 +117,9 @@ class Tracker:
             raise ValueError(
                 f"tracking.brightness must be one of {', '.join(BRIGHTNESS_MODELS)}, got {cfg.brightness!r}"
             )
-        if cfg.motion_check not in MOTION_CHECKS:
-            raise ValueError(
-                f"tracking.motion_check must be one of {', '.join(MOTION_CHECKS)}, got {cfg.motion_check!r}"
-            )
-        if cfg.graph not in MOTION_CHECKS:
-            raise ValueError(f"tracking.graph must be one of {', '.join(MOTION_CHECKS)}, got {cfg.graph!r}")
+        for key in ("motion_check", "graph"):
+            if getattr(cfg, key) not in SWITCHES:
+                raise ValueError(f"tracking.{key} must be one of {', '.join(SWITCHES)}, got {getattr(cfg, key)!r}")
         if cfg.iters < 1 or cfg.downscale < 1:
             raise ValueError(f"need tracking.iters >= 1 and tracking.downscale >= 1, got {cfg.iters}, {cfg.downscale}")
         self.cfg = cfg
