@@ -7,7 +7,7 @@ import warp as wp
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import se3_exp
 from rgs_warp.kernels.covisibility import visibility_iou
-from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeSelector
+from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
 
 
 def test_visibility_iou_matches_numpy(device):
@@ -114,3 +114,55 @@ def test_archive_keeps_what_the_buffer_evicts(device):
     empty = KeyframeArchive()
     empty.load_state_dict(KeyframeArchive().state_dict())
     assert len(empty) == 0
+
+
+def _evict_into(history: KeyframeHistory, n: int, device) -> None:
+    """``n`` keyframes (frame ids 0..n-1, images filled with the id) through a one-slot buffer into
+    ``history``, each kept as the buffer is about to evict it."""
+    buf = KeyframeBuffer(1, 4, 2, device)
+    for k in range(n):
+        if len(buf) == buf.capacity:
+            history.keep(buf, buf.slots()[0])
+        buf.add(k, np.eye(4) * (k + 1), np.full((2, 4, 3), k, np.float32), np.full((2, 4), k, np.float32), (1 + k, k))
+
+
+def test_history_keeps_evicted_keyframes_then_a_uniform_sample(device):
+    history = KeyframeHistory(3, 4, 2, device, seed=0)
+    _evict_into(history, 4, device)  # 3 evicted: all kept, whole
+    kept = {int(history.buffer.frame_ids[s]): s for _, s in history.views()}
+    assert sorted(kept) == [0, 1, 2] and history.evicted == 3
+    for k, s in kept.items():
+        np.testing.assert_array_equal(history.buffer.rgb[s].numpy(), np.full((2, 4, 3), k))
+        np.testing.assert_array_equal(history.buffer.depth[s].numpy(), np.full((2, 4), k))
+        np.testing.assert_array_equal(history.buffer.exposure[s], [1 + k, k])
+        np.testing.assert_array_equal(history.buffer.poses[s], np.eye(4) * (k + 1))
+    # reservoir sampling: over many runs, each of 30 evicted keyframes is kept with probability 3/30
+    counts = np.zeros(30)
+    for seed in range(300):
+        h = KeyframeHistory(3, 4, 2, device, seed=seed)
+        _evict_into(h, 31, device)
+        assert len(h) == 3
+        counts[[int(h.buffer.frame_ids[s]) for _, s in h.views()]] += 1
+    # expected 30 each; a FIFO would keep only 27-29, a keep-the-first only 0-2
+    assert counts[:3].sum() < 3 * 30 * 1.6 and counts[-3:].sum() < 3 * 30 * 1.6, counts
+    assert counts[:15].sum() == pytest.approx(counts[15:].sum(), rel=0.25), counts
+
+
+def test_history_state_round_trip(device):
+    history = KeyframeHistory(2, 4, 2, device, seed=1)
+    _evict_into(history, 6, device)
+    restored = KeyframeHistory(2, 4, 2, device, seed=99)
+    restored.load_state_dict(history.state_dict())
+    assert restored.evicted == history.evicted == 5
+    assert [int(restored.buffer.frame_ids[s]) for _, s in restored.views()] == [
+        int(history.buffer.frame_ids[s]) for _, s in history.views()
+    ]
+    for (_, a), (_, b) in zip(restored.views(), history.views(), strict=True):
+        np.testing.assert_array_equal(restored.buffer.rgb[a].numpy(), history.buffer.rgb[b].numpy())
+    # the same draws afterwards
+    _evict_into(history, 3, device)
+    _evict_into(restored, 3, device)
+    assert history.evicted == restored.evicted
+    assert sorted(int(history.buffer.frame_ids[s]) for _, s in history.views()) == sorted(
+        int(restored.buffer.frame_ids[s]) for _, s in restored.views()
+    )

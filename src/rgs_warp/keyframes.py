@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -139,6 +140,74 @@ class KeyframeBuffer:
         self.descriptors[slot] = None
         self._order.append(slot)
         return slot
+
+    def remove(self, slot: int) -> None:
+        """Free ``slot`` (its images stay until a keyframe is added there)."""
+        self._order.remove(slot)
+
+
+class KeyframeHistory:
+    """Older keyframes on the device for mapping (``mapping.history``): those the keyframe buffer
+    evicts, up to ``capacity``; when full, each newly evicted keyframe replaces a random one with
+    probability capacity / evicted so far (reservoir sampling), so that the kept ones are a uniform
+    sample of the whole run rather than its latest part."""
+
+    def __init__(self, capacity: int, width: int, height: int, device: str, seed: int = 0):
+        self.buffer = KeyframeBuffer(capacity, width, height, device)
+        self.evicted = 0
+        self.rng = np.random.default_rng(seed)
+
+    def __len__(self) -> int:
+        return len(self.buffer)
+
+    def keep(self, source: KeyframeBuffer, slot: int) -> None:
+        """The keyframe in ``source`` slot ``slot`` (about to be evicted), kept or not (see above)."""
+        buf, self.evicted = self.buffer, self.evicted + 1
+        if len(buf) == buf.capacity:
+            j = int(self.rng.integers(self.evicted))
+            if j >= buf.capacity:
+                return
+            target = buf.slots()[j]
+            buf.remove(target)
+        else:
+            target = None
+        buf.add(
+            source.frame_ids[slot],
+            source.poses[slot],
+            source.rgb[slot],
+            source.depth[slot],
+            source.exposure[slot],
+            slot=target,
+        )
+
+    def views(self) -> list[tuple[KeyframeBuffer, int]]:
+        return [(self.buffer, s) for s in self.buffer.slots()]
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        buf, slots = self.buffer, self.buffer.slots()
+        state = {"evicted": np.array(self.evicted), "rng": np.array(json.dumps(self.rng.bit_generator.state))}
+        state["slots"] = np.array(slots, dtype=np.int64)
+        if slots:
+            state.update(frame_ids=buf.frame_ids[slots], poses=buf.poses[slots], exposure=buf.exposure[slots])
+            state["rgb"] = np.stack([buf.rgb[s].numpy() for s in slots])
+            state["depth"] = np.stack([buf.depth[s].numpy() for s in slots])
+        return state
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.evicted = int(state["evicted"])
+        self.rng.bit_generator.state = json.loads(str(state["rng"]))
+        buf = self.buffer
+        for slot in buf.slots():
+            buf.remove(slot)
+        for k, slot in enumerate(state["slots"]):
+            buf.add(
+                int(state["frame_ids"][k]),
+                state["poses"][k],
+                state["rgb"][k],
+                state["depth"][k],
+                state["exposure"][k],
+                slot=int(slot),
+            )
 
 
 def _copy_into(dst: wp.array, slot: int, src, dtype) -> None:

@@ -151,10 +151,18 @@ class Mapper:
         """The gradient columns of the map (valid until it grows)."""
         return GaussianGrads(*(self.gmap.column(f"grad.{name}") for name in GaussianMap.PARAMETERS))
 
-    def _upload_window(self, keyframes: KeyframeBuffer, window: list[int], fixed_exposure: Sequence[int] = ()) -> None:
+    def _upload_window(
+        self,
+        keyframes: KeyframeBuffer,
+        window: list[int],
+        fixed_exposure: Sequence[int] = (),
+        history: Sequence[tuple[KeyframeBuffer, int]] = (),
+    ) -> None:
         """The window's camera-to-world poses as the renderer's float32 device matrices, ``_T_WC[j]``,
-        and its keyframes' exposures (g, b) ``_exposure[j]`` (held where ``_exposure_fixed[j]``)."""
-        k, dev = len(window), self.device
+        and its keyframes' exposures (g, b) ``_exposure[j]`` (held where ``_exposure_fixed[j]``); the
+        ``history`` views (buffer, slot) follow the window's at ``j >= len(window)``, always held."""
+        views = [(keyframes, s) for s in window] + list(history)
+        k, dev = len(views), self.device
         if k > self._window_capacity:
             self._window_capacity = cap = grown_capacity(self._window_capacity, k, minimum=8)
             self._T_WC = wp.zeros(cap, dtype=wp.mat44, device=dev)
@@ -163,9 +171,10 @@ class Mapper:
             self._exposure_grad = wp.zeros(cap, dtype=wp.vec2d, device=dev)
             self._exposure_m = wp.zeros(cap, dtype=wp.vec2, device=dev)
             self._exposure_v = wp.zeros(cap, dtype=wp.vec2, device=dev)
-        self._T_WC[:k].assign(np.stack([keyframes.poses[s] for s in window]).astype(np.float32))
-        self._exposure[:k].assign(keyframes.exposure[window].astype(np.float32))
-        self._exposure_fixed[:k].assign(np.array([int(s in fixed_exposure) for s in window], dtype=np.int32))
+        self._T_WC[:k].assign(np.stack([b.poses[s] for b, s in views]).astype(np.float32))
+        self._exposure[:k].assign(np.stack([b.exposure[s] for b, s in views]).astype(np.float32))
+        held = [int(s in fixed_exposure) for s in window] + [1] * len(history)
+        self._exposure_fixed[:k].assign(np.array(held, dtype=np.int32))
 
     def _view_loss(self, keyframes, slot, j, it, weight, use_depth, blocks) -> RenderResult:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
@@ -209,6 +218,7 @@ class Mapper:
         psnr_every: int = 0,
         fixed_exposure: Sequence[int] = (),
         pause: Callable[[], None] | None = None,
+        history: Sequence[tuple[KeyframeBuffer, int]] = (),
     ) -> MappingResult:
         """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  The exposures (g, b)
         of the window's keyframes are refined with the map (``mapping.lr_exposure``) and written back
@@ -218,7 +228,9 @@ class Mapper:
         (``window_psnr``) goes to ``MappingResult.psnr_curve`` (measured before that iteration's
         densification, whose fresh clones and split children the following iterations have yet to
         fit).  ``pause``: called after every iteration but the last (asynchronous mapping: where
-        tracking may take the device)."""
+        tracking may take the device).  ``history``: older keyframes as (buffer, slot); each view an
+        iteration renders is one of them, drawn at random, with probability ``mapping.history``
+        (their exposures held), so that the window's steps do not undo what earlier windows fitted."""
         dev, gmap = self.device, self.gmap
         window = list(window)
         if not window:
@@ -228,8 +240,10 @@ class Mapper:
         iters = int(iters)
         if iters <= 0 or len(gmap) == 0:
             return MappingResult(0, np.zeros(0), np.zeros(0), np.zeros(0))
-        k_win = len(window)
-        self._upload_window(keyframes, window, fixed_exposure)
+        k_win, history = len(window), list(history) if self.cfg.history > 0.0 else []
+        self._upload_window(keyframes, window, fixed_exposure, history)
+        buffers = [keyframes] * k_win + [b for b, _ in history]
+        slots = window + [s for _, s in history]
         self._exposure_m.zero_()
         self._exposure_v.zero_()
         if self._loss.shape[0] < iters:
@@ -244,8 +258,12 @@ class Mapper:
             views = list(self.rng.permutation(k_win))[::-1]  # every view, in a fresh order each iteration
             if 0 < self.cfg.views_per_iter < k_win:
                 views = views[: self.cfg.views_per_iter]  # or a fresh random subset of them
+            if history:
+                older = self.rng.random(len(views)) < self.cfg.history
+                picks = self.rng.integers(len(history), size=len(views))
+                views = [k_win + int(p) if o else v for v, o, p in zip(views, older, picks, strict=True)]
             self._map_step(
-                keyframes, window, views, it, use_depth, blocks, cosine_factor(it, iters, self.cfg.lr_final_factor)
+                buffers, slots, views, it, use_depth, blocks, cosine_factor(it, iters, self.cfg.lr_final_factor)
             )
             self.total_iters += 1
             if psnr_every > 0 and self.total_iters % psnr_every == 0:
@@ -266,8 +284,9 @@ class Mapper:
         result.depth_l1_history = np.where(depth_px > 0, loss[:, km.L_DEPTH] / np.maximum(depth_px, 1.0), np.nan)
         return result
 
-    def _map_step(self, keyframes, window, views, it, use_depth, blocks, lr_factor) -> None:
-        """One Adam step on the map from the gradients of ``views`` (window positions), averaged."""
+    def _map_step(self, buffers, slots, views, it, use_depth, blocks, lr_factor) -> None:
+        """One Adam step on the map from the gradients of ``views`` (positions j of the uploaded views:
+        keyframe ``slots[j]`` of ``buffers[j]``), averaged."""
         cfg, dev, gmap = self.cfg, self.device, self.gmap
         n = len(gmap)
         share = 1.0 / len(views)
@@ -276,7 +295,7 @@ class Mapper:
         before = gmap.column("grad.opacity_before")
         obs_count, vis_count = gmap.column("obs_count"), gmap.column("vis_count")
         for v, j in enumerate(views):
-            res = self._view_loss(keyframes, window[j], j, it, share, use_depth, blocks)
+            res = self._view_loss(buffers[j], slots[j], j, it, share, use_depth, blocks)
             if v == 0:
                 before[:n].zero_()
             else:
@@ -306,7 +325,7 @@ class Mapper:
         if cfg.lr_exposure > 0.0:
             wp.launch(
                 km.adam_exposure_step,
-                dim=len(window),
+                dim=len(slots),
                 inputs=[self._exposure_grad, self._exposure_fixed, it + 1, cfg.lr_exposure * lr_factor]
                 + [cfg.adam_beta1, cfg.adam_beta2],
                 outputs=[self._exposure_m, self._exposure_v, self._exposure],

@@ -29,7 +29,7 @@ from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
 from rgs_warp.config import Config, check_config, check_image_size, resolve_device
 from rgs_warp.exposure import KeyframeExposure
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
-from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeSelector
+from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
@@ -107,6 +107,10 @@ class SLAM:
         tc = self.tracker.track_camera
         self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
+        # mapping.history: the keyframes the buffer evicted, for mapping's views of older keyframes
+        self.history = None
+        if cfg.mapping.history > 0.0 and cfg.mapping.history_size > 0:
+            self.history = KeyframeHistory(cfg.mapping.history_size, camera.width, camera.height, dev, cfg.seed)
         self.exposure = None  # tracking.exposure_from "map" or mono: the tracker's (g, b) colour the seeds
         if cfg.tracking.exposure_from == "keyframes" and self.mode == "rgbd":
             self.exposure = KeyframeExposure(camera, cfg.keyframes.buffer_size, dev)
@@ -314,7 +318,9 @@ class SLAM:
         t1 = time.perf_counter()
         window = self.keyframes.slots()[-self.cfg.mapping.window :]
         iters, held = self.cfg.mapping.frame_iters, self._held_exposures(window)
-        result.mapping = self.mapper.optimize(self.keyframes, window, iters, fixed_exposure=held, pause=self._pause)
+        result.mapping = self.mapper.optimize(
+            self.keyframes, window, iters, fixed_exposure=held, pause=self._pause, history=self._older(window)
+        )
         self.stats["mapping_s"] += time.perf_counter() - t1
         self._publish()
 
@@ -360,6 +366,8 @@ class SLAM:
     def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult, t_tracked: float) -> None:
         """Keyframe ``i`` into the buffer, seeded, its window mapped and maintained (a mapping job)."""
         cfg, kf = self.cfg, self.keyframes
+        if self.history is not None and len(kf) == kf.capacity:
+            self.history.keep(kf, kf.slots()[0])  # the buffer evicts its oldest keyframe next
         slot = kf.add(i, T, rgb, depth, exposure)
         if self.exposure is not None:
             kf.exposure[slot] = self.exposure.estimate(kf, kf.rgb[slot], kf.depth[slot], T, exposure, exclude=slot)
@@ -377,7 +385,9 @@ class SLAM:
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
         held = self._held_exposures(window)
-        result.mapping = self.mapper.optimize(kf, window, iters, psnr_every, held, pause=self._pause)
+        result.mapping = self.mapper.optimize(
+            kf, window, iters, psnr_every, held, pause=self._pause, history=self._older(window)
+        )
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
             t0 = time.perf_counter()
@@ -411,6 +421,14 @@ class SLAM:
         T = self.keyframes.poses[slot].copy()
         res = self.renderer.forward(self.map, self.camera, T)
         self.pose_prior.add_keyframe(self.keyframes.rgb[slot].numpy(), res.depth.numpy(), res.alpha.numpy(), T)
+
+    def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
+        """The keyframes older than ``window`` that mapping may render (``mapping.history``): the
+        buffer's outside the window, then those the history kept."""
+        if self.cfg.mapping.history <= 0.0:
+            return []
+        older = [(self.keyframes, s) for s in self.keyframes.slots() if s not in window]
+        return older + (self.history.views() if self.history is not None else [])
 
     def _held_exposures(self, window: list[int]) -> list[int]:
         """The window's keyframes whose exposure mapping holds (``Mapper.optimize``'s ``fixed_exposure``):

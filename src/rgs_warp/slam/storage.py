@@ -88,6 +88,8 @@ def _save_state(slam, path: Path) -> None:
     state.update({f"seeder.{k}": v for k, v in slam.seeder.state_dict().items()})
     if slam.archive is not None:
         state.update({f"archive.{k}": v for k, v in slam.archive.state_dict().items()})
+    if slam.history is not None:
+        state.update({f"history.{k}": v for k, v in slam.history.state_dict().items()})
     meta = {
         "frames": len(slam.poses),
         "gaussians": n,
@@ -126,6 +128,8 @@ def _load_state(slam, path: Path) -> None:
     slam.seeder.load_state_dict({k[len("seeder.") :]: v for k, v in state.items() if k.startswith("seeder.")})
     if slam.archive is not None:
         slam.archive.load_state_dict({k[len("archive.") :]: v for k, v in state.items() if k.startswith("archive.")})
+    if slam.history is not None and "history.evicted" in state:
+        slam.history.load_state_dict({k[len("history.") :]: v for k, v in state.items() if k.startswith("history.")})
     slam.poses, slam.timestamps = list(state["slam.poses"]), [float(t) for t in state["slam.timestamps"]]
     slam._init_window_end = int(meta["init_window_end"])
     slam.stats, slam.convergence = dict(meta["stats"]), list(meta["convergence"])
