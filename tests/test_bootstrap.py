@@ -9,6 +9,7 @@ import pytest
 import warp as wp
 
 from rgs_warp.bootstrap import (
+    BandedWindowSearch,
     BootstrapConfig,
     MonoBootstrap,
     epipolar_distance_px,
@@ -61,9 +62,11 @@ def unit_rows(a):
 
 
 @pytest.mark.parametrize("offset, exclusion", [((0.0, 0.0), 2), ((3.3, -1.6), 1), ((-2.2, 0.4), -1)])
-def test_window_search_matches_brute_force(device, offset, exclusion):
+@pytest.mark.parametrize("bands", [0, 4, 20])  # 0: window_search; else BandedWindowSearch (20 > rows)
+@pytest.mark.parametrize("radius", [3, 13])  # 13: the whole grid, as the bootstrap's coarse pass
+def test_window_search_matches_brute_force(device, offset, exclusion, bands, radius):
     rng = np.random.default_rng(0)
-    hf, wf, dim, stride, radius = 9, 13, 16, 4, 3
+    hf, wf, dim, stride = 9, 13, 16, 4
     # smooth descriptor fields (random fields blurred along both axes), so the parabola fits have peaks
     target = rng.normal(size=(hf + 2, wf + 2, dim))
     target = unit_rows(target[:-2, :-2] + target[1:-1, 1:-1] + target[2:, 2:] + target[1:-1, :-2] + target[:-2, 1:-1])
@@ -78,14 +81,13 @@ def test_window_search_matches_brute_force(device, offset, exclusion):
     kw = {"device": device}
     outs = [wp.zeros(n, dtype=wp.vec2, **kw), wp.zeros(n, dtype=wp.float32, **kw), wp.zeros(n, dtype=wp.float32, **kw)]
     rgb = wp.zeros((2, 2), dtype=wp.vec3, **kw)  # unused without ZNCC refinement
-    wp.launch(
-        window_search,
-        dim=n,
-        inputs=[wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), rgb, wp.array(target, **kw), rgb, stride]
-        + [wp.vec2(*offset), radius, exclusion, 0, 0],
-        outputs=outs,
-        device=device,
-    )
+    args = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), rgb, wp.array(target, **kw), rgb, stride]
+    if bands:
+        BandedWindowSearch(n, bands, device)(*args, wp.vec2(*offset), radius, exclusion, [0, 0], outs)
+    else:
+        wp.launch(
+            window_search, dim=n, inputs=[*args, wp.vec2(*offset), radius, exclusion, 0, 0], outputs=outs, device=device
+        )
     match, best, second = brute_force_window(query, uv, target, stride, np.array(offset), radius, exclusion)
     np.testing.assert_allclose(outs[1].numpy(), best, atol=1e-5)
     np.testing.assert_allclose(outs[2].numpy(), second, atol=1e-5)

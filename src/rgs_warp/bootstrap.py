@@ -43,9 +43,57 @@ import warp as wp
 from rgs_warp.config import BootstrapConfig, MatchingConfig
 from rgs_warp.features import feature_centres, make_backbone
 from rgs_warp.geometry import invert_pose, skew
-from rgs_warp.kernels.matching import sample_descriptors, score_matches, select_matches, window_search
+from rgs_warp.kernels.matching import (
+    sample_descriptors,
+    score_matches,
+    select_matches,
+    window_search,
+    window_search_best,
+    window_search_finish,
+    window_search_rows,
+)
 from rgs_warp.triangulation import TriangulatedPoints, baseline_angle_deg, projection_matrices, triangulate_dlt
 from rgs_warp.types import Camera
+
+
+class BandedWindowSearch:
+    """``kernels.matching.window_search`` for windows as large as the image (the bootstrap's coarse
+    pass): each query's window rows are split over ``bands`` threads, whose bests are reduced in row
+    order, so the result is the same (tests/test_bootstrap.py) while one thread per query would
+    leave the GPU nearly idle (a few thousand queries, each scanning the whole grid: 0.76 s of a
+    1.0 s bootstrap attempt at 1200x680 on an H100, session 14).  Buffers for ``queries`` queries."""
+
+    def __init__(self, queries: int, bands: int, device=None):
+        kw = {"device": wp.get_device(device)}
+        self.device = kw["device"]
+        self._band_sim = wp.zeros((queries, bands), dtype=wp.float32, **kw)
+        self._band_xy = wp.zeros((queries, bands), dtype=wp.vec2i, **kw)
+        self._best_xy = wp.zeros(queries, dtype=wp.vec2i, **kw)
+
+    def __call__(
+        self, query_desc, query_uv, query_rgb, target_desc, target_rgb, stride, offset, radius, exclusion, refine, out
+    ) -> None:
+        """As ``window_search`` with the same arguments (``refine``: [refine_radius, patch_radius];
+        ``out``: [match_uv, sim, second_sim])."""
+        match_uv, sim, second = out
+        n, bands = self._band_sim.shape
+        geometry = [query_uv, target_desc, stride, offset, radius]
+        rows = [query_desc, query_uv, target_desc, stride, offset, radius, exclusion, self._best_xy]
+        d = self.device
+        wp.launch(window_search_rows, dim=(n, bands), inputs=rows, outputs=[self._band_sim, self._band_xy, 0], device=d)
+        best = [self._band_sim, self._band_xy]
+        wp.launch(window_search_best, dim=n, inputs=geometry + best, outputs=[self._best_xy, sim], device=d)
+        if exclusion >= 0:
+            bands_out = [self._band_sim, self._band_xy, 1]
+            wp.launch(window_search_rows, dim=(n, bands), inputs=rows, outputs=bands_out, device=d)
+        wp.launch(
+            window_search_finish,
+            dim=n,
+            inputs=[query_desc, query_uv, query_rgb, target_desc, target_rgb, stride, self._best_xy, self._band_sim]
+            + [exclusion, *refine, sim],
+            outputs=[match_uv, second],
+            device=d,
+        )
 
 
 @dataclass
@@ -116,6 +164,7 @@ class MonoBootstrap:
         self._coarse_match = wp.zeros(m, dtype=wp.vec2, **kw)
         self._coarse_sim, self._coarse_second = wp.zeros(m, dtype=wp.float32, **kw), wp.zeros(m, dtype=wp.float32, **kw)
         self._coarse_fb_err, self._coarse_valid = wp.zeros(m, dtype=wp.float32, **kw), wp.zeros(m, dtype=wp.int32, **kw)
+        self._coarse_search = BandedWindowSearch(m, hf, self.device)  # a thread per query and row
         self.last_motion_px = np.zeros(2)  # the global image motion the last search assumed
         self.last_rejection: str | None = None
 
@@ -167,13 +216,18 @@ class MonoBootstrap:
         cfg, s, d = self.cfg, self.stride, self.device
         m = self._coarse_uv.shape[0]
         wp.launch(sample_descriptors, dim=m, inputs=[desc0, self._coarse_uv, s], outputs=[self._coarse_query], device=d)
-        wp.launch(
-            window_search,
-            dim=m,
-            inputs=[self._coarse_query, self._coarse_uv, self._rgb[0], desck, self._rgb[1], s, wp.vec2(0.0, 0.0)]
-            + [max(self.grid), cfg.ratio_exclusion, 0, 0],
-            outputs=[self._coarse_match, self._coarse_sim, self._coarse_second],
-            device=d,
+        self._coarse_search(
+            self._coarse_query,
+            self._coarse_uv,
+            self._rgb[0],
+            desck,
+            self._rgb[1],
+            s,
+            wp.vec2(0.0, 0.0),
+            max(self.grid),
+            cfg.ratio_exclusion,
+            [0, 0],
+            [self._coarse_match, self._coarse_sim, self._coarse_second],
         )
         wp.launch(  # similarity and ratio tests only: the query stands in for its backward match
             select_matches,
