@@ -607,3 +607,20 @@ def test_history_keeps_older_keyframes_fitted(device, room):
         )
     print(after)
     assert after[0.5] > after[0.0] + 2.0, after
+
+
+def test_mapping_renders_do_not_overflow_between_views(device, room):
+    # Consecutive mapping iterations render different views; a dense one after a sparse one must not
+    # find its intersection buffers sized by the sparse one (dropped intersections: a wrong image and
+    # gradient). The Mapper reserves the most any of its renders needed: only a dense view rendered
+    # before any dense count was known can overflow (here once; without the floor 5 of these 24).
+    cam = room["camera"]
+    gmap = _room_map(room, device)
+    rgb, depth, T = room["frames"][0]
+    far = T.copy()
+    far[:3, 3] -= 50.0 * T[:3, 2]  # 50 m behind the first keyframe, looking the same way: the room is tiny
+    kf, slots = _keyframes(room, [(rgb, depth, T), (rgb, np.zeros_like(depth), far)], device)
+    mapper = Mapper(MappingConfig(), cam, gmap, device)
+    mapper.optimize(kf, slots, 24)
+    mapper.renderer.forward(gmap, cam, T)  # reads the last mapping render's count
+    assert mapper.renderer.overflowed_renders <= 1

@@ -148,3 +148,25 @@ def test_intersection_capacity_and_overflow(device):
     # reserving ahead (as before capturing a graph) keeps the capacity until a count says otherwise
     renderer.reserve_intersections(10 * needed)
     assert renderer.intersection_capacity >= 10 * needed
+
+
+def test_overflow_is_counted_and_min_intersections_prevents_it(device):
+    """A render sized by a previous view that saw little drops intersections; the next forward counts
+    it (``overflowed_renders``); ``min_intersections`` reserves room first, and the image is exact."""
+    scene = random_scene(np.random.default_rng(11), 200, T_WC)
+    gmap = to_map(scene, device)
+    away = T_WC.copy()
+    away[:3, :3] = T_WC[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned around: little in view
+    ref = render_reference(scene, CAMERA, T_WC, BACKGROUND)
+    renderer = Renderer(device)
+    few = renderer.forward(gmap, CAMERA, away, BACKGROUND).num_intersections
+    dropped = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND)
+    needed = dropped.num_intersections
+    assert needed > 2 * few and dropped.overflowed and renderer.overflowed_renders == 0  # known at the next forward
+    renderer.forward(gmap, CAMERA, away, BACKGROUND)
+    assert renderer.overflowed_renders == 1 and renderer.previous_count == needed
+    result = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND, min_intersections=needed)
+    assert not result.overflowed
+    _check_images(result, ref)
+    renderer.forward(gmap, CAMERA, away, BACKGROUND)
+    assert renderer.overflowed_renders == 1

@@ -135,6 +135,10 @@ class Mapper:
         self._squared_error = wp.zeros(1, dtype=wp.float64, device=dev)
         self._window_capacity = 0
         self.total_iters = 0
+        # intersections a mapping render reserves: the most any of its renders needed (x margin), since
+        # consecutive iterations render different views and a denser one would overflow a capacity
+        # sized by the previous render (dropping intersections: a wrong image and gradient)
+        self._isect_floor = 0
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The optimiser's clocks besides the map's columns: Adam's step count (bias correction), the
@@ -180,7 +184,9 @@ class Mapper:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
         loss in ``_d_color``, ``_d_depth``; its loss sums go to row ``it``."""
         cfg, dev = self.cfg, self.device
-        res = self.renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1])
+        renderer = self.renderer
+        res = renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1], min_intersections=self._isect_floor)
+        self._isect_floor = max(self._isect_floor, math.ceil(renderer.previous_count * renderer.isect_margin))
         wp.launch_tiled(
             km.mapping_loss,
             dim=blocks,

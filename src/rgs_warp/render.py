@@ -135,6 +135,11 @@ class Renderer:
         self._count_host = wp.zeros(1, dtype=wp.int32, device="cpu", pinned=self.device.is_cuda)
         self._count_event = None
         self._count_key = None  # (number of Gaussians, camera) of the render whose count _count_host holds
+        self._last_capacity = None  # the intersection capacity of that render (None: captured)
+        # eager forwards found at the next forward to have dropped intersections (no extra wait: the
+        # count is read then anyway); a render of another map size or camera is not checked
+        self.overflowed_renders = 0
+        self.previous_count = 0  # that count, as the latest eager forward read it (0: not read)
         self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._last = None
@@ -243,6 +248,7 @@ class Renderer:
         background=(0.0, 0.0, 0.0),
         tape: wp.Tape | None = None,
         pose_jacobians: bool | None = None,
+        min_intersections: int = 0,
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -254,6 +260,9 @@ class Renderer:
         ``pose_jacobians``: also store the per-Gaussian pose Jacobians that ``backward(pose_only=True)``
         folds the screen-space gradients through (without them that backward first re-runs the
         projection to get them); ``None``: if the previous backward was pose-only (a tracking loop).
+
+        ``min_intersections``: room for at least this many tile intersections, whatever the previous
+        render needed (a caller that alternates between views of different density: mapping).
         """
         dev = self.device
         n = len(gmap)
@@ -277,7 +286,10 @@ class Renderer:
         exact = False
         if not capturing:
             if self._count_key == (n, camera):
-                self._size_intersections(self._read_count())
+                count = self.previous_count = self._read_count()
+                if self._last_capacity is not None and count > self._last_capacity:
+                    self.overflowed_renders += 1
+                self._size_intersections(count)
             else:
                 exact = n > 0
         if n > 0:
@@ -294,8 +306,9 @@ class Renderer:
             self._count_key = (n, camera)
         if exact:
             self._size_intersections(self._read_count())
-        self.reserve_intersections(1)
+        self.reserve_intersections(max(1, int(min_intersections)))
         capacity = self._isect_capacity
+        self._last_capacity = None if capturing else capacity
 
         self._ranges.zero_()
         if n > 0:

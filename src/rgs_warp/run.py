@@ -705,6 +705,8 @@ def evaluate_run(
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
     metrics["mapping_iterations"] = slam.mapper.total_iters
+    # renders of the mapping renderer (mapping, seeding) found to have dropped intersections
+    metrics["mapping_renders_overflowed"] = slam.renderer.overflowed_renders
     metrics["mapping"] = "asynchronous" if cfg.mapping.asynchronous else "synchronous"
     if slam.keyframe_latency_s:  # asynchronous: from a keyframe's tracking to its map published
         lat = np.array(slam.keyframe_latency_s)
