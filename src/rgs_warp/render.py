@@ -139,7 +139,8 @@ class Renderer:
         # eager forwards found at the next forward to have dropped intersections (no extra wait: the
         # count is read then anyway); a render of another map size or camera is not checked
         self.overflowed_renders = 0
-        self.previous_count = 0  # that count, as the latest eager forward read it (0: not read)
+        self.previous_count = None  # that count, as the latest forward read it (None: not read)
+        self.forwards = 0  # forward calls so far (tells a caller whether another render came between)
         self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._last = None
@@ -266,6 +267,8 @@ class Renderer:
         """
         dev = self.device
         n = len(gmap)
+        self.forwards += 1
+        self.previous_count = None
         self._ensure_gaussians(gmap.capacity, gmap.num_sh)
         self._ensure_image(camera)
         cam = camera_params(camera, self.near, FRUSTUM_MARGIN)
