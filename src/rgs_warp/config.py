@@ -279,7 +279,7 @@ class MappingConfig:
     # window) drawn at random instead of a window view, as MonoGS and SplaTAM do: each window is
     # fitted and left, and later windows move the Gaussians earlier keyframes share; 0 = off.  With
     # iters 150 (the window keeps its 120 on average): H100, 7-Scenes +1.5 dB compensated held-out
-    # PSNR, +1.9 dB on keyframes, same ATE (3 seeds); office +0.65 dB, 12 % fewer frames/s
+    # PSNR, +1.9 dB on keyframes, same ATE (6 seeds); office +0.75 dB, 6 % fewer frames/s
     # (experiments/results/fidelity.md, session 14).  At 120 iterations 7-Scenes tracking suffered.
     history: float = 0.2
     # older keyframes kept on the device for it (those the keyframe buffer evicted; when full, a
