@@ -4,7 +4,7 @@
 
 Frame 0 against frames 3, 9 and 18 of the dataset (the GPU office at 1200x680 took 3.9 s an attempt
 in session 14, 19 attempts before its map started); each stage is timed with ``wp.synchronize`` after
-one warm-up attempt, median of 3.  Writes $OUT/bootstrap_timing.json.
+one warm-up attempt, median of 3.  Writes $OUT/bootstrap_timing.json (default OUT: bench_out).
 """
 
 from __future__ import annotations
@@ -64,7 +64,8 @@ def main(argv: list[str]) -> None:
         med.update(selected=rows[0]["selected"], rejection=rows[0]["rejection"])
         results[f"0-{k}"] = med
         print(k, json.dumps(med), flush=True)
-    out = Path(os.environ.get("OUT", "."))
+    out = Path(os.environ.get("OUT", "bench_out"))
+    out.mkdir(parents=True, exist_ok=True)
     (out / "bootstrap_timing.json").write_text(json.dumps(results, indent=1))
 
 
