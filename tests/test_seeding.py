@@ -716,27 +716,3 @@ def test_detail_seeds_go_where_the_image_has_detail(device):
     (tex0, plain0), (tex1, plain1) = counts[0], counts[1]
     assert abs(tex0 - plain0) <= 0.1 * plain0, counts
     assert tex1 > 3.0 * tex0 and plain1 == plain0, counts
-
-
-@pytest.mark.parametrize("mono_fill", [False, True])
-def test_mono_fill_covers_the_rest_at_the_maps_median_depth(device, mono_fill):
-    # monocular keyframes get seeds only where matches triangulate; with seeding.mono_fill the part of
-    # the view the map does not cover gets weak seeds on a plane at the map's median depth there
-    keyframes, slot = _wall_keyframe(device, (slice(None), slice(32, None)))  # depth on the left half only
-    renderer = Renderer(device)
-    gmap = GaussianMap(16, sh_degree=2, device=device)
-    Seeder(SeedingConfig(), CAM, device, mode="rgbd", renderer=renderer).seed_depth(gmap, keyframes, slot)
-    n_map = len(gmap)
-    assert n_map > 20
-    mono = Seeder(SeedingConfig(mono_fill=mono_fill), CAM, device, mode="mono", renderer=renderer)
-    added = mono.seed_depth(gmap, keyframes, slot)
-    assert added == len(gmap) - n_map
-    if not mono_fill:
-        assert added == 0
-        return
-    new = gmap.to_numpy()["means"][n_map:]
-    assert added > 20 and np.allclose(new[:, 2], 2.0, atol=0.05)  # the wall's depth, where the map is
-    u = CAM.fx * new[:, 0] / new[:, 2] + CAM.cx
-    assert (u > 28).all()  # on the uncovered right half (and its border)
-    opacity = 1.0 / (1.0 + np.exp(-gmap.to_numpy()["opacity_logits"]))
-    assert opacity[n_map:].max() < opacity[:n_map].min()  # weak: zero confidence (Eq. 14)

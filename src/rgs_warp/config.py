@@ -236,11 +236,6 @@ class SeedingConfig:
     # the triangulated seeds (plain walls have no matches); the first keyframe always is (mono: at
     # matching.scene_depth_m)
     depth_fill: bool = True
-    # monocular: after the triangulated seeds, where the map still does not cover the keyframe, weak
-    # seeds (Eq. 14 at zero confidence) on a plane at the median depth the map renders there, for
-    # mapping to refine: without them each keyframe's map covers less of its view (CPU, office
-    # 320x180: 94 -> 78 -> 67 %) until tracking slips (experiments/results/mono.md); off by default
-    mono_fill: bool = False
     # RGB-D: pixels without measured depth that no seed covers (windows, far field, dark surfaces: they
     # render black) get seeds on a layer at this depth, beyond the sensor's range; 0 = off
     far_layer_m: float = 0.0

@@ -288,7 +288,6 @@ class Seeder:
         shape = (camera.height, camera.width)
         # monocular: the first keyframe's plane; RGB-D: the far layer's depth image (far_layer_depth)
         self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
-        self._fill_depth = wp.zeros(shape, dtype=wp.float32, device=dev) if mode != "rgbd" else None  # mono_fill
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
@@ -361,15 +360,13 @@ class Seeder:
     def seed_depth(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
         """Measured-depth seeds where the map does not cover keyframe ``slot`` (RGB-D with
         ``depth_fill``, and the first seeds of an empty map; monocular: the first keyframe's plane at
-        ``scene_depth_m``, later with ``mono_fill`` a plane at the map's median depth), then with
-        ``far_layer_m`` a far layer where nothing was measured; returns how many."""
+        ``scene_depth_m``), then with ``far_layer_m`` a far layer where nothing was measured; returns
+        how many."""
         if len(gmap) == 0:
             alpha = self._zero_alpha
             if self.mode != "rgbd":
                 return self._seed_depth(keyframes, slot, alpha, self._plane_depth, gmap, self.max_gaussians)
-        elif self.mode != "rgbd":
-            return self._mono_fill(gmap, keyframes, slot) if self.cfg.mono_fill else 0
-        elif self.cfg.depth_fill:
+        elif self.mode == "rgbd" and self.cfg.depth_fill:
             alpha = self.renderer.forward(gmap, self.camera, keyframes.poses[slot]).alpha
         else:
             return 0
@@ -380,19 +377,6 @@ class Seeder:
             wp.launch(ks.far_layer_depth, dim=far.shape, inputs=launch_inputs, outputs=[far], device=self.device)
             added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
         return added
-
-    def _mono_fill(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
-        """``seeding.mono_fill``: weak seeds where the map does not cover monocular keyframe ``slot``, on a
-        plane at the median depth the map renders where it does (none when it covers too little of
-        the view to say: under 5 %)."""
-        res = self.renderer.forward(gmap, self.camera, keyframes.poses[slot])
-        alpha, depth = res.alpha.numpy(), res.depth.numpy()
-        covered = alpha > 0.5
-        if covered.mean() < 0.05 or covered.all():
-            return 0
-        self._alpha.assign(alpha)
-        self._fill_depth.fill_(float(np.median(depth[covered] / alpha[covered])))
-        return self._seed_depth(keyframes, slot, self._alpha, self._fill_depth, gmap, self.max_gaussians)
 
     def wants_fill(self, coverage: float) -> bool:
         """Whether a tracked frame that is not a keyframe, of which the map covers the fraction
