@@ -612,8 +612,9 @@ def test_history_keeps_older_keyframes_fitted(device, room):
 def test_mapping_renders_do_not_overflow_between_views(device, room):
     # Consecutive mapping iterations render different views; a dense one after a sparse one must not
     # find its intersection buffers sized by the sparse one (dropped intersections: a wrong image and
-    # gradient). The Mapper reserves for each view what its previous render needed: only a view's
-    # first render can overflow (here at most once; without the reservation 5 of these 24 did).
+    # gradient). The Mapper passes each view's key, so the renderer also sizes it by what that view's
+    # last render needed: only a view's first render can overflow (here at most once; without the
+    # keys 5 of these 24 did).
     cam = room["camera"]
     gmap = _room_map(room, device)
     rgb, depth, T = room["frames"][0]

@@ -150,9 +150,10 @@ def test_intersection_capacity_and_overflow(device):
     assert renderer.intersection_capacity >= 10 * needed
 
 
-def test_overflow_is_counted_and_min_intersections_prevents_it(device):
+def test_overflow_is_counted_and_view_keys_prevent_it(device):
     """A render sized by a previous view that saw little drops intersections; the next forward counts
-    it (``overflowed_renders``); ``min_intersections`` reserves room first, and the image is exact."""
+    it (``overflowed_renders``).  With ``view`` keys each view is also sized by its own last render,
+    so alternating between a sparse and a dense view no longer overflows, and the image is exact."""
     scene = random_scene(np.random.default_rng(11), 200, T_WC)
     gmap = to_map(scene, device)
     away = T_WC.copy()
@@ -161,12 +162,16 @@ def test_overflow_is_counted_and_min_intersections_prevents_it(device):
     renderer = Renderer(device)
     few = renderer.forward(gmap, CAMERA, away, BACKGROUND).num_intersections
     dropped = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND)
-    needed = dropped.num_intersections
-    assert needed > 2 * few and dropped.overflowed and renderer.overflowed_renders == 0  # known at the next forward
-    renderer.forward(gmap, CAMERA, away, BACKGROUND)
-    assert renderer.overflowed_renders == 1 and renderer.previous_count == needed
-    result = renderer.forward(gmap, CAMERA, T_WC, BACKGROUND, min_intersections=needed)
-    assert not result.overflowed
-    _check_images(result, ref)
+    assert dropped.num_intersections > 2 * few and dropped.overflowed
+    assert renderer.overflowed_renders == 0  # known at the next forward
     renderer.forward(gmap, CAMERA, away, BACKGROUND)
     assert renderer.overflowed_renders == 1
+    # the same alternation with view keys: the first dense render overflows, later ones do not
+    keyed = Renderer(device)
+    for k in range(3):
+        keyed.forward(gmap, CAMERA, away, BACKGROUND, view="away")
+        result = keyed.forward(gmap, CAMERA, T_WC, BACKGROUND, view="dense")
+        assert result.overflowed == (k == 0)
+    _check_images(result, ref)
+    keyed.forward(gmap, CAMERA, away, BACKGROUND, view="away")
+    assert keyed.overflowed_renders == 1

@@ -135,12 +135,6 @@ class Mapper:
         self._squared_error = wp.zeros(1, dtype=wp.float64, device=dev)
         self._window_capacity = 0
         self.total_iters = 0
-        # intersections a mapping render of each view (keyframe frame id) reserves: what its previous
-        # render needed (x margin), since consecutive iterations render different views and a denser
-        # one would overflow a capacity sized by the previous render (dropping intersections: a wrong
-        # image and gradient); the most over all views would make every sort work on the largest
-        self._view_intersections: dict[int, int] = {}
-        self._rendered: tuple[int, int] | None = None  # (renderer.forwards, frame id) of the latest
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The optimiser's clocks besides the map's columns: Adam's step count (bias correction), the
@@ -186,14 +180,9 @@ class Mapper:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
         loss in ``_d_color``, ``_d_depth``; its loss sums go to row ``it``."""
         cfg, dev = self.cfg, self.device
-        renderer, view = self.renderer, int(keyframes.frame_ids[slot])
-        reserve = self._view_intersections.get(view, 0)
-        res = renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1], min_intersections=reserve)
-        # this forward read the count of the render before it: a view's, if nothing came between
-        last, count = self._rendered, renderer.previous_count
-        if last is not None and last[0] == renderer.forwards - 1 and count is not None:
-            self._view_intersections[last[1]] = math.ceil(count * renderer.isect_margin)
-        self._rendered = (renderer.forwards, view)
+        # consecutive iterations render different views: each sized by its own last render (view key)
+        view = int(keyframes.frame_ids[slot])
+        res = self.renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1], view=view)
         wp.launch_tiled(
             km.mapping_loss,
             dim=blocks,

@@ -136,11 +136,11 @@ class Renderer:
         self._count_event = None
         self._count_key = None  # (number of Gaussians, camera) of the render whose count _count_host holds
         self._last_capacity = None  # the intersection capacity of that render (None: captured)
+        self._count_view = None  # the ``view`` key of that render
+        self._view_counts: dict = {}  # intersections each ``view`` key's latest counted render needed
         # eager forwards found at the next forward to have dropped intersections (no extra wait: the
         # count is read then anyway); a render of another map size or camera is not checked
         self.overflowed_renders = 0
-        self.previous_count = None  # that count, as the latest forward read it (None: not read)
-        self.forwards = 0  # forward calls so far (tells a caller whether another render came between)
         self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._last = None
@@ -249,7 +249,7 @@ class Renderer:
         background=(0.0, 0.0, 0.0),
         tape: wp.Tape | None = None,
         pose_jacobians: bool | None = None,
-        min_intersections: int = 0,
+        view=None,
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -262,13 +262,13 @@ class Renderer:
         folds the screen-space gradients through (without them that backward first re-runs the
         projection to get them); ``None``: if the previous backward was pose-only (a tracking loop).
 
-        ``min_intersections``: room for at least this many tile intersections, whatever the previous
-        render needed (a caller that alternates between views of different density: mapping).
+        ``view``: a key of the viewpoint (mapping: the keyframe's frame id) for a caller that
+        alternates between views of different density: the capacity is then also what this view's
+        previous render needed (x margin), not only the previous render's, which a denser view would
+        overflow (dropping intersections: a wrong image and gradient).
         """
         dev = self.device
         n = len(gmap)
-        self.forwards += 1
-        self.previous_count = None
         self._ensure_gaussians(gmap.capacity, gmap.num_sh)
         self._ensure_image(camera)
         cam = camera_params(camera, self.near, FRUSTUM_MARGIN)
@@ -289,9 +289,11 @@ class Renderer:
         exact = False
         if not capturing:
             if self._count_key == (n, camera):
-                count = self.previous_count = self._read_count()
+                count = self._read_count()
                 if self._last_capacity is not None and count > self._last_capacity:
                     self.overflowed_renders += 1
+                if self._count_view is not None:
+                    self._view_counts[self._count_view] = count
                 self._size_intersections(count)
             else:
                 exact = n > 0
@@ -307,9 +309,11 @@ class Renderer:
         else:
             self._count_event = wp.record_event() if dev.is_cuda else None
             self._count_key = (n, camera)
+        self._count_view = None if capturing else view
         if exact:
             self._size_intersections(self._read_count())
-        self.reserve_intersections(max(1, int(min_intersections)))
+        seen = self._view_counts.get(view, 0) if view is not None else 0
+        self.reserve_intersections(max(1, math.ceil(seen * self.isect_margin)))
         capacity = self._isect_capacity
         self._last_capacity = None if capturing else capacity
 
