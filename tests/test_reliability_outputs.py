@@ -85,10 +85,10 @@ def test_a_failing_file_loses_no_other_and_the_error_says_what_was_saved(tmp_pat
     """8dc16f7 writes map.ply first: a full disk there leaves no trajectory."""
     import rgs_warp.slam.storage as slam_module
 
-    def disk_full(path, gmap):
+    def disk_full(path, fields, num_sh):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
-    monkeypatch.setattr(slam_module, "save_ply", disk_full)
+    monkeypatch.setattr(slam_module, "write_ply", disk_full)
     slam = _slam(device)
     with pytest.raises(OSError) as e:
         slam.save(tmp_path)
@@ -98,6 +98,31 @@ def test_a_failing_file_loses_no_other_and_the_error_says_what_was_saved(tmp_pat
     stamps, poses = read_tum_trajectory(tmp_path / "trajectory.txt")
     assert len(poses) == 3 and not (tmp_path / "map.ply").exists()
     assert set(np.load(tmp_path / "keyframes.npz").files) >= {"poses", "rgb"}
+
+
+def test_a_snapshot_keeps_the_slam_as_it_was(tmp_path, device):
+    """``SLAM.snapshot`` (what a run's checkpoints and final save write in a thread while the SLAM goes
+    on) holds the SLAM as it was: changes after it reach no file.  On the CPU device a Warp array's
+    NumPy view is the live memory: without the snapshot's copies the map, the optimiser's moments and
+    the keyframes written would be the changed ones."""
+    slam = _slam(device)
+    n = len(slam.map)
+    slam.map.column("adam_m.means").assign(np.ones((slam.map.capacity, 3), np.float32))
+    fields = {k: v.copy() for k, v in slam.map.to_numpy().items()}
+    rgb = slam.keyframes.rgb[slam.keyframes.slots()[0]].numpy().copy()
+    snapshot = slam.snapshot(state=True)
+    # the SLAM goes on: every Gaussian and moment moves, a keyframe's image changes, a frame is added
+    slam.map.means.assign(np.zeros((slam.map.capacity, 3), np.float32))
+    slam.map.column("adam_m.means").zero_()
+    slam.keyframes.rgb[slam.keyframes.slots()[0]].zero_()
+    slam.poses.append(np.eye(4))
+    slam.timestamps.append(0.3)
+    snapshot.write(tmp_path)
+    for name, value in load_ply(tmp_path / "map.ply").to_numpy().items():
+        np.testing.assert_array_equal(value, fields[name], err_msg=name)
+    assert len(read_tum_trajectory(tmp_path / "trajectory.txt")[1]) == 3
+    np.testing.assert_array_equal(np.load(tmp_path / "keyframes.npz")["rgb"][0], rgb)
+    np.testing.assert_array_equal(np.load(tmp_path / "state.npz")["map.adam_m.means"], np.ones((n, 3)))
 
 
 def test_a_failed_rename_keeps_the_previous_file_whole(tmp_path, device, monkeypatch):
@@ -240,10 +265,10 @@ def test_a_full_disk_at_the_final_save_is_one_message_saying_what_was_saved(tmp_
     """8dc16f7: the OSError's traceback, and no trajectory (map.ply was written first)."""
     import rgs_warp.slam.storage as slam_module
 
-    def disk_full(path, gmap):
+    def disk_full(path, fields, num_sh):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
-    monkeypatch.setattr(slam_module, "save_ply", disk_full)
+    monkeypatch.setattr(slam_module, "write_ply", disk_full)
     argv = [*SMALL, "dataset.max_frames=3", "mapping.init_iters=8", "device=cpu"]
     assert main([*argv, f"output_dir={tmp_path}", "run_name=full"]) == 1
     err = capsys.readouterr().err
@@ -299,7 +324,11 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, device):
     cmd = [sys.executable, "-m", "rgs_warp.slam", *argv, "run_name=killed", "checkpoint_every=2"]
     proc = subprocess.Popen(cmd, env=os.environ.copy(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     log, deadline = killed / "log.jsonl", time.monotonic() + 600
-    while not (log.is_file() and len(log.read_text().splitlines()) >= 14 and (killed / "checkpoint.json").is_file()):
+    def pointer():  # checkpoints are written in a thread: wait until the one at frame 9 is named
+        path = killed / "checkpoint.json"
+        return json.loads(path.read_text()) if path.is_file() else {}
+
+    while not (log.is_file() and len(log.read_text().splitlines()) >= 14 and pointer().get("next_frame") == 10):
         assert proc.poll() is None and time.monotonic() < deadline, "the run ended or stalled before frame 14"
         time.sleep(0.1)
     proc.send_signal(signal.SIGKILL)

@@ -222,3 +222,32 @@ def test_torch_wrapper(device, problem):
         atol = 1e-5 * max(np.abs(expected[name]).max(), 1e-3)
         np.testing.assert_allclose(tensor.grad.cpu().numpy(), expected[name], rtol=1e-4, atol=atol)
     np.testing.assert_allclose(xi.grad.cpu().numpy(), pose_grad.numpy(), rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("phase", [0, 1])
+def test_tile_stride_renders_and_differentiates_one_tile_in_two(device, problem, phase):
+    """``forward(tile_stride=2)`` (the tracker's cheaper steps): the checkerboard of tiles it keeps renders
+    exactly as the full render, the others as nothing; its pose-only backward is the full render's with
+    the image gradients zeroed outside the kept tiles (the skipped tiles add nothing, not even a
+    rounding)."""
+    scene, weights, _, _ = problem
+    gmap = to_map(scene, device)
+    renderer = Renderer(device)
+    full = renderer.forward(gmap, CAM, T_WC, BACKGROUND)
+    color, depth, alpha = full.color.numpy().copy(), full.depth.numpy().copy(), full.alpha.numpy().copy()
+    ty, tx = np.mgrid[: CAM.height, : CAM.width] // 16
+    kept = (tx + ty + phase) % 2 == 0
+    assert 0 < kept.mean() < 1 and (alpha[kept] > 0.5).any() and (alpha[~kept] > 0.5).any()
+    masked = [w * (kept[..., None] if w.ndim == 3 else kept) for w in weights]
+    renderer.forward(gmap, CAM, T_WC, BACKGROUND, pose_jacobians=True)
+    expected = renderer.backward(*_image_grads(masked, device), pose_only=True)[1].numpy().copy()
+
+    half = renderer.forward(gmap, CAM, T_WC, BACKGROUND, pose_jacobians=True, tile_stride=2, tile_phase=phase)
+    np.testing.assert_array_equal(half.color.numpy()[kept], color[kept])
+    np.testing.assert_array_equal(half.depth.numpy()[kept], depth[kept])
+    np.testing.assert_array_equal(half.alpha.numpy()[kept], alpha[kept])
+    np.testing.assert_array_equal(half.color.numpy()[~kept], np.broadcast_to(np.float32(BACKGROUND), color[~kept].shape))
+    assert not half.alpha.numpy()[~kept].any() and not half.depth.numpy()[~kept].any()
+    got = renderer.backward(*_image_grads(weights, device), pose_only=True)[1].numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7 * np.abs(expected).max())
+    assert np.abs(expected).max() > 0

@@ -392,6 +392,23 @@ def test_recovers_a_perturbed_pose(device, scene, mode):
         assert result.loss_history[-1] < 0.2 * result.loss_history[0]
 
 
+def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
+    """``tracking.tile_stride=2``: every step but the last renders one tile in two, alternating (half the
+    raster work); it recovers the perturbed pose as the full steps do, and the last step renders every
+    tile, so the frame's coverage and exposure are those of the full render."""
+    rgb, depth = scene["observe"](2)
+    T_true = scene["poses"][2]
+    full = Tracker(TrackingConfig(), scene["camera"], device)
+    half = Tracker(TrackingConfig(tile_stride=2), scene["camera"], device)
+    for seed in (0, 1):
+        T0 = _perturbed(T_true, 0.02, 2.0, seed)
+        a, b = full.track(rgb, depth, scene["map"], T0), half.track(rgb, depth, scene["map"], T0)
+        dt, dr = pose_error(b.T_WC, T_true)
+        assert dt < 1e-3 and dr < 0.1 and not b.lost, (dt, dr, b.reason)
+        assert b.valid_ratio == pytest.approx(a.valid_ratio, abs=0.01) and a.valid_ratio > 0.9
+        assert abs(b.gain - 1) < 0.01 and abs(b.bias) < 0.01
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["affine", "gain"])
 def test_brightness_model_absorbs_an_exposure_change(device, scene, model):

@@ -110,6 +110,11 @@ class TrackingConfig:
     # median 11.5 against 4.3 cm): experiments/results/fidelity.md
     exposure_from: str = "map"
     downscale: int = 1  # tracking resolution = image / downscale
+    # each step but the last renders (and differentiates) one 16x16 tile in this many (2: a checkerboard
+    # that alternates between steps, so each pixel counts every other step); the last step renders every
+    # tile, for the coverage, loss and exposure the frame reports.  The steps' raster work shrinks in
+    # proportion (Renderer.forward's tile_stride); 1 = every tile every step
+    tile_stride: int = 1
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
     depth_edge_spread: float = 0.05  # downscaling: block depth invalid above this relative spread
@@ -540,6 +545,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "tracking.depth_slope_tau": NON_NEGATIVE,
     "tracking.brightness_min_alpha": FRACTION,
     "tracking.downscale": AT_LEAST_1,
+    "tracking.tile_stride": AT_LEAST_1,
     "tracking.min_valid_ratio": NON_NEGATIVE,
     "tracking.max_residual": POSITIVE,
     "tracking.depth_edge_spread": NON_NEGATIVE,

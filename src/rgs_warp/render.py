@@ -35,6 +35,7 @@ from rgs_warp.kernels.projection import (
     pad_intersection_keys,
     project_gaussians,
     project_gaussians_backward,
+    skip_tiles,
     tile_ranges_from_keys,
 )
 from rgs_warp.kernels.rasterize import (
@@ -250,6 +251,8 @@ class Renderer:
         tape: wp.Tape | None = None,
         pose_jacobians: bool | None = None,
         view=None,
+        tile_stride: int = 1,
+        tile_phase: int = 0,
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -266,6 +269,11 @@ class Renderer:
         alternates between views of different density: the capacity is then also what this view's
         previous render needed (x margin), not only the previous render's, which a denser view would
         overflow (dropping intersections: a wrong image and gradient).
+
+        ``tile_stride`` > 1: only one 16x16 tile in ``tile_stride`` is rasterized (a checkerboard for 2,
+        shifted by ``tile_phase``: ``kernels.projection.skip_tiles``); the others render as nothing
+        (colour = background, depth 0, opacity 0), and the backward does no work there.  The tracker's
+        cheaper steps.
         """
         dev = self.device
         n = len(gmap)
@@ -347,6 +355,15 @@ class Renderer:
                 device=dev,
                 record_tape=False,
             )
+            if tile_stride > 1:
+                wp.launch(
+                    skip_tiles,
+                    dim=num_tiles,
+                    inputs=[cam.tiles_x, int(tile_stride), int(tile_phase)],
+                    outputs=[self._ranges],
+                    device=dev,
+                    record_tape=False,
+                )
 
         bg = wp.vec3(*[float(c) for c in background])
         self._launch_raster(cam, bg, backward=False)

@@ -13,6 +13,7 @@ import itertools
 import json
 import shutil
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -242,6 +243,10 @@ class RunState:
     lost: list[tuple[int, str]] = field(default_factory=list)
     elapsed_s: float = 0.0
     checkpoint_keyframes: int = 0
+    # seconds the frame loop spent waiting for the next frame (reading and decoding it), and gathering
+    # the checkpoints' state (their files are written beside the run: CheckpointWriter)
+    input_wait_s: float = 0.0
+    checkpoint_s: float = 0.0
 
     def to_json(self) -> dict:
         data = dataclasses.asdict(self)
@@ -369,8 +374,15 @@ def _run_frames(
         frames = iter(ds) if state.next_frame == 0 else (ds[i] for i in range(state.next_frame, len(ds)))
         kept = None
     checkpoints = cfg.checkpoint_every if kept is None else 0  # a stream cannot be read again to resume
+    writer = CheckpointWriter(run_dir, warn=bar.write)
+    frames = iter(frames)
     try:
-        for frame in frames:
+        while True:
+            t_wait = time.perf_counter()
+            frame = next(frames, None)
+            state.input_wait_s += time.perf_counter() - t_wait
+            if frame is None:
+                break
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
             state.gt_poses.append(frame.pose_gt)
             state.next_frame = result.index + 1
@@ -386,7 +398,9 @@ def _run_frames(
             if result.keyframe and 0 < checkpoints <= len(slam.keyframe_indices) - state.checkpoint_keyframes:
                 state.checkpoint_keyframes = len(slam.keyframe_indices)
                 state.elapsed_s = time.perf_counter() - t_start
-                write_checkpoint(run_dir, slam, state, warn=bar.write)
+                t_checkpoint = time.perf_counter()
+                writer.write(slam, state)
+                state.checkpoint_s += time.perf_counter() - t_checkpoint
             elapsed = time.perf_counter() - t_start
             bar.set_postfix(
                 fps=f"{(result.index + 1) / elapsed:.2f}",
@@ -399,8 +413,9 @@ def _run_frames(
     except BaseException as stop:  # an error, Ctrl-C or SIGTERM: save what was tracked, then stop as asked
         bar.close()
         log.close()
+        writer.close()
         try:
-            _save_run(cfg, slam, run_dir, refine=False)  # a stopped run saves at once
+            _save_run(cfg, slam, run_dir, refine=False).write()  # a stopped run saves at once
         except Exception as e:  # noqa: BLE001 (the error that stopped the run is the one raised)
             print(f"error: the run stopped, and saving what it tracked failed: {e}", file=sys.stderr)
         else:
@@ -416,18 +431,38 @@ def _run_frames(
                 )
         raise
     log.close()
+    writer.close()
+    save = None
     try:
         bar.phase("saving" if cfg.mapping.final_iters <= 0 else "final refinement, saving")
-        _save_run(cfg, slam, run_dir)
+        # the map and keyframes are copied to the host now and written while the run is evaluated
+        save = _save_run(cfg, slam, run_dir)
         wall = time.perf_counter() - t_start
+        save.start()
         bar.phase("evaluating")
         tracking = tracking_section(state.tracked, state.lost, state.settled_iters, cfg.tracking.iters)
         # frames whose steps this process ran eagerly, captured, replayed (tracking.graph), and replays
         # that overflowed their graph's intersection buffers (tracked again eagerly)
         tracking.update({f"graph_{k}": v for k, v in slam.tracker.graph_counts.items()})
         scored = ds if kept is None else kept
+        loop = {
+            "input_wait_s": state.input_wait_s,
+            "checkpoints_s": state.checkpoint_s,
+            "checkpoint_writes_s": writer.seconds,
+        }
         metrics = evaluate_run(
-            cfg, scored, slam, state.gt_poses, run_dir, wall, tracking, kernels.summary(), peak_floor, state.exposures
+            cfg,
+            scored,
+            slam,
+            state.gt_poses,
+            run_dir,
+            wall,
+            tracking,
+            kernels.summary(),
+            peak_floor,
+            state.exposures,
+            loop_s=loop,
+            save=save,
         )
     except OSError as e:
         if isinstance(e, SaveError):
@@ -435,6 +470,8 @@ def _run_frames(
         saved = "trajectory.txt, keyframes.npz, map.ply, config.yaml, convergence.json"
         raise OutputError(f"{run_dir}: writing the report failed ({e}); saved before it: {saved}") from e
     finally:
+        if save is not None:
+            save.join()  # an evaluation that failed still leaves the saved files whole
         bar.close()
     remove_checkpoints(run_dir)
     return run_dir, metrics
@@ -480,45 +517,117 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     return entry
 
 
-def _save_run(cfg: Config, slam: SLAM, run_dir: Path, refine: bool = True) -> None:
+def _save_run(cfg: Config, slam: SLAM, run_dir: Path, refine: bool = True) -> FinalSave:
     """The end of a run: the waiting frame-fill seeds join the map (and ``refine``: the final
-    refinement of ``mapping.final_iters``), then ``SLAM.save`` and the convergence files; one
-    ``SaveError`` names what failed and what was saved."""
+    refinement of ``mapping.final_iters``), the convergence files, and what ``SLAM.save`` writes
+    gathered into host memory: the returned ``FinalSave`` writes it (``start`` in a thread, ``write``
+    here); one ``SaveError`` names what failed and what was saved."""
     slam.finish(refine)
-    saved, failed = ["trajectory.txt", "keyframes.npz", "map.ply", "config.yaml"], {}
-    try:
-        slam.save(run_dir)
-    except SaveError as e:
-        saved, failed = e.saved, e.failed
+    failed = {}
     try:
         write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")
     except OSError as e:
         failed["convergence.json"] = e
-    else:
-        saved.append("convergence.json")
-    if failed:
-        raise SaveError(run_dir, saved, failed)
+    return FinalSave(run_dir, slam.snapshot(), failed)
 
 
-def write_checkpoint(run_dir: Path, slam: SLAM, state: RunState, warn=None) -> Path | None:
-    """A checkpoint of the run in ``run_dir``: ``checkpoints/frameNNNNNN/`` gets the files of
-    ``SLAM.save(..., state=True)`` and ``run_state.json`` (``RunState``), then ``checkpoint.json`` is
-    replaced to name it (each file written atomically), then the older checkpoints go.  A kill at any
-    moment leaves ``checkpoint.json`` naming a complete checkpoint.  Saving reads the SLAM and changes
-    nothing in it, so a run with checkpoints computes what one without computes.  A checkpoint that
-    cannot be written (full disk) is reported through ``warn`` and the run goes on; returns its
-    folder or None."""
-    folder = run_dir / "checkpoints" / f"frame{state.next_frame:06d}"
+class FinalSave:
+    """A run's last ``SLAM.save`` (``trajectory.txt``, ``keyframes.npz``, ``map.ply``, ``config.yaml``), from
+    a snapshot: ``start`` writes it in a thread (the compressed keyframes of a 1200x680 run take seconds)
+    while the run is evaluated, ``write`` waits for it, or writes it here if not started, and raises
+    the ``SaveError`` naming what failed.  ``seconds``: the writing's."""
+
+    def __init__(self, run_dir: Path, snapshot, failed: dict):
+        self.run_dir, self.snapshot, self.failed = run_dir, snapshot, failed
+        self.seconds = 0.0
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def _write(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.snapshot.write(self.run_dir)
+        except BaseException as e:  # noqa: BLE001 (raised again by write, in the run's thread)
+            self._error = e
+        self.seconds = time.perf_counter() - t0
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._write, name="rgs-save", daemon=False)
+        self._thread.start()
+
+    def join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+
+    def write(self) -> None:
+        if self._thread is None:
+            self._write()
+        self.join()
+        failed = dict(self.failed)
+        if self._error is not None and not isinstance(self._error, SaveError):
+            raise self._error
+        if self._error is not None:
+            failed.update(self._error.failed)
+        if failed:
+            names = ["trajectory.txt", "keyframes.npz", "map.ply", "config.yaml", "convergence.json"]
+            raise SaveError(self.run_dir, [n for n in names if n not in failed], failed)
+
+
+class CheckpointWriter:
+    """A run's checkpoints, written beside it: ``write`` gathers the SLAM's state into host memory (the
+    only part in the frame's time; ``SLAM.snapshot``) and returns; a thread then writes the folder
+    ``checkpoints/frameNNNNNN/`` (``SLAM.save(..., state=True)``'s files and ``run_state.json``),
+    replaces ``checkpoint.json`` to name it, and removes the older ones, in that order, so a kill at any
+    moment leaves ``checkpoint.json`` naming a complete checkpoint.  One checkpoint at a time: ``write``
+    first waits for the one before, ``close`` for the last.  A checkpoint that cannot be written (full
+    disk) is reported through ``warn`` and the run goes on.  ``seconds``: the writing's, in the thread."""
+
+    def __init__(self, run_dir: Path, warn=None):
+        self.run_dir, self.warn = run_dir, warn or print
+        self.seconds = 0.0
+        self.written: list[Path] = []
+        self._thread: threading.Thread | None = None
+
+    def write(self, slam: SLAM, state: RunState) -> None:
+        self.close()
+        snapshot = slam.snapshot(state=True)
+        run_state = json.dumps(state.to_json(), default=_plain)
+        self._thread = threading.Thread(
+            target=self._write, args=(snapshot, run_state, state.next_frame), name="rgs-checkpoint", daemon=False
+        )
+        self._thread.start()
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def _write(self, snapshot, run_state: str, next_frame: int) -> None:
+        t0 = time.perf_counter()
+        folder = write_checkpoint(self.run_dir, snapshot, run_state, next_frame, warn=self.warn)
+        if folder is not None:
+            self.written.append(folder)
+        self.seconds += time.perf_counter() - t0
+
+
+def write_checkpoint(run_dir: Path, snapshot, run_state: str, next_frame: int, warn=None) -> Path | None:
+    """A checkpoint of the run in ``run_dir``: ``checkpoints/frameNNNNNN/`` gets the files of the
+    snapshot (``SLAM.snapshot(state=True)``) and ``run_state.json`` (``RunState.to_json``, as JSON),
+    then ``checkpoint.json`` is replaced to name it (each file written atomically), then the older
+    checkpoints go.  A kill at any moment leaves ``checkpoint.json`` naming a complete checkpoint.  A
+    checkpoint that cannot be written (full disk) is reported through ``warn`` and the run goes on;
+    returns its folder or None."""
+    folder = run_dir / "checkpoints" / f"frame{next_frame:06d}"
     try:
         if folder.exists():  # the leftover of a checkpoint that failed before its pointer was written
             shutil.rmtree(folder)
-        slam.save(folder, state=True)
-        write_text_atomic(folder / "run_state.json", json.dumps(state.to_json(), default=_plain))
-        pointer = {"folder": str(folder.relative_to(run_dir)), "next_frame": state.next_frame}
+        snapshot.write(folder)
+        write_text_atomic(folder / "run_state.json", run_state)
+        pointer = {"folder": str(folder.relative_to(run_dir)), "next_frame": next_frame}
         write_text_atomic(run_dir / CHECKPOINT, json.dumps(pointer) + "\n")
     except OSError as e:
         shutil.rmtree(folder, ignore_errors=True)
-        (warn or print)(f"warning: checkpoint at frame {state.next_frame} not written ({e}); the run goes on")
+        (warn or print)(f"warning: checkpoint at frame {next_frame} not written ({e}); the run goes on")
         return None
     for old in (run_dir / "checkpoints").iterdir():
         if old != folder:
@@ -678,12 +787,16 @@ def evaluate_run(
     kernels: dict | None = None,
     peak_floor_mib: float | None = 0.0,
     exposures: list | None = None,
+    loop_s: dict | None = None,
+    save: FinalSave | None = None,
 ) -> dict:
     """Metrics of a finished run (supplement §3) written with ``write_report``; ``tracking``: the
     section of ``tracking_section``; ``kernels``: ``KernelLoads.summary()`` (the seconds the run spent
     compiling Warp kernels, part of ``wall_s``); ``peak_floor_mib``: ``start_peak_memory``'s floor;
     ``exposures``: each frame's tracked (gain, bias) (``RunState.exposures``), for the scores at the
-    tracked exposure."""
+    tracked exposure; ``loop_s``: more seconds for ``time_s`` (the frame loop's waits); ``save``: the
+    run's final save, written meanwhile: waited for (its ``SaveError`` raised) before the report, its
+    seconds ``time_s.save_s``."""
     _, est = slam.trajectory()
     n = len(est)
     metrics: dict = {
@@ -764,6 +877,10 @@ def evaluate_run(
         metrics["photometric"] = None
         metrics["photometric_na_reason"] = "no non-keyframe frame to score"
     metrics.update(mesh_section(cfg, ds, slam, run_dir))
+    metrics["time_s"].update(loop_s or {})
+    if save is not None:
+        save.write()
+        metrics["time_s"]["save_s"] = save.seconds
     write_report(run_dir, metrics, title=f"rgs_warp {metrics['dataset']} ({cfg.method}, {cfg.mode})")
     return metrics
 

@@ -389,10 +389,11 @@ class Tracker:
         arrays = (gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh)
         return (len(gmap), tuple(a.ptr for a in arrays), self.renderer.buffers_version, use_depth)
 
-    def _render_and_brightness(self, gmap: GaussianMap, k: int):
-        """Render the map at the current pose and solve Eq. 3-4's (g, b) into history row ``k``."""
+    def _render_and_brightness(self, gmap: GaussianMap, k: int, tile_stride: int = 1):
+        """Render the map at the current pose (one tile in ``tile_stride``, shifting with ``k``) and solve
+        Eq. 3-4's (g, b) into history row ``k``."""
         cfg, dev = self.cfg, self.device
-        res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
+        res = self.renderer.forward(gmap, self.track_camera, self._T_WC, tile_stride=tile_stride, tile_phase=k)
         self._last_render = res
         wp.launch_tiled(
             tk.brightness_sums,
@@ -414,7 +415,9 @@ class Tracker:
     def _iteration(self, gmap: GaussianMap, k: int, use_depth: bool) -> None:
         cfg = self.cfg
         dev = self.device
-        res = self._render_and_brightness(gmap, k)
+        # every step but the last on a part of the tiles; the last renders all: its coverage, loss and
+        # exposure are the frame's
+        res = self._render_and_brightness(gmap, k, cfg.tile_stride if k < cfg.iters - 1 else 1)
         wp.launch_tiled(
             tk.tracking_loss,
             dim=self._blocks,

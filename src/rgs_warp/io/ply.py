@@ -32,21 +32,25 @@ def _property_names(num_sh: int) -> list[str]:
 
 
 def save_ply(path: str | Path, gmap: GaussianMap) -> None:
-    fields = gmap.to_numpy()
-    n = len(gmap)
+    write_ply(path, gmap.to_numpy(), gmap.num_sh)
+
+
+def write_ply(path: str | Path, fields: dict[str, np.ndarray], num_sh: int) -> None:
+    """``save_ply`` from the map's fields (``GaussianMap.to_numpy``) and its SH coefficients per channel."""
+    n = len(fields["means"])
     sh = fields["sh"]
     q = fields["rotations"]
     columns = [
         fields["means"],
         np.zeros((n, 3), np.float32),
         sh[:, 0, :],
-        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (gmap.num_sh - 1)),
+        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (num_sh - 1)),
         fields["opacity_logits"][:, None],
         fields["log_scales"],
         np.concatenate([q[:, 3:4], q[:, :3]], axis=1),
     ]
     data = np.concatenate(columns, axis=1).astype(np.float32)
-    vertex = np.empty(n, dtype=[(name, "f4") for name in _property_names(gmap.num_sh)])
+    vertex = np.empty(n, dtype=[(name, "f4") for name in _property_names(num_sh)])
     for j, name in enumerate(vertex.dtype.names):
         vertex[name] = data[:, j]
     with atomic_write(path) as f:

@@ -36,7 +36,7 @@ from rgs_warp.matching import DenseMatcher
 from rgs_warp.pose_prior import PosePrior
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
-from rgs_warp.slam.storage import load_slam, save_slam
+from rgs_warp.slam.storage import SlamSnapshot, load_slam, snapshot_slam
 from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher
 from rgs_warp.tracking import Tracker, TrackingResult
 from rgs_warp.triangulation import Triangulator
@@ -587,8 +587,14 @@ class SLAM:
         ``SaveError`` names a file that failed and what was saved) and with ``state`` the checkpoint's
         ``state.npz``: ``slam.storage.save_slam`` says what each holds.  Waits for the mapping
         worker first (a worker that failed does not stop the save: what was tracked is kept)."""
+        return self.snapshot(state).write(directory)
+
+    def snapshot(self, state: bool = False) -> SlamSnapshot:
+        """What ``save(directory, state)`` writes, copied into host memory now (after waiting for the
+        mapping worker): its ``write(directory)`` does not read the SLAM, so it can run in another
+        thread while this SLAM goes on (a run's checkpoints and final save)."""
         self.wait_for_mapping(check=False)
-        return save_slam(self, directory, state)
+        return snapshot_slam(self, state)
 
     @classmethod
     def load(cls, directory: str | Path, device=None) -> SLAM:

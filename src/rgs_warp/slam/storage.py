@@ -13,7 +13,7 @@ import numpy as np
 
 from rgs_warp.config import load_saved_config, save_config
 from rgs_warp.io.atomic import SaveError, atomic_write
-from rgs_warp.io.ply import load_ply, save_ply
+from rgs_warp.io.ply import load_ply, write_ply
 from rgs_warp.io.trajectory import read_tum_trajectory, write_tum_trajectory
 from rgs_warp.types import Camera, GaussianMap
 
@@ -30,54 +30,110 @@ def save_slam(slam, directory: str | Path, state: bool = False) -> Path:
     motion model, the waiting seeds, the timers and convergence points), so that ``load`` continues
     exactly where this SLAM is: a run's checkpoint.  A checkpoint favours speed: its
     ``keyframes.npz`` is not compressed (ten 1200x680 keyframes: 0.2 s against 6 s compressed).
-    Without ``state``, a ``state.npz`` of an earlier save in the folder is removed."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    writers = {
-        "trajectory.txt": lambda path: write_tum_trajectory(path, *slam.trajectory()),
-        "keyframes.npz": lambda path: _save_keyframes(slam, path, compress=not state),
-        "map.ply": lambda path: save_ply(path, slam.map),
-        "config.yaml": lambda path: save_config(slam.cfg, path),
+    Without ``state``, a ``state.npz`` of an earlier save in the folder is removed.
+
+    The same as ``snapshot_slam(slam, state).write(directory)``."""
+    return snapshot_slam(slam, state).write(directory)
+
+
+class SlamSnapshot:
+    """What ``save_slam`` writes, already copied into host memory (``snapshot_slam``): ``write`` puts it
+    in a folder without reading the SLAM, so it can run in another thread while the SLAM goes on (a
+    run's checkpoints and final save).  A part that could not be gathered (``state.npz`` while the
+    monocular bootstrap waits) fails its file in ``write``'s ``SaveError``, as ``save_slam`` reports it."""
+
+    def __init__(self, writers: dict, failed: dict[str, Exception], state: bool):
+        self._writers, self._failed, self.state = writers, failed, state
+
+    def write(self, directory: str | Path) -> Path:
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        if not self.state:
+            (directory / "state.npz").unlink(missing_ok=True)
+        saved, failed = [], {}
+        for name, write in self._writers.items():
+            if name in self._failed:
+                failed[name] = self._failed[name]
+                continue
+            try:
+                write(directory / name)
+            except Exception as e:  # noqa: BLE001 (reported with the others in SaveError)
+                failed[name] = e
+            else:
+                saved.append(name)
+        if failed:
+            raise SaveError(directory, saved, failed)
+        return directory
+
+
+def snapshot_slam(slam, state: bool = False) -> SlamSnapshot:
+    """The files of ``save_slam(slam, directory, state)``, gathered now: device arrays copied to the
+    host, and every array copied (on the CPU device a Warp array's NumPy view is the live memory), so
+    the snapshot stays as the SLAM was while the SLAM goes on."""
+    gathered: dict = {}
+    failed: dict[str, Exception] = {}
+    parts = {
+        "trajectory.txt": slam.trajectory,
+        "keyframes.npz": lambda: _keyframe_arrays(slam),
+        "map.ply": lambda: (slam.map.to_numpy(), slam.map.num_sh),
+        "config.yaml": lambda: slam.cfg,
     }
     if state:
-        writers["state.npz"] = lambda path: _save_state(slam, path)
-    else:
-        (directory / "state.npz").unlink(missing_ok=True)
-    saved, failed = [], {}
-    for name, write in writers.items():
+        parts["state.npz"] = lambda: _state_arrays(slam)
+    for name, gather in parts.items():
         try:
-            write(directory / name)
-        except Exception as e:  # noqa: BLE001 (reported with the others in SaveError)
+            gathered[name] = _owned(gather())
+        except Exception as e:  # noqa: BLE001 (reported by write, with the files that were written)
             failed[name] = e
-        else:
-            saved.append(name)
-    if failed:
-        raise SaveError(directory, saved, failed)
-    return directory
+    writers = {
+        "trajectory.txt": lambda path: write_tum_trajectory(path, *gathered["trajectory.txt"]),
+        # a checkpoint's keyframes uncompressed (ten 1200x680 keyframes: 0.2 s against 6 s)
+        "keyframes.npz": lambda path: _write_npz(path, gathered["keyframes.npz"], compress=not state),
+        "map.ply": lambda path: write_ply(path, *gathered["map.ply"]),
+        "config.yaml": lambda path: save_config(gathered["config.yaml"], path),
+    }
+    if state:
+        # uncompressed: optimiser moments do not compress, and checkpoints are frequent
+        writers["state.npz"] = lambda path: _write_npz(path, gathered["state.npz"], compress=False)
+    return SlamSnapshot(writers, failed, state)
 
 
-def _save_keyframes(slam, path: Path, compress: bool = True) -> None:
+def _owned(value):
+    """``value`` with every NumPy array in it (in dicts and tuples) a copy of its own."""
+    if isinstance(value, np.ndarray):
+        return value.copy()
+    if isinstance(value, dict):
+        return {k: _owned(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return tuple(_owned(v) for v in value)
+    return value
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray], compress: bool) -> None:
+    with atomic_write(path) as f:
+        (np.savez_compressed if compress else np.savez)(f, **arrays)
+
+
+def _keyframe_arrays(slam) -> dict[str, np.ndarray]:
     kf = slam.keyframes
     slots = kf.slots()
-    with atomic_write(path) as f:
-        (np.savez_compressed if compress else np.savez)(
-            f,
-            frame_ids=kf.frame_ids[slots],
-            poses=kf.poses[slots],
-            exposure=kf.exposure[slots],
-            rgb=np.stack([kf.rgb[s].numpy() for s in slots]) if slots else np.zeros((0,)),
-            depth=np.stack([kf.depth[s].numpy() for s in slots]) if slots else np.zeros((0,)),
-            slots=np.array(slots, dtype=np.int64),  # load puts each keyframe back in its slot
-            keyframe_indices=np.array(slam.keyframe_indices, dtype=np.int64),
-            frames=len(slam.poses),  # trajectory.txt's length: load tells a truncated one
-            mapping_iters=slam.mapper.total_iters,  # the densification schedule's clock
-            camera=np.array([slam.camera.fx, slam.camera.fy, slam.camera.cx, slam.camera.cy]),
-            size=np.array([slam.camera.width, slam.camera.height]),
-            first_pose=slam.T_first,
-        )
+    return dict(
+        frame_ids=kf.frame_ids[slots],
+        poses=kf.poses[slots],
+        exposure=kf.exposure[slots],
+        rgb=np.stack([kf.rgb[s].numpy() for s in slots]) if slots else np.zeros((0,)),
+        depth=np.stack([kf.depth[s].numpy() for s in slots]) if slots else np.zeros((0,)),
+        slots=np.array(slots, dtype=np.int64),  # load puts each keyframe back in its slot
+        keyframe_indices=np.array(slam.keyframe_indices, dtype=np.int64),
+        frames=np.array(len(slam.poses)),  # trajectory.txt's length: load tells a truncated one
+        mapping_iters=np.array(slam.mapper.total_iters),  # the densification schedule's clock
+        camera=np.array([slam.camera.fx, slam.camera.fy, slam.camera.cx, slam.camera.cy]),
+        size=np.array([slam.camera.width, slam.camera.height]),
+        first_pose=np.array(slam.T_first),
+    )
 
 
-def _save_state(slam, path: Path) -> None:
+def _state_arrays(slam) -> dict[str, np.ndarray]:
     if slam.bootstrap is not None and slam._boot_frames:
         raise ValueError("the monocular bootstrap is waiting for parallax: its frames are not saved")
     n = len(slam.map)
@@ -94,14 +150,13 @@ def _save_state(slam, path: Path) -> None:
         "frames": len(slam.poses),
         "gaussians": n,
         "init_window_end": slam._init_window_end,
-        "stats": slam.stats,
+        "stats": dict(slam.stats),
         "convergence": slam.convergence,
     }
     state["slam.meta"] = np.array(json.dumps(meta))
     # the poses bit-exact (trajectory.txt's rotations pass through quaternions)
     state["slam.poses"], state["slam.timestamps"] = slam.trajectory()[1], np.array(slam.timestamps)
-    with atomic_write(path) as f:
-        np.savez(f, **state)  # uncompressed: optimiser moments do not compress, and checkpoints are frequent
+    return state
 
 
 def _load_state(slam, path: Path) -> None:
