@@ -324,6 +324,7 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, device):
     cmd = [sys.executable, "-m", "rgs_warp.slam", *argv, "run_name=killed", "checkpoint_every=2"]
     proc = subprocess.Popen(cmd, env=os.environ.copy(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     log, deadline = killed / "log.jsonl", time.monotonic() + 600
+
     def pointer():  # checkpoints are written in a thread: wait until the one at frame 9 is named
         path = killed / "checkpoint.json"
         return json.loads(path.read_text()) if path.is_file() else {}

@@ -398,8 +398,11 @@ def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
     tile, so the frame's coverage and exposure are those of the full render."""
     rgb, depth = scene["observe"](2)
     T_true = scene["poses"][2]
-    full = Tracker(TrackingConfig(), scene["camera"], device)
+    full = Tracker(TrackingConfig(tile_stride=1), scene["camera"], device)
     half = Tracker(TrackingConfig(tile_stride=2), scene["camera"], device)
+    # auto (0, the default): the checkerboard in RGB-D, every tile in mono
+    assert Tracker(TrackingConfig(), scene["camera"], device).tile_stride == 2
+    assert Tracker(TrackingConfig(), scene["camera"], device, mode="mono").tile_stride == 1
     for seed in (0, 1):
         T0 = _perturbed(T_true, 0.02, 2.0, seed)
         a, b = full.track(rgb, depth, scene["map"], T0), half.track(rgb, depth, scene["map"], T0)

@@ -113,8 +113,11 @@ class TrackingConfig:
     # each step but the last renders (and differentiates) one 16x16 tile in this many (2: a checkerboard
     # that alternates between steps, so each pixel counts every other step); the last step renders every
     # tile, for the coverage, loss and exposure the frame reports.  The steps' raster work shrinks in
-    # proportion (Renderer.forward's tile_stride); 1 = every tile every step
-    tile_stride: int = 1
+    # proportion (Renderer.forward's tile_stride); 1 = every tile every step; 0 = auto: 2 in rgbd, 1 in mono
+    # (not measured there; the image alone constrains its steps).  H100 RGB-D, 2 against 1: tracking p50
+    # office 28.8 against 37.2 ms, 7-Scenes 14.7 against 17.7 ms, the same ATE (office 0.39-0.40 against
+    # 0.40-0.42 cm over 3 seeds) and PSNR; 3 gains little more (experiments/results/perf.md)
+    tile_stride: int = 0
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
     depth_edge_spread: float = 0.05  # downscaling: block depth invalid above this relative spread
@@ -545,7 +548,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "tracking.depth_slope_tau": NON_NEGATIVE,
     "tracking.brightness_min_alpha": FRACTION,
     "tracking.downscale": AT_LEAST_1,
-    "tracking.tile_stride": AT_LEAST_1,
+    "tracking.tile_stride": NON_NEGATIVE,
     "tracking.min_valid_ratio": NON_NEGATIVE,
     "tracking.max_residual": POSITIVE,
     "tracking.depth_edge_spread": NON_NEGATIVE,

@@ -125,6 +125,11 @@ class Tracker:
         self.cfg = cfg
         self.mode = mode
         self.motion_check = cfg.motion_check == "on" or (cfg.motion_check == "auto" and mode == "mono")
+        if cfg.tile_stride < 0:
+            raise ValueError(f"tracking.tile_stride must be >= 0 (0 = auto), got {cfg.tile_stride}")
+        # auto: a checkerboard of tiles in RGB-D (measured: the same ATE, 17-23 % faster), every tile in
+        # mono, whose steps only the image constrains (a CPU test at 96x54 drifts 2.8 mm against 2 mm)
+        self.tile_stride = cfg.tile_stride or (2 if mode == "rgbd" else 1)
         self.device = wp.get_device(device)
         self.camera = camera
         self.track_camera = camera.scaled(cfg.downscale)
@@ -417,7 +422,7 @@ class Tracker:
         dev = self.device
         # every step but the last on a part of the tiles; the last renders all: its coverage, loss and
         # exposure are the frame's
-        res = self._render_and_brightness(gmap, k, cfg.tile_stride if k < cfg.iters - 1 else 1)
+        res = self._render_and_brightness(gmap, k, self.tile_stride if k < cfg.iters - 1 else 1)
         wp.launch_tiled(
             tk.tracking_loss,
             dim=self._blocks,
