@@ -34,25 +34,22 @@ def _grads(rng, gmap, scale):
     return g, values
 
 
-def _numpy_adam(params, grads_seq, lrs, n, max_norm, b1=0.9, b2=0.999, eps=1e-15, factors=None, masks=None):
-    """``masks`` (one boolean row mask per step): selective Adam, only those rows (and their moments)
-    step; the clipping norm and the bias correction's step count stay global."""
+def _numpy_adam(params, grads_seq, lrs, n, max_norm, b1=0.9, b2=0.999, eps=1e-15, factors=None):
     m = {k: np.zeros_like(v[:n], dtype=np.float64) for k, v in params.items()}
     v2 = {k: np.zeros_like(v[:n], dtype=np.float64) for k, v in params.items()}
     p = {k: v[:n].astype(np.float64) for k, v in params.items()}
     for t, grads in enumerate(grads_seq, 1):
         norm = np.sqrt(sum((grads[k][:n].astype(np.float64) ** 2).sum() for k in p))
         clip = min(1.0, max_norm / (norm + 1e-6))
-        rows = np.ones(n, bool) if masks is None else masks[t - 1][:n]
         for k in p:
-            g = grads[k][:n][rows] * clip
-            m[k][rows] = b1 * m[k][rows] + (1 - b1) * g
-            v2[k][rows] = b2 * v2[k][rows] + (1 - b2) * g * g
+            g = grads[k][:n] * clip
+            m[k] = b1 * m[k] + (1 - b1) * g
+            v2[k] = b2 * v2[k] + (1 - b2) * g * g
             lr = lrs.of(k) * (factors[t - 1] if factors else 1.0)
             if k == "sh":  # rows of coefficients: the first (DC) at lrs.sh, the others at lrs.sh_rest
-                lr = np.full(p[k][rows].shape, lr)
+                lr = np.full(p[k].shape, lr)
                 lr[:, 1:] *= lrs.rest(k) / lrs.of(k)
-            p[k][rows] -= lr * (m[k][rows] / (1 - b1**t)) / (np.sqrt(v2[k][rows] / (1 - b2**t)) + eps)
+            p[k] -= lr * (m[k] / (1 - b1**t)) / (np.sqrt(v2[k] / (1 - b2**t)) + eps)
     return p
 
 
@@ -77,31 +74,6 @@ def test_adam_matches_numpy(device, grad_scale, sh_rest):
         np.testing.assert_allclose(got[k], expected[k], rtol=1e-5, atol=1e-6, err_msg=k)
     norm = np.sqrt(sum((seq[-1][k][:40].astype(np.float64) ** 2).sum() for k in GaussianMap.PARAMETERS))
     assert opt.clip.numpy()[1] == pytest.approx(norm, rel=1e-4)
-
-
-def test_selective_adam_steps_only_the_visible_rows(device):
-    """``step(visible=...)``: the marked Gaussians step as Adam does (global clipping and step count),
-    the others keep their parameters and moments exactly, whatever their gradients."""
-    rng = np.random.default_rng(2)
-    gmap = _map(rng, 40, device, capacity=64)
-    start = {k: v.copy() for k, v in gmap.to_numpy().items()}
-    lrs = MapLearningRates(means=1e-3, rotations=2e-3, log_scales=3e-3, opacity_logits=4e-3, sh=5e-3, sh_rest=2.5e-4)
-    opt = MapAdam(gmap, lrs, max_grad_norm=1.0)
-    seq, masks = [], []
-    for _ in range(4):
-        g, values = _grads(rng, gmap, 0.05)
-        mask = rng.uniform(size=64) < 0.5
-        opt.step(g, visible=wp.array(mask.astype(np.int32), device=device))
-        seq.append(values)
-        masks.append(mask)
-    expected = _numpy_adam(start, seq, lrs, 40, 1.0, masks=masks)
-    got = gmap.to_numpy()
-    never = ~np.any(masks, axis=0)[:40]
-    assert never.any() and (~never).any()
-    for k in GaussianMap.PARAMETERS:
-        np.testing.assert_allclose(got[k], expected[k], rtol=1e-5, atol=1e-6, err_msg=k)
-        np.testing.assert_array_equal(got[k][never], start[k][never], err_msg=k)
-        assert not opt.moments(k)[0].numpy().reshape(64, -1)[:40][never].any()
 
 
 def test_moments_follow_growth_and_removal(device):

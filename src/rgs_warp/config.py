@@ -304,10 +304,6 @@ class MappingConfig:
     lr_rotation: float = 1e-3  # Table 1
     lr_scale: float = 1e-3  # not in Table 1: the position/rotation rate (log scale)
     lr_final_factor: float = 0.01  # cosine decay to this fraction of the base rate within a window
-    # selective Adam (gsplat's SelectiveAdam): a mapping step updates only the Gaussians inside the views
-    # it rendered (parameters and moments); false: every Gaussian of the map, each step (dense Adam: the
-    # others drift on their momentum, and the step reads and writes the whole map)
-    selective_adam: bool = False
     # Adam on the exposure (g, b) of Eq. 3 of each window keyframe, with the map (the first keyframe's
     # stays the identity: the gauge of the map's colour); 0: the exposures stay the tracker's
     lr_exposure: float = 0.0

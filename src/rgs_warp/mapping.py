@@ -123,7 +123,6 @@ class Mapper:
         for name, dtype, inner in gmap.parameter_layout():
             gmap.add_column(f"grad.{name}", dtype, inner, scratch=True)
         gmap.add_column("grad.opacity_before", wp.float32, scratch=True)
-        gmap.add_column("grad.in_view", wp.int32, scratch=True)
         self.rng = np.random.default_rng(seed)
         dev = self.device
         shape = (camera.height, camera.width)
@@ -297,8 +296,6 @@ class Mapper:
         self._exposure_grad.zero_()
         before = gmap.column("grad.opacity_before")
         obs_count, vis_count = gmap.column("obs_count"), gmap.column("vis_count")
-        in_view = gmap.column("grad.in_view")
-        in_view[:n].zero_()
         for v, j in enumerate(views):
             res = self._view_loss(buffers[j], slots[j], j, it, share, use_depth, blocks)
             if v == 0:
@@ -310,7 +307,7 @@ class Mapper:
                 km.update_statistics,
                 dim=n,
                 inputs=[res.radii, grads.opacity_logits, before],
-                outputs=[obs_count, vis_count, in_view],
+                outputs=[obs_count, vis_count],
                 device=dev,
             )
             if self.densifier is not None:
@@ -325,7 +322,7 @@ class Mapper:
             outputs=[grads.means, grads.log_scales, grads.opacity_logits],
             device=dev,
         )
-        self.adam.step(grads, lr_factor, in_view if cfg.selective_adam else None)
+        self.adam.step(grads, lr_factor)
         wp.launch(km.update_ema, dim=n, inputs=[gmap.means, cfg.ema_eta], outputs=[ema_means], device=dev)
         if cfg.lr_exposure > 0.0:
             wp.launch(

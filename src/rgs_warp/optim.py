@@ -65,7 +65,6 @@ class MapAdam:
         dev = gmap.device
         self._sq = wp.zeros(len(GaussianMap.PARAMETERS), dtype=wp.float32, device=dev)
         self.clip = wp.zeros(2, dtype=wp.float32, device=dev)  # [scale applied, gradient norm]
-        self._every = wp.zeros(1, dtype=wp.int32, device=dev)  # step's visible when not selective (not read)
         for name, dtype, inner in gmap.parameter_layout():
             for moment in ("adam_m", "adam_v"):
                 gmap.add_column(f"{moment}.{name}", dtype, inner)
@@ -81,12 +80,9 @@ class MapAdam:
         for moment in self.moments(name):
             moment.zero_()
 
-    def step(self, grads, lr_factor: float = 1.0, visible: wp.array | None = None) -> None:
+    def step(self, grads, lr_factor: float = 1.0) -> None:
         """One Adam step on the live rows from ``grads`` (a ``GaussianGrads`` of the same capacity
-        layout), learning rates scaled by ``lr_factor`` (the cosine schedule).  ``visible`` (int32 per
-        Gaussian): only the Gaussians marked non-zero step, parameters and moments (selective Adam, as
-        gsplat's ``SelectiveAdam``): the others neither drift on their momentum nor cost the update's
-        memory traffic; None: every Gaussian."""
+        layout), learning rates scaled by ``lr_factor`` (the cosine schedule)."""
         n = len(self.gmap)
         if n == 0:
             return
@@ -106,9 +102,6 @@ class MapAdam:
             device=self.gmap.device,
         )
         width_sh = 3 * self.gmap.num_sh
-        selective = visible is not None
-        if visible is None:
-            visible = self._every
         for name, g, count in flats:
             m, v = self.moments(name)
             scale = lr_factor * correction
@@ -117,8 +110,7 @@ class MapAdam:
             wp.launch(
                 adam_step,
                 dim=count,
-                inputs=[g, self.clip, lr_t, width, lead, lr_rest_t, self.beta1, self.beta2, self.eps]
-                + [int(selective), visible, count // n],
+                inputs=[g, self.clip, lr_t, width, lead, lr_rest_t, self.beta1, self.beta2, self.eps],
                 outputs=[_flat(getattr(self.gmap, name)), m, v],
                 device=self.gmap.device,
             )

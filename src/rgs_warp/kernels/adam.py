@@ -36,20 +36,12 @@ def adam_step(
     beta1: float,
     beta2: float,
     eps: float,
-    # selective (1): only the rows of Gaussians with visible[i // row_floats] != 0 step (their moments
-    # too); the others keep parameters and moments as they are.  0: every row (visible is not read)
-    selective: int,
-    visible: wp.array(dtype=wp.int32),
-    row_floats: int,
     # in/out:
     param: wp.array(dtype=wp.float32),
     m: wp.array(dtype=wp.float32),
     v: wp.array(dtype=wp.float32),
 ):
     i = wp.tid()
-    if selective != 0:
-        if visible[i // row_floats] == 0:
-            return
     g = grad[i] * clip[0]
     mi = beta1 * m[i] + (1.0 - beta1) * g
     vi = beta2 * v[i] + (1.0 - beta2) * g * g

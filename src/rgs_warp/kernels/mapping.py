@@ -218,12 +218,9 @@ def update_statistics(
     # in/out: m_i (observation count), v_i (cumulative visibility)
     obs_count: wp.array(dtype=wp.int32),
     vis_count: wp.array(dtype=wp.float32),
-    # out: 1 where inside this view (left as it is elsewhere: zeroed once per step, for selective Adam)
-    in_view: wp.array(dtype=wp.int32),
 ):
     i = wp.tid()
     if radii[i][0] > 0:
-        in_view[i] = 1
         obs_count[i] = obs_count[i] + 1
         if grad_opacity[i] != grad_opacity_before[i]:
             vis_count[i] = vis_count[i] + 1.0
