@@ -25,6 +25,11 @@ def _history(rows: int, device) -> wp.array:
     return wp.zeros((rows, tk.H_COLUMNS), dtype=wp.float64, device=device)
 
 
+def _step0(device) -> wp.array:
+    """The device step counter at 0: the kernels' rows are then the ones passed (tk.advance_step)."""
+    return wp.zeros(1, dtype=wp.int32, device=device)
+
+
 def _blocks(shape) -> list[int]:
     return [(shape[0] * shape[1] + tk.REDUCE_BLOCK - 1) // tk.REDUCE_BLOCK]
 
@@ -89,12 +94,14 @@ def test_brightness_solve_matches_lstsq(device, min_alpha):
         tk.brightness_sums,
         dim=_blocks(shape),
         inputs=[wp.array(observed, dtype=wp.vec3, device=device), wp.array(rendered, dtype=wp.vec3, device=device)]
-        + [wp.array(depth, device=device), wp.array(alpha, device=device), tau_alpha, min_alpha, row],
+        + [wp.array(depth, device=device), wp.array(alpha, device=device), tau_alpha, min_alpha, row, _step0(device)],
         outputs=[hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
     )
-    wp.launch(tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_AFFINE, row], outputs=[hist], device=device)
+    wp.launch(
+        tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_AFFINE, row, _step0(device)], outputs=[hist], device=device
+    )
     h = hist.numpy()
     ridge = float(tk.BRIGHTNESS_RIDGE)
     # Eq. 4 weighted by w_alpha (or 0/1 at min_alpha) over pixels x channels, plus the ridge rows
@@ -115,10 +122,14 @@ def test_brightness_solve_matches_lstsq(device, min_alpha):
     np.testing.assert_allclose(h[row, [tk.H_DEPTH, tk.H_ALPHA]], [depth.sum(), alpha.sum()], rtol=1e-5)
     assert np.all(h[[0, 2]] == 0)  # other rows untouched
 
-    wp.launch(tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_OFF, row], outputs=[hist], device=device)
+    wp.launch(
+        tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_OFF, row, _step0(device)], outputs=[hist], device=device
+    )
     assert list(hist.numpy()[row, [tk.H_GAIN, tk.H_BIAS]]) == [1.0, 0.0]  # brightness off
     # gain model: ratio of the w_alpha-weighted means, no bias
-    wp.launch(tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_GAIN, row], outputs=[hist], device=device)
+    wp.launch(
+        tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_GAIN, row, _step0(device)], outputs=[hist], device=device
+    )
     np.testing.assert_allclose(hist.numpy()[row, tk.H_GAIN], (w * y).sum() / (w * x).sum(), rtol=1e-6)
     assert hist.numpy()[row, tk.H_BIAS] == 0.0
 
@@ -140,12 +151,19 @@ def test_gain_model_is_unbiased_under_misalignment_where_least_squares_is_not(de
             tk.brightness_sums,
             dim=_blocks(shape),
             inputs=[wp.array(observed, dtype=wp.vec3, device=device), wp.array(rendered, dtype=wp.vec3, device=device)]
-            + [wp.zeros(shape, dtype=wp.float32, device=device), wp.array(alpha, device=device), 0.5, 0.0, 0],
+            + [
+                wp.zeros(shape, dtype=wp.float32, device=device),
+                wp.array(alpha, device=device),
+                0.5,
+                0.0,
+                0,
+                _step0(device),
+            ],
             outputs=[hist],
             block_dim=tk.REDUCE_BLOCK,
             device=device,
         )
-        wp.launch(tk.solve_brightness, dim=1, inputs=[model, 0], outputs=[hist], device=device)
+        wp.launch(tk.solve_brightness, dim=1, inputs=[model, 0, _step0(device)], outputs=[hist], device=device)
         gains[model] = hist.numpy()[0, tk.H_GAIN]
     assert gains[tk.BRIGHTNESS_AFFINE] < 0.9  # regression dilution
     assert abs(gains[tk.BRIGHTNESS_GAIN] - 1.0) < 0.01
@@ -167,12 +185,14 @@ def test_gain_ignores_partly_covered_pixels(device):
             dim=_blocks(shape),
             inputs=[wp.array(colour.astype(np.float32), dtype=wp.vec3, device=device)]
             + [wp.array(rendered, dtype=wp.vec3, device=device), wp.zeros(shape, dtype=wp.float32, device=device)]
-            + [wp.array(alpha, device=device), 0.5, min_alpha, 0],
+            + [wp.array(alpha, device=device), 0.5, min_alpha, 0, _step0(device)],
             outputs=[hist],
             block_dim=tk.REDUCE_BLOCK,
             device=device,
         )
-        wp.launch(tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_GAIN, 0], outputs=[hist], device=device)
+        wp.launch(
+            tk.solve_brightness, dim=1, inputs=[tk.BRIGHTNESS_GAIN, 0, _step0(device)], outputs=[hist], device=device
+        )
         gains[min_alpha] = hist.numpy()[0, tk.H_GAIN]
     assert gains[0.0] > 1.1
     assert gains[0.98] == pytest.approx(1.0, abs=1e-6)
@@ -241,7 +261,7 @@ def test_loss_value_and_image_gradient(device, use_depth, tau_s):
         tk.tracking_loss,
         dim=_blocks(shape),
         inputs=[f32(obs, wp.vec3), f32(obs_depth), f32(w_grad), f32(color, wp.vec3), f32(depth), f32(alpha)]
-        + [tau_alpha, use_depth, lam, tau_s, 1],
+        + [tau_alpha, use_depth, lam, tau_s, 1, _step0(device)],
         outputs=[d_color, d_depth, d_alpha, hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
@@ -305,7 +325,7 @@ def test_adam_step_and_se3_update_match_numpy(device, lr, pivot_z):
         wp.launch(
             tk.adam_pose_step,
             dim=1,
-            inputs=[grad, k, iters, lr, b1, b2, eps, hist],
+            inputs=[grad, k, iters, lr, b1, b2, eps, _step0(device), hist],
             outputs=[m, v, T_CW, T_WC, poses],
             device=device,
         )
@@ -639,18 +659,21 @@ def test_relocalize_takes_the_candidate_that_holds_and_restores_the_model_when_n
 
 
 @pytest.mark.slow
-def test_graph_replays_give_the_eager_steps_poses(device, scene):
-    """The frame's steps replayed from a captured graph (Warp's CPU graph here, a CUDA graph on a GPU)
-    give the eager loop's poses bit for bit: through a capture, replays, a map of another size (captured
-    anew) and the first map again (its graph kept).  Then the map's Gaussians grow in place until a
-    replay overflows the intersection buffers it reserved: that frame is tracked again eagerly."""
+@pytest.mark.parametrize("tile_stride", [1, 2])
+def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride):
+    """The frame's steps replayed from captured graphs (one step, replayed with the step counter on the
+    device, and the last step; Warp's CPU graphs here, CUDA graphs on a GPU) give the eager loop's
+    poses bit for bit: through a capture, replays, a map of another size (captured anew) and the first
+    map again (its graph kept), with every tile in each step and with the checkerboard.  Then the map's
+    Gaussians grow in place until a replay overflows the intersection buffers it reserved: that frame
+    is tracked again eagerly."""
     poses, cam = scene["poses"], scene["camera"]
     arrays = scene["map"].to_numpy()
     names = ("means", "rotations", "log_scales", "opacity_logits", "sh")
     gmap = GaussianMap.from_numpy(*(arrays[k] for k in names), device=device)
     smaller = GaussianMap.from_numpy(*(arrays[k][: len(gmap) * 3 // 4] for k in names), device=device)
-    eager = Tracker(TrackingConfig(graph="off"), cam, device)
-    graphed = Tracker(TrackingConfig(graph="on"), cam, device)
+    eager = Tracker(TrackingConfig(graph="off", tile_stride=tile_stride), cam, device)
+    graphed = Tracker(TrackingConfig(graph="on", tile_stride=tile_stride), cam, device)
     assert not eager.use_graph and graphed.use_graph
     for i, m in enumerate([gmap, gmap, gmap, smaller, smaller, gmap, gmap], start=1):
         if i == 7:  # Gaussians 2.5x wider: more tiles each than the graph reserved
@@ -664,9 +687,12 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene):
             assert m is smaller or pose_error(b.T_WC, poses[i])[0] < 1e-3, i  # (smaller: holes)
     # 1-3: eager, capture + replay, replay; 4-5 (smaller): eager, capture + replay; 6: replay (kept);
     # 7: the replay overflows, the frame runs eagerly (whose first render sizes the buffers exactly,
-    # where the eager tracker's first render dropped intersections: close, not equal)
+    # where the eager tracker's first render dropped intersections: close, not equal).  The widened map
+    # does not match the frame: both descend about 0.4 m away from the truth along nearly the same path
+    # (within 1 cm with every tile, 3.0 cm apart with the checkerboard, whose steps see half the
+    # image each and so follow the one dropped render's difference further)
     assert graphed.graph_counts == {"eager": 3, "captured": 2, "replayed": 5, "overflowed": 1}
-    assert pose_error(a.T_WC, b.T_WC)[0] < 0.01
+    assert pose_error(a.T_WC, b.T_WC)[0] < (0.01 if tile_stride == 1 else 0.05)
 
 
 def test_graph_setting_is_checked(device, scene):

@@ -144,6 +144,7 @@ class Renderer:
         self.overflowed_renders = 0
         self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
+        self._no_step = wp.zeros(1, dtype=wp.int32, device=self.device)  # forward's tile_step when not given
         self._last = None
         # counts the reallocations of the buffers a render reads and writes: a captured graph holds
         # their addresses, so one captured before a reallocation must not be replayed after it
@@ -253,6 +254,7 @@ class Renderer:
         view=None,
         tile_stride: int = 1,
         tile_phase: int = 0,
+        tile_step: wp.array | None = None,
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -271,9 +273,9 @@ class Renderer:
         overflow (dropping intersections: a wrong image and gradient).
 
         ``tile_stride`` > 1: only one 16x16 tile in ``tile_stride`` is rasterized (a checkerboard for 2,
-        shifted by ``tile_phase``: ``kernels.projection.skip_tiles``); the others render as nothing
-        (colour = background, depth 0, opacity 0), and the backward does no work there.  The tracker's
-        cheaper steps.
+        shifted by ``tile_phase`` plus ``tile_step[0]`` if given, a device counter:
+        ``kernels.projection.skip_tiles``); the others render as nothing (colour = background, depth 0,
+        opacity 0), and the backward does no work there.  The tracker's cheaper steps.
         """
         dev = self.device
         n = len(gmap)
@@ -359,7 +361,12 @@ class Renderer:
                 wp.launch(
                     skip_tiles,
                     dim=num_tiles,
-                    inputs=[cam.tiles_x, int(tile_stride), int(tile_phase)],
+                    inputs=[
+                        cam.tiles_x,
+                        int(tile_stride),
+                        int(tile_phase),
+                        self._no_step if tile_step is None else tile_step,
+                    ],
                     outputs=[self._ranges],
                     device=dev,
                     record_tape=False,

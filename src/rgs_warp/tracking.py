@@ -168,6 +168,9 @@ class Tracker:
         self.use_graph = cfg.graph == "on" or (cfg.graph == "auto" and self.device.is_cuda)
         self._graphs: dict[tuple, tuple] = {}
         self._eager_key: tuple | None = None
+        # the step counter a captured step reads its row from (tk.advance_step); eager steps read 0
+        self._step = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._no_step = wp.zeros(1, dtype=wp.int32, device=dev)
         self.graph_counts = {"eager": 0, "captured": 0, "replayed": 0, "overflowed": 0}
 
     # ---- motion model ------------------------------------------------------------------------
@@ -345,7 +348,11 @@ class Tracker:
         self._history.zero_()
 
     def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> None:
-        """The frame's ``iters`` Adam steps, launched one by one, or replayed as one captured graph.
+        """The frame's ``iters`` Adam steps, launched one by one, or replayed from captured graphs: one
+        of a step on part of the tiles, replayed ``iters - 1`` times, and one of the last step, each
+        reading its step from a device counter (``tk.advance_step``), so a capture records about 15
+        launches, not ``iters`` x 15 (a capture of every step made the frame after each new map size the
+        slowest of a run: 35 against 13 ms at 640x360 on an H100).
 
         A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
         is kept by those (``_graph_key``).  The first frame at a new key runs eagerly (its renders size
@@ -366,15 +373,23 @@ class Tracker:
             renderer = self.renderer
             renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
             key = self._graph_key(gmap, use_depth)
-            with wp.ScopedCapture(device=self.device) as capture:
-                for k in range(self.cfg.iters):
-                    self._iteration(gmap, k, use_depth)
-            entry = (capture.graph, renderer.intersection_capacity)
+            # one step on part of the tiles and the last step on all, each reading its row from the
+            # device counter: two captures of about 15 launches, not one of iters x 15
+            graphs = []
+            for stride in ((self.tile_stride,) if self.cfg.iters > 1 else ()) + (1,):
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._iteration(gmap, 0, use_depth, tile_stride=stride, step=self._step)
+                graphs.append(capture.graph)
+            entry = (graphs, renderer.intersection_capacity)
             while len(self._graphs) >= GRAPHS_KEPT:
                 self._graphs.pop(next(iter(self._graphs)))
             self._graphs[key] = entry
             self.graph_counts["captured"] += 1
-        wp.capture_launch(entry[0])
+        self._step.zero_()
+        *steps, last = entry[0]
+        for _ in range(self.cfg.iters - 1):
+            wp.capture_launch(steps[0])
+        wp.capture_launch(last)
         self.graph_counts["replayed"] += 1
         if self.renderer.intersection_count() > entry[1]:
             self.graph_counts["overflowed"] += 1
@@ -394,16 +409,20 @@ class Tracker:
         arrays = (gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh)
         return (len(gmap), tuple(a.ptr for a in arrays), self.renderer.buffers_version, use_depth)
 
-    def _render_and_brightness(self, gmap: GaussianMap, k: int, tile_stride: int = 1):
-        """Render the map at the current pose (one tile in ``tile_stride``, shifting with ``k``) and solve
-        Eq. 3-4's (g, b) into history row ``k``."""
+    def _render_and_brightness(self, gmap: GaussianMap, k: int, tile_stride: int = 1, step: wp.array | None = None):
+        """Render the map at the current pose (one tile in ``tile_stride``, shifting with the step) and
+        solve Eq. 3-4's (g, b) into history row ``k`` + ``step[0]`` (``step``: the device step counter of a
+        captured step, ``tk.advance_step``; None: a counter at 0)."""
         cfg, dev = self.cfg, self.device
-        res = self.renderer.forward(gmap, self.track_camera, self._T_WC, tile_stride=tile_stride, tile_phase=k)
+        step = self._no_step if step is None else step
+        res = self.renderer.forward(
+            gmap, self.track_camera, self._T_WC, tile_stride=tile_stride, tile_phase=k, tile_step=step
+        )
         self._last_render = res
         wp.launch_tiled(
             tk.brightness_sums,
             dim=self._blocks,
-            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, k],
+            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha, k, step],
             outputs=[self._history],
             block_dim=REDUCE_BLOCK,
             device=dev,
@@ -411,23 +430,29 @@ class Tracker:
         wp.launch(
             tk.solve_brightness,
             dim=1,
-            inputs=[BRIGHTNESS_MODELS[cfg.brightness], k],
+            inputs=[BRIGHTNESS_MODELS[cfg.brightness], k, step],
             outputs=[self._history],
             device=dev,
         )
         return res
 
-    def _iteration(self, gmap: GaussianMap, k: int, use_depth: bool) -> None:
+    def _iteration(
+        self, gmap: GaussianMap, k: int, use_depth: bool, tile_stride: int | None = None, step: wp.array | None = None
+    ) -> None:
+        """Step ``k`` (+ ``step[0]``, the device counter of a captured step, which it then advances).
+        ``tile_stride``: default, every step but the last on a part of the tiles; the last renders all:
+        its coverage, loss and exposure are the frame's."""
         cfg = self.cfg
         dev = self.device
-        # every step but the last on a part of the tiles; the last renders all: its coverage, loss and
-        # exposure are the frame's
-        res = self._render_and_brightness(gmap, k, self.tile_stride if k < cfg.iters - 1 else 1)
+        if tile_stride is None:
+            tile_stride = self.tile_stride if k < cfg.iters - 1 else 1
+        counter = self._no_step if step is None else step
+        res = self._render_and_brightness(gmap, k, tile_stride, counter)
         wp.launch_tiled(
             tk.tracking_loss,
             dim=self._blocks,
             inputs=[self._rgb, self._depth, self._w_grad, res.color, res.depth, res.alpha]
-            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, k],
+            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, k, counter],
             outputs=[self._d_color, self._d_depth, self._d_alpha, self._history],
             block_dim=REDUCE_BLOCK,
             device=dev,
@@ -436,10 +461,13 @@ class Tracker:
         wp.launch(
             tk.adam_pose_step,
             dim=1,
-            inputs=[pose_grad, k, cfg.iters, cfg.lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps] + [self._history],
+            inputs=[pose_grad, k, cfg.iters, cfg.lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps, counter]
+            + [self._history],
             outputs=[self._adam_m, self._adam_v, self._T_CW, self._T_WC, self._pose_history],
             device=dev,
         )
+        if step is not None:
+            wp.launch(tk.advance_step, dim=1, inputs=[step], device=dev)
 
     def _read_back(self) -> tuple[np.ndarray, np.ndarray]:
         """The frame's one read-back: the per-iteration sums (``tk.H_*`` columns) and the

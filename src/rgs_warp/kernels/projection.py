@@ -390,13 +390,16 @@ def tile_ranges_from_keys(
 
 
 @wp.kernel
-def skip_tiles(tiles_x: int, stride: int, phase: int, ranges: wp.array2d(dtype=wp.int32)):
-    """Empty the Gaussian list of every tile but one in ``stride`` (those with (tx + ty + phase) %
-    stride == 0: a checkerboard for 2, shifting with ``phase``): they then render as nothing (opacity
-    0) and their backward does no work."""
+def skip_tiles(
+    tiles_x: int, stride: int, phase: int, step: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32)
+):
+    """Empty the Gaussian list of every tile but one in ``stride`` (those with (tx + ty + phase +
+    step[0]) % stride == 0: a checkerboard for 2, shifting with the phase, the device step counter
+    added as the tracker's kernels add it): they then render as nothing (opacity 0) and their backward
+    does no work."""
     tile = wp.tid()
     ty = tile // tiles_x
-    if (tile - ty * tiles_x + ty + phase) % stride != 0:
+    if (tile - ty * tiles_x + ty + phase + step[0]) % stride != 0:
         ranges[tile, 1] = ranges[tile, 0]
 
 

@@ -123,6 +123,8 @@ def brightness_sums(
     tau_alpha: float,
     min_alpha: float,
     row: int,
+    # the row is row + counter[0] (see advance_step)
+    counter: wp.array(dtype=wp.int32),
     # out: columns H_S0..H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand)
     history_out: wp.array2d(dtype=wp.float64),
 ):
@@ -135,6 +137,7 @@ def brightness_sums(
     # <= 0 falls back to the w_alpha weights of Eq. 7.  w_grad is left out on purpose, flat areas
     # constrain the gain and bias as well as edges do.
     block, lane = wp.tid()
+    row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
     width = observed.shape[1]
     s = vec8()
@@ -178,9 +181,11 @@ def solve_brightness(
     # in: model (BRIGHTNESS_*), history row
     model: int,
     row: int,
+    counter: wp.array(dtype=wp.int32),  # the row is row + counter[0] (see advance_step)
     # out: columns H_GAIN, H_BIAS of history row `row`, from its H_S* sums
     history_out: wp.array2d(dtype=wp.float64),
 ):
+    row = row + counter[0]
     # BRIGHTNESS_AFFINE, the closed form of Eq. 4: [[Sxx, Sx], [Sx, S0]] (g, b) = (Sxy, Sy), with a
     # ridge BRIGHTNESS_RIDGE * S0 pulling (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~
     # 0) cannot produce a wild gain.  Least squares of y on x is biased towards g < 1 when the render
@@ -253,6 +258,7 @@ def tracking_loss(
     depth_weight: float,
     depth_slope_tau: float,
     row: int,
+    counter: wp.array(dtype=wp.int32),  # the row is row + counter[0] (see advance_step)
     # out: loss gradients w.r.t. the rendered images; H_LOSS, H_PHOTO, H_WEIGHT of row `row`
     d_color_out: wp.array2d(dtype=wp.vec3),
     d_depth_out: wp.array2d(dtype=wp.float32),
@@ -265,6 +271,7 @@ def tracking_loss(
     # moving the map out of view.  The rendered depth is sum_i w_i z_i (not normalised), so it is
     # divided by alpha here: otherwise partly covered pixels would pull towards the camera.
     block, lane = wp.tid()
+    row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
     height = observed.shape[0]
     width = observed.shape[1]
@@ -314,6 +321,7 @@ def adam_pose_step(
     beta1: float,
     beta2: float,
     eps: float,
+    counter: wp.array(dtype=wp.int32),  # the step is row + counter[0] (see advance_step)
     # in/out: reads H_DEPTH, H_ALPHA, writes H_CONSISTENCY of history row `row`
     history: wp.array2d(dtype=wp.float64),
     # in/out: Adam moments (6 each) of the twist about the pivot, camera-from-world pose
@@ -324,6 +332,7 @@ def adam_pose_step(
     T_WC_out: wp.array(dtype=wp.mat44),
     pose_history_out: wp.array(dtype=wp.mat44d),
 ):
+    row = row + counter[0]
     # Cosine schedule centred on lr: lr_k = lr (1 + cos(pi k / K)), from 2 lr at k = 0 down to ~0 at
     # k = K - 1; its mean over the K steps is lr (experiments/results/tracking.md).
     lr_k = lr * (1.0 + wp.cos(wp.pi * float(row) / float(iters)))
@@ -369,3 +378,12 @@ def adam_pose_step(
     T_CW[0] = T
     T_WC_out[0] = rigid_inverse_f32(T)
     pose_history_out[row] = T
+
+
+@wp.kernel
+def advance_step(counter: wp.array(dtype=wp.int32)):
+    """The step counter of a frame's steps on the device: the kernels of a step read their history row
+    (and the learning rate's step) as ``row + counter[0]``.  Eagerly the host passes each step's row and a
+    counter at 0; a captured graph of one step passes row 0 and this counter, which the step's last
+    launch advances, so the one graph replays every step (a capture of one step, not of all of them)."""
+    counter[0] = counter[0] + 1
