@@ -585,7 +585,6 @@ class CheckpointWriter:
     def __init__(self, run_dir: Path, warn=None):
         self.run_dir, self.warn = run_dir, warn or print
         self.seconds = 0.0
-        self.written: list[Path] = []
         self._thread: threading.Thread | None = None
 
     def write(self, slam: SLAM, state: RunState) -> None:
@@ -604,9 +603,7 @@ class CheckpointWriter:
 
     def _write(self, snapshot, run_state: str, next_frame: int) -> None:
         t0 = time.perf_counter()
-        folder = write_checkpoint(self.run_dir, snapshot, run_state, next_frame, warn=self.warn)
-        if folder is not None:
-            self.written.append(folder)
+        write_checkpoint(self.run_dir, snapshot, run_state, next_frame, warn=self.warn)
         self.seconds += time.perf_counter() - t0
 
 

@@ -585,7 +585,7 @@ class SLAM:
     def save(self, directory: str | Path, state: bool = False) -> Path:
         """Write ``trajectory.txt``, ``keyframes.npz``, ``map.ply``, ``config.yaml`` (each atomically;
         ``SaveError`` names a file that failed and what was saved) and with ``state`` the checkpoint's
-        ``state.npz``: ``slam.storage.save_slam`` says what each holds.  Waits for the mapping
+        ``state.npz``: ``slam.storage.snapshot_slam`` says what each holds.  Waits for the mapping
         worker first (a worker that failed does not stop the save: what was tracked is kept)."""
         return self.snapshot(state).write(directory)
 

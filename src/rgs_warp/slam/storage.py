@@ -1,4 +1,4 @@
-"""The SLAM's storage: ``SLAM.save`` and ``SLAM.load`` (``save_slam``, ``load_slam``), the files of a
+"""The SLAM's storage: ``SLAM.save`` and ``SLAM.load`` (``snapshot_slam``, ``load_slam``), the files of a
 run folder and the full state of a checkpoint.  Part of the SLAM itself: it reads and restores the
 state the stages keep between frames."""
 
@@ -18,29 +18,11 @@ from rgs_warp.io.trajectory import read_tum_trajectory, write_tum_trajectory
 from rgs_warp.types import Camera, GaussianMap
 
 
-def save_slam(slam, directory: str | Path, state: bool = False) -> Path:
-    """Write ``trajectory.txt`` (TUM), ``keyframes.npz``, ``map.ply`` and ``config.yaml``, in that
-    order, each atomically (``rgs_warp.io.atomic``): a crash or a full disk leaves each file whole
-    or as it was.  A file that fails does not stop the others; then ``SaveError`` (an OSError)
-    names it and what was saved.  The frame-fill seeds still waiting for a keyframe are not in
-    ``map.ply`` unless ``finish`` ran.
-
-    ``state``: also ``state.npz``, everything else the stages carry from frame to frame (the
-    optimiser's moments and clocks, the mapper's statistics, the keyframe selector's reference, the
-    motion model, the waiting seeds, the timers and convergence points), so that ``load`` continues
-    exactly where this SLAM is: a run's checkpoint.  A checkpoint favours speed: its
-    ``keyframes.npz`` is not compressed (ten 1200x680 keyframes: 0.2 s against 6 s compressed).
-    Without ``state``, a ``state.npz`` of an earlier save in the folder is removed.
-
-    The same as ``snapshot_slam(slam, state).write(directory)``."""
-    return snapshot_slam(slam, state).write(directory)
-
-
 class SlamSnapshot:
-    """What ``save_slam`` writes, already copied into host memory (``snapshot_slam``): ``write`` puts it
+    """What ``SLAM.save`` writes, already copied into host memory (``snapshot_slam``): ``write`` puts it
     in a folder without reading the SLAM, so it can run in another thread while the SLAM goes on (a
     run's checkpoints and final save).  A part that could not be gathered (``state.npz`` while the
-    monocular bootstrap waits) fails its file in ``write``'s ``SaveError``, as ``save_slam`` reports it."""
+    monocular bootstrap waits) fails its file in ``write``'s ``SaveError``."""
 
     def __init__(self, writers: dict, failed: dict[str, Exception], state: bool):
         self._writers, self._failed, self.state = writers, failed, state
@@ -67,9 +49,22 @@ class SlamSnapshot:
 
 
 def snapshot_slam(slam, state: bool = False) -> SlamSnapshot:
-    """The files of ``save_slam(slam, directory, state)``, gathered now: device arrays copied to the
-    host, and every array copied (on the CPU device a Warp array's NumPy view is the live memory), so
-    the snapshot stays as the SLAM was while the SLAM goes on."""
+    """``SLAM.save``'s files, gathered now: device arrays copied to the host, and every array copied (on
+    the CPU device a Warp array's NumPy view is the live memory), so the snapshot stays as the SLAM was
+    while the SLAM goes on.
+
+    ``write(directory)`` writes ``trajectory.txt`` (TUM), ``keyframes.npz``, ``map.ply`` and
+    ``config.yaml``, in that order, each atomically (``rgs_warp.io.atomic``): a crash or a full disk
+    leaves each file whole or as it was.  A file that fails does not stop the others; then ``SaveError``
+    (an OSError) names it and what was saved.  The frame-fill seeds still waiting for a keyframe are
+    not in ``map.ply`` unless ``finish`` ran.
+
+    ``state``: also ``state.npz``, everything else the stages carry from frame to frame (the
+    optimiser's moments and clocks, the mapper's statistics, the keyframe selector's reference, the
+    motion model, the waiting seeds, the timers and convergence points), so that ``load`` continues
+    exactly where this SLAM is: a run's checkpoint.  A checkpoint favours speed: its
+    ``keyframes.npz`` is not compressed (ten 1200x680 keyframes: 0.2 s against 6 s compressed).
+    Without ``state``, a ``state.npz`` of an earlier save in the folder is removed."""
     gathered: dict = {}
     failed: dict[str, Exception] = {}
     parts = {
