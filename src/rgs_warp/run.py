@@ -441,7 +441,8 @@ def _run_frames(
         save.start()
         bar.phase("evaluating")
         tracking = tracking_section(state.tracked, state.lost, state.settled_iters, cfg.tracking.iters)
-        # frames whose steps this process ran eagerly, captured, replayed (tracking.graph), and replays
+        # frames whose steps this process ran eagerly, captured (after one sizing step) and replayed
+        # (tracking.graph; a captured frame is also replayed), and replays
         # that overflowed their graph's intersection buffers (tracked again eagerly)
         tracking.update({f"graph_{k}": v for k, v in slam.tracker.graph_counts.items()})
         scored = ds if kept is None else kept

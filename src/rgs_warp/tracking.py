@@ -167,7 +167,6 @@ class Tracker:
         # the frame's steps as captured graphs (``_steps``): by what they were captured against
         self.use_graph = cfg.graph == "on" or (cfg.graph == "auto" and self.device.is_cuda)
         self._graphs: dict[tuple, tuple] = {}
-        self._eager_key: tuple | None = None
         # the step counter a captured step reads its row from (tk.advance_step); eager steps read 0
         self._step = wp.zeros(1, dtype=wp.int32, device=dev)
         self._no_step = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -355,22 +354,22 @@ class Tracker:
         slowest of a run: 35 against 13 ms at 640x360 on an H100).
 
         A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
-        is kept by those (``_graph_key``).  The first frame at a new key runs eagerly (its renders size
-        the renderer's buffers), the second captures (after reserving ``GRAPH_HEADROOM`` x the
-        intersections the latest render needed) and replays, the next ones replay.  A replay whose
-        renders needed more intersections than the graph has room for is discarded with its graph,
-        and the frame's steps run again eagerly from the start pose."""
+        is kept by those (``_graph_key``).  At a new key one step runs eagerly on every tile (its render
+        sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` x
+        the intersections that render needed are reserved, and the two steps are captured and replayed:
+        the frame after a keyframe costs one eager step more than a replayed frame, not ``iters`` eager
+        steps (37 against 13 ms at 640x360 on an H100, the run's tracking p99).  A replay whose renders
+        needed more intersections than the graph has room for is discarded with its graph, and the
+        frame's steps run again eagerly from the start pose."""
         if not self.use_graph or len(gmap) == 0:
             self._eager_steps(gmap, use_depth)
             return
         key = self._graph_key(gmap, use_depth)
         entry = self._graphs.get(key)
-        if entry is None and key != self._eager_key:
-            self._eager_steps(gmap, use_depth)
-            self._eager_key = self._graph_key(gmap, use_depth)  # the eager renders may have grown buffers
-            return
         if entry is None:
             renderer = self.renderer
+            self._iteration(gmap, 0, use_depth, tile_stride=1)  # sizes the buffers (may reallocate them)
+            self._begin(T_init_WC)
             renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
             key = self._graph_key(gmap, use_depth)
             # one step on part of the tiles and the last step on all, each reading its row from the
@@ -394,7 +393,6 @@ class Tracker:
         if self.renderer.intersection_count() > entry[1]:
             self.graph_counts["overflowed"] += 1
             self._graphs.pop(key, None)
-            self._eager_key = None
             self._begin(T_init_WC)
             self._eager_steps(gmap, use_depth)
 
@@ -416,7 +414,8 @@ class Tracker:
         cfg, dev = self.cfg, self.device
         step = self._no_step if step is None else step
         res = self.renderer.forward(
-            gmap, self.track_camera, self._T_WC, tile_stride=tile_stride, tile_phase=k, tile_step=step
+            gmap, self.track_camera, self._T_WC, pose_jacobians=True, tile_stride=tile_stride, tile_phase=k,
+            tile_step=step,
         )
         self._last_render = res
         wp.launch_tiled(
