@@ -217,11 +217,16 @@ def _slope_weight_reference(obs_depth, tau):
     return out
 
 
-def _loss_reference(obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, tau_alpha, use_depth, lam, tau_s=0.0):
+def _loss_reference(
+    obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, tau_alpha, use_depth, lam, tau_s=0.0, per_opacity=0
+):
     """Eq. 5-8 + depth L1 in float64; w_alpha is passed in so finite differences hold it fixed, as the
-    kernel's gradient does (documented stop-gradient)."""
+    kernel's gradient does (documented stop-gradient).  ``per_opacity``: the colour term compares the
+    frame with colour / alpha (``tracking.colour_per_opacity``), alpha differentiated there too."""
     n = alpha.size
     w = w_alpha * w_grad
+    if per_opacity:
+        color = color / np.where(alpha > tk.ALPHA_DEPTH_MIN, alpha, 1.0)[..., None]
     r = obs - (g * color + b)
     photo = w * np.abs(r).sum(axis=2)
     loss = photo.copy()
@@ -232,8 +237,8 @@ def _loss_reference(obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, 
     return loss.sum() / n, photo.sum(), w.sum()
 
 
-@pytest.mark.parametrize("use_depth,tau_s", [(1, 0.0), (1, 0.05), (0, 0.05)])
-def test_loss_value_and_image_gradient(device, use_depth, tau_s):
+@pytest.mark.parametrize("use_depth,tau_s,per_opacity", [(1, 0.0, 0), (1, 0.05, 0), (0, 0.05, 0), (0, 0.05, 1), (1, 0.05, 1)])
+def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity):
     rng = np.random.default_rng(2)
     shape = (11, 13)
     color = rng.uniform(0.1, 0.9, shape + (3,))
@@ -261,13 +266,13 @@ def test_loss_value_and_image_gradient(device, use_depth, tau_s):
         tk.tracking_loss,
         dim=_blocks(shape),
         inputs=[f32(obs, wp.vec3), f32(obs_depth), f32(w_grad), f32(color, wp.vec3), f32(depth), f32(alpha)]
-        + [tau_alpha, use_depth, lam, tau_s, 1, _step0(device)],
+        + [tau_alpha, use_depth, lam, tau_s, per_opacity, 1, _step0(device)],
         outputs=[d_color, d_depth, d_alpha, hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
     )
     args = (obs, obs_depth, w_grad)
-    rest = (g, b, tau_alpha, use_depth, lam, tau_s)
+    rest = (g, b, tau_alpha, use_depth, lam, tau_s, per_opacity)
     if use_depth and tau_s > 0:  # the weight matters: it is far from 1 on these random depths
         assert np.median(_slope_weight_reference(obs_depth, tau_s)) < 0.5
     loss, photo, weight = _loss_reference(*args, color, depth, alpha, w_alpha, *rest)
@@ -297,6 +302,8 @@ def test_loss_value_and_image_gradient(device, use_depth, tau_s):
     np.testing.assert_allclose(d_depth.numpy(), fd_depth, rtol=1e-4, atol=1e-9)
     np.testing.assert_allclose(d_alpha.numpy(), fd_alpha, rtol=1e-4, atol=1e-9)
     assert (np.abs(fd_depth) > 0).any() == bool(use_depth)
+    # alpha enters the loss through the depth term, and with per_opacity through the colour term
+    assert (np.abs(fd_alpha) > 0).any() == bool(use_depth or per_opacity)
 
 
 @pytest.mark.parametrize("lr", [3e-2, 1e-5])  # rotation steps above / below the series switch at 1e-3 rad

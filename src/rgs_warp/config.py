@@ -101,6 +101,12 @@ class TrackingConfig:
     # the gain, and the mapper feeds the bias back: kernels/tracking.py brightness_sums); 0: Eq. 7's
     # w_alpha weights instead
     brightness_min_alpha: float = 0.98
+    # The colour term compares the frame with the rendered colour / opacity (the map's colour where it
+    # covers a pixel only in part) instead of the render, which the background darkens there.  Without
+    # depth that darkening at the edge of the map pulls the pose: tracked from the true previous poses
+    # against the map of the frames before it (H100, the office's fast turn), monocular frames were off
+    # by up to 5.8 cm (experiments/results/mono.md).  auto: on in mono, off in rgbd (not measured there)
+    colour_per_opacity: str = "auto"
     # The exposure (g, b) a keyframe and the frame-fill seeds are coloured with: "map" (the brightness
     # model's (g, b) against the map's render above, which the gain model reads with the bias folded
     # into the gain: under a strong drift the map's contrast drifts) or "keyframes" (affine, the reduced
@@ -480,6 +486,7 @@ CHOICES = {
     "tracking.motion_check": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
     "tracking.graph": ("auto", "on", "off"),
+    "tracking.colour_per_opacity": ("auto", "on", "off"),
     "tracking.keypoint_prior": ("auto", "on", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }

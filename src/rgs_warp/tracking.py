@@ -82,7 +82,7 @@ MAX_CORRECTION_DEG = 45.0
 # this fraction of the constant-velocity prediction's (a camera that stops turns far less; the office's
 # collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
 STILL_TURNING = 0.5
-SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph
+SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, tracking.colour_per_opacity
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
 GRAPHS_KEPT = 3
@@ -117,7 +117,7 @@ class Tracker:
             raise ValueError(
                 f"tracking.brightness must be one of {', '.join(BRIGHTNESS_MODELS)}, got {cfg.brightness!r}"
             )
-        for key in ("motion_check", "graph"):
+        for key in ("motion_check", "graph", "colour_per_opacity"):
             if getattr(cfg, key) not in SWITCHES:
                 raise ValueError(f"tracking.{key} must be one of {', '.join(SWITCHES)}, got {getattr(cfg, key)!r}")
         if cfg.iters < 1 or cfg.downscale < 1:
@@ -125,6 +125,7 @@ class Tracker:
         self.cfg = cfg
         self.mode = mode
         self.motion_check = cfg.motion_check == "on" or (cfg.motion_check == "auto" and mode == "mono")
+        self.colour_per_opacity = cfg.colour_per_opacity == "on" or (cfg.colour_per_opacity == "auto" and mode == "mono")
         if cfg.tile_stride < 0:
             raise ValueError(f"tracking.tile_stride must be >= 0 (0 = auto), got {cfg.tile_stride}")
         # auto: a checkerboard of tiles in RGB-D (measured: the same ATE, 17-23 % faster), every tile in
@@ -451,7 +452,8 @@ class Tracker:
             tk.tracking_loss,
             dim=self._blocks,
             inputs=[self._rgb, self._depth, self._w_grad, res.color, res.depth, res.alpha]
-            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, k, counter],
+            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, int(self.colour_per_opacity), k]
+            + [counter],
             outputs=[self._d_color, self._d_depth, self._d_alpha, self._history],
             block_dim=REDUCE_BLOCK,
             device=dev,

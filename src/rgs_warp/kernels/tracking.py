@@ -257,6 +257,7 @@ def tracking_loss(
     use_depth: int,
     depth_weight: float,
     depth_slope_tau: float,
+    per_opacity: int,
     row: int,
     counter: wp.array(dtype=wp.int32),  # the row is row + counter[0] (see advance_step)
     # out: loss gradients w.r.t. the rendered images; H_LOSS, H_PHOTO, H_WEIGHT of row `row`
@@ -270,6 +271,10 @@ def tracking_loss(
     # gradient: they are re-evaluated every iteration, and differentiating w_alpha would reward
     # moving the map out of view.  The rendered depth is sum_i w_i z_i (not normalised), so it is
     # divided by alpha here: otherwise partly covered pixels would pull towards the camera.
+    # per_opacity != 0: the colour term compares the frame with the rendered colour / alpha too (the
+    # map's colour where it covers the pixel only in part; the render itself is darkened by the
+    # background there, and without depth that darkening at the edge of the map pulls the pose:
+    # experiments/results/mono.md), differentiated through alpha as well.
     block, lane = wp.tid()
     row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
@@ -285,12 +290,19 @@ def tracking_loss(
         a = alpha[y, x]
         w_a = alpha_weight(a, tau_alpha)
         w = w_a * w_grad[y, x]
-        r = observed[y, x] - (g * rendered[y, x] + wp.vec3(b))
+        c = rendered[y, x]
+        inv_a = float(1.0)
+        if per_opacity != 0 and a > ALPHA_DEPTH_MIN:
+            inv_a = 1.0 / a
+        r = observed[y, x] - (g * inv_a * c + wp.vec3(b))
         photo = w * (wp.abs(r[0]) + wp.abs(r[1]) + wp.abs(r[2]))
-        d_color_out[y, x] = (-inv_n * w * g) * wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2]))
+        sign_r = wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2]))
+        d_color_out[y, x] = (-inv_n * w * g * inv_a) * sign_r
         loss = photo
         d_depth = float(0.0)
         d_alpha = float(0.0)
+        if inv_a != 1.0:
+            d_alpha = inv_n * w * g * inv_a * inv_a * wp.dot(sign_r, c)
         if use_depth != 0:
             d_obs = observed_depth[y, x]
             if d_obs > 0.0 and a > ALPHA_DEPTH_MIN:
@@ -300,7 +312,7 @@ def tracking_loss(
                 loss += w_d * wp.abs(e)
                 k = inv_n * w_d * wp.sign(e) / a
                 d_depth = k
-                d_alpha = -k * d_hat / a
+                d_alpha -= k * d_hat / a
         d_depth_out[y, x] = d_depth
         d_alpha_out[y, x] = d_alpha
         s = wp.vec3(loss * inv_n, photo, w)
