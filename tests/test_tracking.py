@@ -237,7 +237,9 @@ def _loss_reference(
     return loss.sum() / n, photo.sum(), w.sum()
 
 
-@pytest.mark.parametrize("use_depth,tau_s,per_opacity", [(1, 0.0, 0), (1, 0.05, 0), (0, 0.05, 0), (0, 0.05, 1), (1, 0.05, 1)])
+@pytest.mark.parametrize(
+    "use_depth,tau_s,per_opacity", [(1, 0.0, 0), (1, 0.05, 0), (0, 0.05, 0), (0, 0.05, 1), (1, 0.05, 1)]
+)
 def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity):
     rng = np.random.default_rng(2)
     shape = (11, 13)
@@ -671,9 +673,9 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride):
     """The frame's steps replayed from captured graphs (one step, replayed with the step counter on the
     device, and the last step; Warp's CPU graphs here, CUDA graphs on a GPU) give the eager loop's
     poses bit for bit: through a capture (after one sizing step, put back), replays, a map of another
-    size (captured anew) and the first map again (its graph kept), with every tile in each step and with the checkerboard.  Then the map's
-    Gaussians grow in place until a replay overflows the intersection buffers it reserved: that frame
-    is tracked again eagerly."""
+    size (captured anew) and the first map again (its graph kept), with every tile in each step and
+    with the checkerboard.  Then the map's Gaussians grow in place until a replay overflows the
+    intersection buffers it reserved: that frame is tracked again eagerly."""
     poses, cam = scene["poses"], scene["camera"]
     arrays = scene["map"].to_numpy()
     names = ("means", "rotations", "log_scales", "opacity_logits", "sh")
@@ -706,3 +708,48 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride):
 def test_graph_setting_is_checked(device, scene):
     with pytest.raises(ValueError, match="tracking.graph"):
         Tracker(TrackingConfig(graph="yes"), scene["camera"], device)
+
+
+def test_colour_per_opacity_takes_the_edge_of_the_map_out_of_the_pose_gradient(device, scene):
+    """The map, all of one colour, lacks the part of the room beyond a vertical plane through the view:
+    its edge crosses the frame, which sees the whole room in that colour.  At the true pose the
+    rendered colour is darkened by the background where the edge covers pixels in part, and that
+    residual pulls the pose; colour / opacity (``tracking.colour_per_opacity``, on in mono) is the
+    map's colour there, so the pull vanishes (issue 22: experiments/results/mono.md)."""
+    poses, cam = scene["poses"], scene["camera"]
+    arrays = scene["map"].to_numpy()
+    names = ("means", "rotations", "log_scales", "opacity_logits", "sh")
+    arrays["sh"] = np.broadcast_to(arrays["sh"][:1], arrays["sh"].shape).copy()  # one colour
+    whole = GaussianMap.from_numpy(*(arrays[k] for k in names), device=device)
+    renderer = Renderer(device)
+    shape = (cam.height, cam.width)
+    for i in (3, 5, 7):
+        T = poses[i]
+        rgb = renderer.forward(whole, cam, T).color.numpy().copy()
+        X_C = (arrays["means"] - T[:3, 3]) @ T[:3, :3]  # camera coordinates at frame i
+        keep = X_C[:, 0] < 0.15 * X_C[:, 2]  # the map ends a little right of the image centre
+        part = GaussianMap.from_numpy(*(arrays[k][keep] for k in names), device=device)
+        norms = {}
+        for per_opacity in (0, 1):
+            res = renderer.forward(part, cam, T)
+            alpha = res.alpha.numpy()
+            assert 0.02 < ((alpha > 0.05) & (alpha < 0.95)).mean() < 0.5  # an edge in view, partly covered
+            hist = _history(1, device)
+            hist.assign(np.eye(1, tk.H_COLUMNS, tk.H_GAIN))  # g = 1, b = 0
+            d_color = wp.zeros(shape, dtype=wp.vec3, device=device)
+            d_depth = wp.zeros(shape, dtype=wp.float32, device=device)
+            d_alpha = wp.zeros(shape, dtype=wp.float32, device=device)
+            ones = wp.array(np.ones(shape, np.float32), device=device)
+            no_depth = wp.zeros(shape, dtype=wp.float32, device=device)
+            wp.launch_tiled(
+                tk.tracking_loss,
+                dim=_blocks(shape),
+                inputs=[wp.array(rgb, dtype=wp.vec3, device=device), no_depth, ones, res.color, res.depth, res.alpha]
+                + [0.5, 0, 1.0, 0.0, per_opacity, 0, _step0(device)],
+                outputs=[d_color, d_depth, d_alpha, hist],
+                block_dim=tk.REDUCE_BLOCK,
+                device=device,
+            )
+            _, grad = renderer.backward(d_color, d_depth, d_alpha, pose_only=True)
+            norms[per_opacity] = float(np.linalg.norm(grad.numpy()))
+        assert norms[1] < 0.01 * norms[0], (i, norms)

@@ -61,10 +61,12 @@ def main(argv=None) -> None:
                 r = tracker.track(f.rgb, f.depth if mode == "rgbd" else None, slam.map)
                 e = pose_error(r.T_WC, f.pose_gt)
                 errors[mode].append(100 * e[0])
-                print(f"causal {mode} {i} err {100 * e[0]:.2f} cm {e[1]:.2f} deg{' lost' if r.lost else ''}", flush=True)
+                lost = " lost" if r.lost else ""
+                print(f"causal {mode} {i} err {100 * e[0]:.2f} cm {e[1]:.2f} deg{lost}", flush=True)
         slam.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt)
     print("SUMMARY causal", {m: (round(max(v), 2), round(float(np.mean(v)), 2)) for m, v in errors.items()})
-    print(f"map: {len(slam.map)} Gaussians, {len(slam.keyframe_indices)} keyframes, {time.time() - t0:.0f} s", flush=True)
+    kfs = len(slam.keyframe_indices)
+    print(f"map: {len(slam.map)} Gaussians, {kfs} keyframes, {time.time() - t0:.0f} s", flush=True)
     for mode, tcfg in (("mono", cfg.tracking), ("rgbd", cfg.tracking), ("mono", replace(cfg.tracking, iters=60))):
         tracker = Tracker(tcfg, ds.camera, dev, mode=mode)
         tracker.reset(ds[a].pose_gt, ds[a - 1].pose_gt)
@@ -74,7 +76,9 @@ def main(argv=None) -> None:
             r = tracker.track(f.rgb, f.depth if mode == "rgbd" else None, slam.map)
             e = pose_error(r.T_WC, f.pose_gt)
             errs.append(100 * e[0])
-            print(f"{mode} {tcfg.iters} {i} err {100 * e[0]:.2f} cm {e[1]:.2f} deg{' lost' if r.lost else ''}", flush=True)
+            print(
+                f"{mode} {tcfg.iters} {i} err {100 * e[0]:.2f} cm {e[1]:.2f} deg{' lost' if r.lost else ''}", flush=True
+            )
         print(f"SUMMARY {mode} {tcfg.iters} max err cm {max(errs):.2f} mean {np.mean(errs):.2f}", flush=True)
 
 

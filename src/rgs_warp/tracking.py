@@ -125,7 +125,9 @@ class Tracker:
         self.cfg = cfg
         self.mode = mode
         self.motion_check = cfg.motion_check == "on" or (cfg.motion_check == "auto" and mode == "mono")
-        self.colour_per_opacity = cfg.colour_per_opacity == "on" or (cfg.colour_per_opacity == "auto" and mode == "mono")
+        self.colour_per_opacity = cfg.colour_per_opacity == "on" or (
+            cfg.colour_per_opacity == "auto" and mode == "mono"
+        )
         if cfg.tile_stride < 0:
             raise ValueError(f"tracking.tile_stride must be >= 0 (0 = auto), got {cfg.tile_stride}")
         # auto: a checkerboard of tiles in RGB-D (measured: the same ATE, 17-23 % faster), every tile in
@@ -415,7 +417,12 @@ class Tracker:
         cfg, dev = self.cfg, self.device
         step = self._no_step if step is None else step
         res = self.renderer.forward(
-            gmap, self.track_camera, self._T_WC, pose_jacobians=True, tile_stride=tile_stride, tile_phase=k,
+            gmap,
+            self.track_camera,
+            self._T_WC,
+            pose_jacobians=True,
+            tile_stride=tile_stride,
+            tile_phase=k,
             tile_step=step,
         )
         self._last_render = res
