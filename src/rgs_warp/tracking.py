@@ -360,8 +360,9 @@ class Tracker:
         is kept by those (``_graph_key``).  At a new key one step runs eagerly on every tile (its render
         sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` x
         the intersections that render needed are reserved, and the two steps are captured and replayed:
-        the frame after a keyframe costs one eager step more than a replayed frame, not ``iters`` eager
-        steps (37 against 13 ms at 640x360 on an H100, the run's tracking p99).  A replay whose renders
+        the frame after a keyframe costs one eager step and two captures more than a replayed frame
+        (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
+        p99: experiments/results/perf.md).  A replay whose renders
         needed more intersections than the graph has room for is discarded with its graph, and the
         frame's steps run again eagerly from the start pose."""
         if not self.use_graph or len(gmap) == 0:
