@@ -67,17 +67,20 @@ def snapshot_slam(slam, state: bool = False) -> SlamSnapshot:
     Without ``state``, a ``state.npz`` of an earlier save in the folder is removed."""
     gathered: dict = {}
     failed: dict[str, Exception] = {}
+    # each part's arrays as copies of their own: the trajectory and the keyframes are gathered as new
+    # arrays (the keyframes' images, most of a checkpoint's bytes, copied once); the map's and the
+    # state's may be views of live memory (the CPU device, the stages' state) and are copied (_owned)
     parts = {
         "trajectory.txt": slam.trajectory,
         "keyframes.npz": lambda: _keyframe_arrays(slam),
-        "map.ply": lambda: (slam.map.to_numpy(), slam.map.num_sh),
+        "map.ply": lambda: _owned((slam.map.to_numpy(), slam.map.num_sh)),
         "config.yaml": lambda: slam.cfg,
     }
     if state:
-        parts["state.npz"] = lambda: _state_arrays(slam)
+        parts["state.npz"] = lambda: _owned(_state_arrays(slam))
     for name, gather in parts.items():
         try:
-            gathered[name] = _owned(gather())
+            gathered[name] = gather()
         except Exception as e:  # noqa: BLE001 (reported by write, with the files that were written)
             failed[name] = e
     writers = {
@@ -110,6 +113,7 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray], compress: bool) -> Non
 
 
 def _keyframe_arrays(slam) -> dict[str, np.ndarray]:
+    """The keyframe buffer's arrays, each a new array (index arrays, stacks): no view of live memory."""
     kf = slam.keyframes
     slots = kf.slots()
     return dict(
