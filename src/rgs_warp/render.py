@@ -142,7 +142,6 @@ class Renderer:
         # eager forwards found at the next forward to have dropped intersections (no extra wait: the
         # count is read then anyway); a render of another map size or camera is not checked
         self.overflowed_renders = 0
-        self._last_pose_only = False
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._no_step = wp.zeros(1, dtype=wp.int32, device=self.device)  # forward's tile_step when not given
         self._last = None
@@ -210,12 +209,6 @@ class Renderer:
         """Tile intersections the next forward has room for (``reserve_intersections``)."""
         return self._isect_capacity
 
-    @property
-    def pose_jacobians_stored(self) -> bool:
-        """Whether the latest forward stored the per-Gaussian pose Jacobians, so that a pose-only
-        ``backward`` needs no extra projection pass (a tracking loop's forwards do, once one asked)."""
-        return self._last is not None and self._last[4]
-
     def intersection_count(self) -> int:
         """Tile intersections the latest forward (eager or replayed from a graph) needed; waits for it."""
         return self._read_count()
@@ -250,7 +243,7 @@ class Renderer:
         T_WC,
         background=(0.0, 0.0, 0.0),
         tape: wp.Tape | None = None,
-        pose_jacobians: bool | None = None,
+        pose_jacobians: bool = False,
         view=None,
         tile_stride: int = 1,
         tile_phase: int = 0,
@@ -265,7 +258,7 @@ class Renderer:
 
         ``pose_jacobians``: also store the per-Gaussian pose Jacobians that ``backward(pose_only=True)``
         folds the screen-space gradients through (without them that backward first re-runs the
-        projection to get them); ``None``: if the previous backward was pose-only (a tracking loop).
+        projection to get them: the tracker asks for them in every forward).
 
         ``view``: a key of the viewpoint (mapping: the keyframe's frame id) for a caller that
         alternates between views of different density: the capacity is then also what this view's
@@ -292,8 +285,6 @@ class Renderer:
             wp.copy(self._view, self._view_host)
 
         capturing = dev.is_capturing  # a CUDA graph, or Warp's CPU graph
-        if pose_jacobians is None:
-            pose_jacobians = self._last_pose_only
         # Capacity from the previous render's count (finished long ago in a loop: no stall), unless
         # there is none to go by; inside a graph capture the capacity is whatever was reserved.
         exact = False
@@ -464,7 +455,6 @@ class Renderer:
         if self._last is None:
             raise RuntimeError("backward() needs a forward() first")
         gmap, n, cam, bg, have_pose_jac = self._last
-        self._last_pose_only = pose_only
         if not accumulate:
             self.pose_grad.zero_()
         grads = None if pose_only else (grads_out or self.grads)

@@ -362,9 +362,9 @@ class Tracker:
         the intersections that render needed are reserved, and the two steps are captured and replayed:
         the frame after a keyframe costs one eager step and two captures more than a replayed frame
         (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
-        p99: experiments/results/perf.md).  A replay whose renders
-        needed more intersections than the graph has room for is discarded with its graph, and the
-        frame's steps run again eagerly from the start pose."""
+        p99: experiments/results/perf.md).  A replay whose renders needed more intersections than the
+        graph has room for is discarded with its graph, and the frame's steps run again eagerly from
+        the start pose."""
         if not self.use_graph or len(gmap) == 0:
             self._eager_steps(gmap, use_depth)
             return
