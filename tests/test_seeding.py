@@ -625,6 +625,27 @@ def test_far_layer_depth(device):
     np.testing.assert_array_equal(out.numpy(), [[9.0, 0.0], [0.0, 9.0]])
 
 
+def test_extrapolate_depth_step_matches_numpy(device):
+    # one step against a reference written another way: the largest of the 3x3 window's values (holes
+    # are 0, so they never win), kept where the pixel was measured; then n steps reach n pixels
+    rng = np.random.default_rng(31)
+    depth = rng.uniform(0.5, 4.0, (11, 14)).astype(np.float32)
+    depth[rng.uniform(size=depth.shape) < 0.45] = 0.0
+    depth[:, :5] = 0.0  # a border band 5 px wide
+    src = wp.array(depth, device=device)
+    out = wp.zeros_like(src)
+    wp.launch(ks.extrapolate_depth_step, dim=depth.shape, inputs=[src], outputs=[out], device=device)
+    padded = np.pad(depth, 1)
+    windows = np.stack([padded[dy : dy + 11, dx : dx + 14] for dy in range(3) for dx in range(3)])
+    ref = np.where(depth > 0, depth, windows.max(axis=0))
+    np.testing.assert_array_equal(out.numpy(), ref)
+    assert (ref[:, 4] > 0).sum() > 5 and (ref[:, :4] == 0).all()  # one step: one more column of the band
+    for _ in range(4):
+        wp.launch(ks.extrapolate_depth_step, dim=depth.shape, inputs=[out], outputs=[src], device=device)
+        out, src = src, out
+    assert (out.numpy() > 0).all()
+
+
 # ---- the Seeder stage --------------------------------------------------------------------------------
 def _wall_keyframe(device, hole=None):
     """One keyframe looking at a textured wall at 2 m (identity pose); ``hole``: (rows, cols) slices
@@ -664,6 +685,30 @@ def test_seeder_depth_seeds_and_far_layer(device, far_layer_m):
     # a second keyframe at the same place: covered, nothing new
     slot2 = keyframes.add(1, np.eye(4), keyframes.rgb[slot].numpy(), keyframes.depth[slot].numpy())
     assert seeder.seed_depth(gmap, keyframes, slot2) < 0.05 * added
+
+
+@pytest.mark.parametrize("extrapolate_px", [0, 12])
+def test_seeder_extrapolates_depth_into_the_border_without_it(device, extrapolate_px):
+    # a registered depth camera sees less than the colour camera: a band along the left edge has no
+    # depth.  With depth_extrapolate_px the band gets seeds at the nearby measured depth (a wall at 2 m)
+    # and the map covers it; without, it stays uncovered.  Measured pixels are seeded as before.
+    band = (slice(None), slice(0, 10))
+    keyframes, slot = _wall_keyframe(device, band)
+    renderer = Renderer(device)
+    seeder = Seeder(SeedingConfig(depth_extrapolate_px=extrapolate_px), CAM, device, mode="rgbd", renderer=renderer)
+    gmap = GaussianMap(16, sh_degree=2, device=device)
+    added = seeder.seed_depth(gmap, keyframes, slot)
+    means = gmap.to_numpy()["means"]
+    np.testing.assert_allclose(means[:, 2], 2.0, atol=1e-4)  # every seed on the wall, none floating
+    u = CAM.fx * means[:, 0] / means[:, 2] + CAM.cx
+    assert ((u < 9.5).sum() > 20) == (extrapolate_px > 0), (u < 9.5).sum()
+    alpha = renderer.forward(gmap, CAM, np.eye(4)).alpha.numpy()
+    border, measured = alpha[4:-4, 1:8], alpha[4:-4, 20:50]
+    if extrapolate_px:
+        assert border.mean() > 0.8 * measured.mean() and border.min() > 0.25, (border.mean(), measured.mean())
+    else:
+        assert border[:, :6].max() < 0.1, border.max()
+    assert added > 50
 
 
 def test_keep_detail_points_matches_numpy(device):

@@ -254,6 +254,10 @@ class SeedingConfig:
     # render black) get seeds on a layer at this depth, beyond the sensor's range; 0 = off
     far_layer_m: float = 0.0
     depth_stride: int = 2  # px between depth seeds (experiments/results/slam.md: 4 -> 2 -> 1)
+    # RGB-D: depth seeds also where nothing was measured, up to this many px from a measurement, at the
+    # farthest nearby measured depth (kernels/seeding.py: extrapolate_depth_step): the colour border a
+    # registered depth camera does not see (18 % of every 7-Scenes frame), shadows, glass; 0 = off
+    depth_extrapolate_px: int = 0
     # RGB-D: where the keyframe has detail (grey-level gradient magnitude, central differences, at least
     # detail_min_gradient per pixel), depth seeds also at this finer stride (px); 0 = off
     detail_stride: int = 0
@@ -603,6 +607,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "seeding.depth_consistency_tol": NON_NEGATIVE,
     "seeding.far_layer_m": NON_NEGATIVE,
     "seeding.depth_stride": AT_LEAST_1,
+    "seeding.depth_extrapolate_px": NON_NEGATIVE,
     "seeding.detail_stride": NON_NEGATIVE,
     "seeding.detail_min_gradient": NON_NEGATIVE,
     "seeding.depth_max_rel_jump": NON_NEGATIVE,

@@ -289,6 +289,10 @@ class Seeder:
         # monocular: the first keyframe's plane; RGB-D: the far layer's depth image (far_layer_depth)
         self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
+        # RGB-D: measured depth carried into the pixels without it (depth_extrapolate_px), two buffers
+        self._extrapolated = None
+        if mode == "rgbd" and cfg.depth_extrapolate_px > 0:
+            self._extrapolated = (wp.zeros(shape, dtype=wp.float32, device=dev), wp.zeros_like(self._zero_alpha))
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
     def _point_seeders(self) -> list[tuple[str, PointSeeder]]:
@@ -373,7 +377,7 @@ class Seeder:
         added = self._seed_depth(keyframes, slot, alpha, None, gmap, self.max_gaussians)
         if self.cfg.far_layer_m > 0.0:  # where nothing was measured: not where the depth seeds just went
             far = self._plane_depth
-            launch_inputs = [keyframes.depth[slot], self.cfg.far_layer_m]
+            launch_inputs = [self._measured_depth(keyframes, slot), self.cfg.far_layer_m]
             wp.launch(ks.far_layer_depth, dim=far.shape, inputs=launch_inputs, outputs=[far], device=self.device)
             added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
         return added
@@ -431,6 +435,18 @@ class Seeder:
         target.remove(mask)
         return keep
 
+    def _measured_depth(self, frames: KeyframeBuffer, slot: int) -> wp.array:
+        """The measured depth of ``frames`` slot ``slot``, carried ``depth_extrapolate_px`` pixels into
+        those without a measurement when that is on (RGB-D)."""
+        if self._extrapolated is None:
+            return frames.depth[slot]
+        src = frames.depth[slot]
+        for k in range(self.cfg.depth_extrapolate_px):
+            dst = self._extrapolated[k % 2]
+            wp.launch(ks.extrapolate_depth_step, dim=dst.shape, inputs=[src], outputs=[dst], device=self.device)
+            src = dst
+        return src
+
     def _seed_depth(
         self,
         frames: KeyframeBuffer,
@@ -440,16 +456,17 @@ class Seeder:
         target: GaussianMap,
         limit: int = 0,
     ) -> int:
-        """Seeds from the measured depth of ``frames`` slot ``slot`` (``depth`` in its place, e.g. the
-        monocular plane) where ``alpha`` is below ``covered_alpha``, appended to ``target`` (at most
-        ``limit`` rows in all, ``_within_cap``); with ``detail_stride``, measured depth also seeds
-        the finer grid where the image has detail (``kernels/seeding.py: keep_detail_points``)."""
+        """Seeds from the measured depth of ``frames`` slot ``slot`` (carried ``depth_extrapolate_px``
+        into the pixels without a measurement; ``depth`` in its place, e.g. the monocular plane) where
+        ``alpha`` is below ``covered_alpha``, appended to ``target`` (at most ``limit`` rows in all,
+        ``_within_cap``); with ``detail_stride``, measured depth also seeds the finer grid where the
+        image has detail (``kernels/seeding.py: keep_detail_points``)."""
         cfg, cam = self.cfg, self.camera
         p = self._depth_points
         wp.launch(
             ks.depth_points,
             dim=self._depth_grid,
-            inputs=[frames.depth[slot] if depth is None else depth]
+            inputs=[self._measured_depth(frames, slot) if depth is None else depth]
             + [cam.fx, cam.fy, cam.cx, cam.cy, wp.mat44d(frames.poses[slot]), cfg.depth_stride]
             + [cfg.depth_max_rel_jump, cfg.min_residual_px, 90.0, alpha, cfg.covered_alpha],
             outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],

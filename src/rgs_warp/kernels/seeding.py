@@ -468,6 +468,29 @@ def union_alpha(
 
 
 @wp.kernel
+def extrapolate_depth_step(
+    # in: depth (metres, 0 = none)
+    depth: wp.array2d(dtype=wp.float32),
+    # out: the same where it is set; elsewhere the largest of the 8 neighbours' (0 if none is set)
+    depth_out: wp.array2d(dtype=wp.float32),
+):
+    # One step of carrying measured depth into the pixels without it (the colour border that the depth
+    # camera does not see, shadows, glass, dark surfaces); n steps reach n pixels.  The farthest
+    # neighbour wins: beside a foreground edge the missing depth is the background's (a depth camera's
+    # shadow), and a seed put too far back is hidden by the surface in front, one put too near floats.
+    y, x = wp.tid()
+    d = depth[y, x]
+    if d <= 0.0:
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                v = y + dy
+                u = x + dx
+                if v >= 0 and v < depth.shape[0] and u >= 0 and u < depth.shape[1]:
+                    d = wp.max(d, depth[v, u])
+    depth_out[y, x] = d
+
+
+@wp.kernel
 def far_layer_depth(
     # in: measured depth (0 = none) and the depth of the far layer
     depth: wp.array2d(dtype=wp.float32),
