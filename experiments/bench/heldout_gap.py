@@ -15,7 +15,8 @@ keyframes, and pixels without measured depth.
 
 Writes DIR/NAME.json (per-frame rows, per-bin pixel and error shares, run metrics), DIR/NAME.png
 (PSNR against frame index with the keyframes marked; error share per bin) and DIR/NAME_frames.jpg
-(worst and median scored frame: render | frame | error x4 | keyframes seeing each pixel).
+(``--panels``, default the worst and median scored frame: render | frame | error x4 at the
+frame's exposure | keyframes seeing each pixel, grey where no depth was measured).
 """
 
 from __future__ import annotations
@@ -93,6 +94,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--case", required=True, help="name:override,override")
     ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--panels", default="", help="scored frames to show, comma separated (default: worst, median)")
     args = ap.parse_args(argv)
     name, _, ov = args.case.partition(":")
     overrides = [o for o in ov.split(",") if o]
@@ -199,7 +201,8 @@ def main(argv=None) -> None:
     fig.savefig(out / f"{name}.png", dpi=90)
     if panels:
         order = sorted(panels, key=lambda i: rows[i]["psnr_comp"])
-        pick = [order[0], order[len(order) // 2]]
+        wanted = [int(v) for v in args.panels.split(",") if v]
+        pick = [i for i in wanted if i in panels] or [order[0], order[len(order) // 2]]
         img = np.concatenate([panel(*panels[i]) for i in pick], axis=0)
         import cv2
 

@@ -256,8 +256,11 @@ class SeedingConfig:
     depth_stride: int = 2  # px between depth seeds (experiments/results/slam.md: 4 -> 2 -> 1)
     # RGB-D: depth seeds also where nothing was measured, up to this many px from a measurement, at the
     # farthest nearby measured depth (kernels/seeding.py: extrapolate_depth_step): the colour border a
-    # registered depth camera does not see (18 % of every 7-Scenes frame), shadows, glass; 0 = off
-    depth_extrapolate_px: int = 0
+    # registered depth camera does not see (18 % of every 7-Scenes frame), shadows, glass; 0 = off.
+    # H100, 7-Scenes, 4 seeds: +1.0-1.3 dB compensated held out, +0.5 raw, +1.1 on keyframes, same ATE,
+    # 1.4x the Gaussians, 14 % fewer frames/s; the office (depth everywhere) unchanged
+    # (experiments/results/fidelity.md, session 17)
+    depth_extrapolate_px: int = 64
     # RGB-D: where the keyframe has detail (grey-level gradient magnitude, central differences, at least
     # detail_min_gradient per pixel), depth seeds also at this finer stride (px); 0 = off
     detail_stride: int = 0
