@@ -665,7 +665,7 @@ def test_seeder_depth_seeds_and_far_layer(device, far_layer_m):
     # depth get seeds at far_layer_m, and the map then covers them
     hole = (slice(10, 30), slice(20, 44))
     keyframes, slot = _wall_keyframe(device, hole)
-    cfg = SeedingConfig(far_layer_m=far_layer_m)
+    cfg = SeedingConfig(far_layer_m=far_layer_m, depth_extrapolate_px=0)  # measured depth only
     renderer = Renderer(device)
     seeder = Seeder(cfg, CAM, device, mode="rgbd", renderer=renderer)
     gmap = GaussianMap(16, sh_degree=2, device=device)
