@@ -65,6 +65,16 @@ def test_small_run_end_to_end(finished_run):
     assert photo["psnr_compensated_db"] >= psnr - 0.05 and photo["ssim_compensated"] >= photo["ssim"] - 0.01
     assert photo["keyframe_psnr_compensated_db"] > photo["psnr_compensated_db"] - 1.0
     assert "psnr_compensated (dB)" in (run_dir / "metrics.md").read_text()
+    # each frame's score beside the means: the scored frames and every keyframe, the same PSNR
+    rows = [line.split(",") for line in (run_dir / "frame_scores.csv").read_text().splitlines()[1:]]
+    for kind, raw_key, comp_key in (
+        ("scored", "psnr_db", "psnr_compensated_db"),
+        ("keyframe", "keyframe_psnr_db", "keyframe_psnr_compensated_db"),
+    ):
+        values = np.array([[float(r[2]), float(r[3])] for r in rows if r[1] == kind])
+        assert len(values) == (metrics["keyframes"] if kind == "keyframe" else photo["n_frames"]), kind
+        np.testing.assert_allclose(values.mean(axis=0), [photo[raw_key], photo[comp_key]], atol=2e-3)
+    assert (run_dir / "frame_scores.png").stat().st_size > 1000
     assert 3 <= metrics["keyframes"] < 20
     # every frame after the first is tracked, none lost; the report says so
     tracking = metrics["tracking"]

@@ -190,7 +190,8 @@ def main(argv=None) -> None:
     ax[0].set_xlabel("frame")
     ax[0].set_ylabel("PSNR at the frame's exposure (dB)")
     ax[0].legend()
-    ax[0].set_title(f"{name}: scored {summary['scored_psnr_comp']:.2f} dB, keyframes {summary['keyframe_psnr_comp']:.2f}")
+    scores = f"scored {summary['scored_psnr_comp']:.2f} dB, keyframes {summary['keyframe_psnr_comp']:.2f}"
+    ax[0].set_title(f"{name}: {scores}")
     xs = np.arange(len(BINS))
     ax[1].bar(xs - 0.2, summary["scored_pixel_share"], 0.4, label="pixels")
     ax[1].bar(xs + 0.2, summary["scored_error_share"], 0.4, label="squared error")
@@ -208,7 +209,8 @@ def main(argv=None) -> None:
 
         scale = min(1.0, 2400 / img.shape[1])
         img = cv2.resize(img.astype(np.float32), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-        cv2.imwrite(str(out / f"{name}_frames.jpg"), (255 * img[..., ::-1]).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, 85])
+        jpeg = (255 * img[..., ::-1]).astype(np.uint8)
+        cv2.imwrite(str(out / f"{name}_frames.jpg"), jpeg, [cv2.IMWRITE_JPEG_QUALITY, 85])
         summary["panel_frames"] = pick
     (out / f"{name}.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps({k: v for k, v in summary.items() if k != "rows"}))

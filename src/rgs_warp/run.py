@@ -46,6 +46,7 @@ from rgs_warp.eval import (
     photometric_metrics,
     plot_trajectory_topview,
     psnr,
+    write_frame_scores,
     write_report,
 )
 from rgs_warp.io.atomic import SaveError, write_text_atomic
@@ -869,8 +870,15 @@ def evaluate_run(
         metrics["photometric"] = photometric_metrics(
             renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas, on, tracked
         )
-        metrics["photometric"].update(keyframe_fit(ds, slam, est, on))
+        fit, keyframe_scores = keyframe_fit(ds, slam, est, on)
+        metrics["photometric"].update(fit)
         save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)
+        scored = [
+            (int(i), psnr(x, y, on), psnr(compensate_exposure(x, y, a), y, on))
+            for i, x, y, a in zip(idx, renders, refs, alphas, strict=True)
+        ]
+        title = f"{metrics['dataset']}: PSNR of every scored frame and keyframe"
+        write_frame_scores(run_dir / "frame_scores.csv", run_dir / "frame_scores.png", scored, keyframe_scores, title)
     else:
         metrics["photometric"] = None
         metrics["photometric_na_reason"] = "no non-keyframe frame to score"
@@ -908,17 +916,19 @@ def mesh_section(cfg: Config, ds, slam: SLAM, run_dir: Path) -> dict:
     return {"mesh": mesh_metrics(rec, o3d.io.read_triangle_mesh(str(mesh_path)))}
 
 
-def keyframe_fit(ds, slam: SLAM, est: np.ndarray, device: str | None = None) -> dict:
+def keyframe_fit(ds, slam: SLAM, est: np.ndarray, device: str | None = None) -> tuple[dict, list]:
     """How well the map fits what it was trained on: the mean PSNR of the renders at every keyframe's
     pose against its frame, raw and exposure-compensated (``keyframe_psnr_db``,
-    ``keyframe_psnr_compensated_db``); ``device``: the torch device of ``psnr``."""
-    raw, compensated = [], []
+    ``keyframe_psnr_compensated_db``), and each keyframe's (frame, raw, compensated); ``device``: the
+    torch device of ``psnr``."""
+    scores = []
     for i in slam.keyframe_indices:
         res = slam.render(est[i])
         render, ref = np.clip(res.color.numpy(), 0.0, 1.0), ds[int(i)].rgb
-        raw.append(psnr(render, ref, device))
-        compensated.append(psnr(compensate_exposure(render, ref, res.alpha.numpy()), ref, device))
-    return {"keyframe_psnr_db": float(np.mean(raw)), "keyframe_psnr_compensated_db": float(np.mean(compensated))}
+        compensated = compensate_exposure(render, ref, res.alpha.numpy())
+        scores.append((int(i), psnr(render, ref, device), psnr(compensated, ref, device)))
+    raw, comp = (float(np.mean([s[k] for s in scores])) for k in (1, 2))
+    return {"keyframe_psnr_db": raw, "keyframe_psnr_compensated_db": comp}, scores
 
 
 def error_image(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from rgs_warp.eval.photometric import (
     ssim_3dgs,
 )
 from rgs_warp.eval.reconstruction import mesh_metrics, sample_surface, tsdf_fuse
-from rgs_warp.eval.report import plot_trajectory_topview, write_report
+from rgs_warp.eval.report import plot_trajectory_topview, write_frame_scores, write_report
 
 __all__ = [
     "LPIPS",
@@ -32,6 +32,7 @@ __all__ = [
     "ms_ssim",
     "photometric_metrics",
     "plot_trajectory_topview",
+    "write_frame_scores",
     "psnr",
     "sample_surface",
     "ssim",

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import subprocess
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -151,6 +152,40 @@ def _view_basis(gt_m: np.ndarray, est_m: np.ndarray, up: np.ndarray | None) -> t
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
     return np.stack([e1, e2]), ["horizontal 1 (m)", "horizontal 2 (m)"]
+
+
+def write_frame_scores(
+    path_csv: str | Path,
+    path_png: str | Path,
+    scored: Sequence[tuple[int, float, float]],
+    keyframes: Sequence[tuple[int, float, float]],
+    title: str = "",
+) -> tuple[Path, Path]:
+    """Each scored frame's and keyframe's PSNR, (frame, raw dB, at the frame's exposure dB), as a CSV
+    (``frame,kind,psnr_db,psnr_compensated_db``, by frame) and a plot of the compensated PSNR against
+    the frame index, keyframes in red: where along the sequence the map renders badly (far from the
+    keyframes, a region without depth) shows at a glance."""
+    rows = sorted([(f, "scored", r, c) for f, r, c in scored] + [(f, "keyframe", r, c) for f, r, c in keyframes])
+    lines = ["frame,kind,psnr_db,psnr_compensated_db"] + [f"{f},{k},{r:.3f},{c:.3f}" for f, k, r, c in rows]
+    path_csv, path_png = Path(path_csv), Path(path_png)
+    write_text_atomic(path_csv, "\n".join(lines) + "\n")
+    fig, ax = plt.subplots(figsize=(10, 3.5), dpi=110)
+    for points, colour, name in ((scored, "tab:blue", "scored (held out)"), (keyframes, "red", "keyframes")):
+        if len(points):
+            f, _, c = np.asarray(points, dtype=np.float64).T
+            ax.plot(f, c, "o", color=colour, markersize=3.5, label=f"{name}: mean {c.mean():.2f} dB")
+    if len(scored):
+        f, _, c = np.asarray(sorted(scored), dtype=np.float64).T
+        ax.plot(f, c, color="tab:blue", linewidth=0.6, alpha=0.6)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("PSNR at the frame's exposure (dB)")
+    ax.set_title(title)
+    ax.grid(True, linewidth=0.3)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path_png)
+    plt.close(fig)
+    return path_csv, path_png
 
 
 def plot_trajectory_topview(
