@@ -236,8 +236,9 @@ class Seeder:
     ``seed_matches``: the keyframe's triangulated matches, minus those whose depth disagrees with the
     measured one (RGB-D, ``depth_consistency_tol``) and those the map already explains (it covers
     their pixel at a consistent depth).  ``seed_depth``: measured-depth seeds where the map still does
-    not cover the keyframe (RGB-D with ``depth_fill``: plain walls have no matches), and the very
-    first seeds of an empty map (monocular: a plane at ``scene_depth_m``).  ``fill_frame``: the same
+    not cover the keyframe (RGB-D with ``depth_fill``: plain walls have no matches; with
+    ``depth_extrapolate_px`` also where nothing was measured, at the measured depth nearby), and the
+    very first seeds of an empty map (monocular: a plane at ``scene_depth_m``).  ``fill_frame``: the same
     for a tracked frame that is not a keyframe, when it shows more than ``frame_fill_min_uncovered``
     of new surface; those seeds wait in ``pending`` (tracking does not change the map, §4.6, so the
     co-visibility test of the next frames sees the same map) until ``join_pending`` at the next
