@@ -177,6 +177,7 @@ def write_frame_scores(
     if len(scored):
         f, _, c = np.asarray(sorted(scored), dtype=np.float64).T
         ax.plot(f, c, color="tab:blue", linewidth=0.6, alpha=0.6)
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     ax.set_xlabel("frame")
     ax.set_ylabel("PSNR at the frame's exposure (dB)")
     ax.set_title(title)
