@@ -293,7 +293,7 @@ class Seeder:
         # RGB-D: measured depth carried into the pixels without it (depth_extrapolate_px), two buffers
         self._extrapolated = None
         if mode == "rgbd" and cfg.depth_extrapolate_px > 0:
-            self._extrapolated = (wp.zeros(shape, dtype=wp.float32, device=dev), wp.zeros_like(self._zero_alpha))
+            self._extrapolated = tuple(wp.zeros(shape, dtype=wp.float32, device=dev) for _ in range(2))
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
     def _point_seeders(self) -> list[tuple[str, PointSeeder]]:
@@ -378,7 +378,7 @@ class Seeder:
         added = self._seed_depth(keyframes, slot, alpha, None, gmap, self.max_gaussians)
         if self.cfg.far_layer_m > 0.0:  # where nothing was measured: not where the depth seeds just went
             far = self._plane_depth
-            launch_inputs = [self._measured_depth(keyframes, slot), self.cfg.far_layer_m]
+            launch_inputs = [self._depth_to_seed(keyframes, slot), self.cfg.far_layer_m]
             wp.launch(ks.far_layer_depth, dim=far.shape, inputs=launch_inputs, outputs=[far], device=self.device)
             added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
         return added
@@ -436,9 +436,9 @@ class Seeder:
         target.remove(mask)
         return keep
 
-    def _measured_depth(self, frames: KeyframeBuffer, slot: int) -> wp.array:
-        """The measured depth of ``frames`` slot ``slot``, carried ``depth_extrapolate_px`` pixels into
-        those without a measurement when that is on (RGB-D)."""
+    def _depth_to_seed(self, frames: KeyframeBuffer, slot: int) -> wp.array:
+        """The depth image the depth seeds of ``frames`` slot ``slot`` come from: its measured depth,
+        carried ``depth_extrapolate_px`` pixels into those without a measurement when that is on (RGB-D)."""
         if self._extrapolated is None:
             return frames.depth[slot]
         src = frames.depth[slot]
@@ -467,7 +467,7 @@ class Seeder:
         wp.launch(
             ks.depth_points,
             dim=self._depth_grid,
-            inputs=[self._measured_depth(frames, slot) if depth is None else depth]
+            inputs=[self._depth_to_seed(frames, slot) if depth is None else depth]
             + [cam.fx, cam.fy, cam.cx, cam.cy, wp.mat44d(frames.poses[slot]), cfg.depth_stride]
             + [cfg.depth_max_rel_jump, cfg.min_residual_px, 90.0, alpha, cfg.covered_alpha],
             outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],
