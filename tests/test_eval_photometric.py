@@ -167,7 +167,10 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     assert out["lpips"] is None and "no AlexNet weights path" in out["lpips_na_reason"]
     # a frame where the map renders no depth (lost region) is left out; none at all: n/a with why
     empty = np.zeros_like(depth)
-    out2 = photometric_metrics([a, b], [a, a], None, [empty, depth], [depth, depth + 0.02])
+    frames_psnr: list = []
+    out2 = photometric_metrics([a, b], [a, a], None, [empty, depth], [depth, depth + 0.02], frame_psnr_out=frames_psnr)
+    assert frames_psnr[0] == (float("inf"), float("inf")) and frames_psnr[1][0] == pytest.approx(psnr(b, a), abs=1e-9)
+    assert "frame_psnr_out" not in out2 and len(frames_psnr) == 2
     assert out2["depth_l1_cm"] == pytest.approx(2.0, abs=1e-4)
     out3 = photometric_metrics([a], [a], None, [empty], [depth])
     assert out3["depth_l1_cm"] is None and "rendered and a measured depth" in out3["depth_l1_cm_na_reason"]

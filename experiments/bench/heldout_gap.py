@@ -32,7 +32,7 @@ import torch
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
 from rgs_warp.eval.ate import ate
-from rgs_warp.eval.photometric import eval_frame_indices, fit_exposure
+from rgs_warp.eval.photometric import compensate_exposure, eval_frame_indices, psnr
 from rgs_warp.slam import SLAM
 
 BINS = ("0", "1", "2", "3-4", "5+", "no depth")
@@ -124,10 +124,8 @@ def main(argv=None) -> None:
         render = np.clip(res.color.numpy(), 0, 1)
         alpha = res.alpha.numpy()
         ref = ds[i].rgb
-        g, b = fit_exposure(render, ref, alpha)
-        comp = np.clip(g * render.astype(np.float64) + b, 0, 1)
+        comp = compensate_exposure(render, ref, alpha)
         se = ((comp - ref) ** 2).mean(axis=2)
-        raw_mse = float(((render - ref) ** 2).mean())
         d_frames = min(abs(i - k) for k in kfs)
         dists = np.linalg.norm(kf_pos - est[i][:3, 3], axis=1)
         j = int(np.argmin(dists))
@@ -137,8 +135,8 @@ def main(argv=None) -> None:
             "frame": i,
             "keyframe": i in kfs,
             "scored": i in scored,
-            "psnr_raw": float(10 * np.log10(1 / max(raw_mse, 1e-12))),
-            "psnr_comp": float(10 * np.log10(1 / max(se.mean(), 1e-12))),
+            "psnr_raw": psnr(render, ref),
+            "psnr_comp": psnr(comp, ref),
             "uncovered": float((alpha < 0.5).mean()),
             "frames_to_keyframe": d_frames,
             "cm_to_keyframe": float(100 * dists[j]),

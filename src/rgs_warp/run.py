@@ -867,16 +867,22 @@ def evaluate_run(
         tracked = None
         if exposures is not None and len(exposures) >= n:
             tracked = [tuple(exposures[int(i)] or (1.0, 0.0)) for i in idx]
+        frame_psnr: list = []
         metrics["photometric"] = photometric_metrics(
-            renders, refs, lpips, depths if depths else None, ref_depths if ref_depths else None, alphas, on, tracked
+            renders,
+            refs,
+            lpips,
+            depths if depths else None,
+            ref_depths if ref_depths else None,
+            alphas,
+            on,
+            tracked,
+            frame_psnr_out=frame_psnr,
         )
         fit, keyframe_scores = keyframe_fit(ds, slam, est, on)
         metrics["photometric"].update(fit)
         save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)
-        scored = [
-            (int(i), psnr(x, y, on), psnr(compensate_exposure(x, y, a), y, on))
-            for i, x, y, a in zip(idx, renders, refs, alphas, strict=True)
-        ]
+        scored = [(int(i), raw, comp) for i, (raw, comp) in zip(idx, frame_psnr, strict=True)]
         title = f"{metrics['dataset']}: PSNR of every scored frame and keyframe"
         write_frame_scores(run_dir / "frame_scores.csv", run_dir / "frame_scores.png", scored, keyframe_scores, title)
     else:

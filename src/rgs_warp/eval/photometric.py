@@ -337,6 +337,7 @@ def photometric_metrics(
     alphas: Sequence[np.ndarray] | None = None,
     device: str | None = None,
     tracked_exposures: Sequence[tuple[float, float]] | None = None,
+    frame_psnr_out: list | None = None,
 ) -> dict:
     """Means over the scored frames (pick them with ``eval_frame_indices``) of PSNR, SSIM, LPIPS
     and depth L1, for ``write_report``: ``psnr_db`` and ``ssim`` of the raw render, and
@@ -344,6 +345,7 @@ def photometric_metrics(
     (``compensate_exposure``, fitted where ``alphas`` >= 0.5), with the mean fitted gain
     ``exposure_gain`` (1 where the map's colour is the frames' exposure); peers' SSIM variants of the
     raw render, each named: ``ssim_3dgs`` (zero-padded, MonoGS) and ``ms_ssim`` (SplaTAM's "SSIM").
+    ``frame_psnr_out``: a list to which each frame's (raw, compensated) PSNR is appended, in order.
     ``psnr_tracked_exposure_db`` and ``ssim_tracked_exposure``: the render at the exposure (g, b) that
     tracking estimated for each frame (``tracked_exposures``), as the SLAM itself would show the frame:
     nothing fitted to the frame at evaluation time.
@@ -358,17 +360,23 @@ def photometric_metrics(
     ]
     d = device
 
-    def mean(metric, images) -> float:
-        return float(np.mean([metric(x, y, d) for x, y in zip(images, refs, strict=True)]))
+    def each(metric, images) -> list[float]:
+        return [metric(x, y, d) for x, y in zip(images, refs, strict=True)]
 
+    def mean(metric, images) -> float:
+        return float(np.mean(each(metric, images)))
+
+    frame_psnr, frame_psnr_compensated = each(psnr, renders), each(psnr, compensated)
     out: dict = {
         "n_frames": len(renders),
-        "psnr_db": mean(psnr, renders),
+        "psnr_db": float(np.mean(frame_psnr)),
         "ssim": mean(ssim, renders),
-        "psnr_compensated_db": mean(psnr, compensated),
+        "psnr_compensated_db": float(np.mean(frame_psnr_compensated)),
         "ssim_compensated": mean(ssim, compensated),
         "exposure_gain": float(np.mean([g for g, _ in exposures])),
     }
+    if frame_psnr_out is not None:
+        frame_psnr_out.extend(zip(frame_psnr, frame_psnr_compensated, strict=True))
     if tracked_exposures is None:
         out["psnr_tracked_exposure_db"] = out["ssim_tracked_exposure"] = None
         out["psnr_tracked_exposure_db_na_reason"] = "no tracked exposures given"
