@@ -6,8 +6,9 @@ import warp as wp
 
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import se3_exp
-from rgs_warp.kernels.covisibility import visibility_iou
+from rgs_warp.kernels.covisibility import reprojected_iou, visibility_iou
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
+from rgs_warp.types import Camera
 
 
 def test_visibility_iou_matches_numpy(device):
@@ -23,6 +24,94 @@ def test_visibility_iou_matches_numpy(device):
     np.testing.assert_array_equal(counts.numpy(), [(vis & (last > 0)).sum(), (vis | (last > 0)).sum(), vis.sum()])
 
 
+
+def _reprojected_iou_numpy(alpha, depth, last_mask, last_depth, thr, T, K, tol):
+    """Independent reference: the same counts from whole-image NumPy operations in float64."""
+    fx, fy, cx, cy = K
+    h, w = alpha.shape
+    vis = alpha > thr
+    z = np.where(vis, depth / np.maximum(alpha, 1e-12), 0.0)
+    v, u = np.mgrid[0:h, 0:w]
+    X = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1) @ T[:3, :3].T + T[:3, 3]
+    ok = vis & (X[..., 2] > 1e-6)
+    zr = np.where(ok, X[..., 2], 1.0)
+    ur = np.floor(fx * X[..., 0] / zr + cx + 0.5).astype(int)
+    vr = np.floor(fy * X[..., 1] / zr + cy + 0.5).astype(int)
+    ok &= (ur >= 0) & (ur < w) & (vr >= 0) & (vr < h)
+    ur, vr = np.clip(ur, 0, w - 1), np.clip(vr, 0, h - 1)
+    d_ref = last_depth[vr, ur]
+    ok &= (last_mask[vr, ur] > 0) & (np.abs(X[..., 2] - d_ref) <= tol * d_ref)
+    return np.array([ok.sum(), vis.sum(), (last_mask > 0).sum()]), vis.astype(np.uint8), z
+
+
+def test_reprojected_iou_matches_numpy(device):
+    rng = np.random.default_rng(1)
+    h, w, K = 31, 47, (40.0, 42.0, 23.0, 15.0)
+    alpha = rng.random((h, w)).astype(np.float32)
+    # a slanted plane with noise; the reference saw it with a depth error in places (occlusions)
+    v, u = np.mgrid[0:h, 0:w]
+    plane = (2.0 + 0.02 * u + 0.01 * v).astype(np.float32)
+    depth = (plane * alpha).astype(np.float32)
+    last_mask = (rng.random((h, w)) > 0.2).astype(np.uint8)
+    last_depth = (plane * np.where(rng.random((h, w)) > 0.8, 0.7, 1.0)).astype(np.float32)
+    T = se3_exp(np.array([0.05, -0.02, 0.01, 0.01, 0.08, -0.02]))
+    mask = wp.zeros((h, w), dtype=wp.uint8, device=device)
+    z_out = wp.zeros((h, w), dtype=wp.float32, device=device)
+    counts = wp.zeros(3, dtype=wp.int32, device=device)
+    args = [wp.array(a, device=device) for a in (alpha, depth, last_mask, last_depth)]
+    for _ in range(2):  # counts are reset on every call
+        reprojected_iou(*args, 0.3, T, K, 0.05, mask, z_out, counts)
+    want, want_mask, want_z = _reprojected_iou_numpy(alpha, depth, last_mask, last_depth, 0.3, T, K, 0.05)
+    got = counts.numpy()
+    assert 0 < want[0] < want[1]  # some pixels shared, some not: the test can tell them apart
+    # float32 against float64: a pixel whose point lands on a pixel boundary may round either way
+    assert abs(int(got[0]) - int(want[0])) <= 2 and got[1] == want[1] and got[2] == want[2]
+    np.testing.assert_array_equal(mask.numpy(), want_mask)
+    np.testing.assert_allclose(z_out.numpy(), want_z, rtol=1e-5)
+
+
+def _sphere_view(camera, yaw_deg, device, radius=2.0):
+    """A camera at the centre of a sphere, turned by ``yaw_deg``: every pixel covered (alpha 0.9), its
+    depth the sphere's along the ray."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    xn, yn = (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy
+    z = radius / np.sqrt(1.0 + xn**2 + yn**2)
+    T = se3_exp(np.array([0, 0, 0, 0, np.radians(yaw_deg), 0]))
+    alpha = np.full(z.shape, 0.9, np.float32)
+    return wp.array(alpha, device=device), wp.array((0.9 * z).astype(np.float32), device=device), T
+
+
+@pytest.mark.parametrize("covisibility", ["pixels", "reprojected"])
+def test_selector_sees_a_turn_within_the_map(device, covisibility):
+    """The map covers every view of a camera turning inside a sphere: the pixel masks stay full (IoU 1,
+    no keyframe however far it turns), while the reprojected IoU falls with the turn."""
+    cfg = KeyframeConfig(iou_threshold=0.8, covisibility=covisibility)
+    cam = Camera(20.0, 20.0, 19.5, 9.5, 40, 20)  # 90 deg wide
+    sel = KeyframeSelector(cfg, cam, device)
+    a, d, T0 = _sphere_view(cam, 0.0, device)
+    sel.should_add(a, T0, depth=d)
+    sel.accept(T0)
+    same = sel.should_add(a, T0, depth=d)
+    assert same.iou == pytest.approx(1.0) and not same.is_keyframe
+    a3, d3, T3 = _sphere_view(cam, 3.0, device)
+    small = sel.should_add(a3, T3, depth=d3)
+    a30, d30, T30 = _sphere_view(cam, 30.0, device)
+    turned = sel.should_add(a30, T30, depth=d30)
+    if covisibility == "pixels":
+        assert turned.iou == pytest.approx(1.0) and not turned.is_keyframe
+    else:
+        # 30 of 90 degrees turned: about two thirds of the view still shared, IoU about 0.5
+        assert 0.35 < turned.iou < 0.65 and turned.is_keyframe
+        assert 0.85 < small.iou < 1.0 and not small.is_keyframe  # a 3 deg turn: below every bound
+
+
+def test_selector_reprojected_needs_depth(device):
+    cam = Camera(20.0, 20.0, 19.5, 9.5, 40, 20)
+    sel = KeyframeSelector(KeyframeConfig(covisibility="reprojected"), cam, device)
+    with pytest.raises(ValueError, match="rendered depth"):
+        sel.should_add(_sphere_view(cam, 0.0, device)[0], np.eye(4))
+
+
 def _alpha(width, height, x0, x1, device):
     a = np.zeros((height, width), np.float32)
     a[:, x0:x1] = 0.9
@@ -31,7 +120,7 @@ def _alpha(width, height, x0, x1, device):
 
 def test_selector_decisions(device):
     cfg = KeyframeConfig(iou_threshold=0.8, alpha_threshold=0.5, min_translation_m=0.05, min_rotation_deg=5.0)
-    sel = KeyframeSelector(cfg, 40, 10, device)
+    sel = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
     T0 = np.eye(4)
     d = sel.should_add(_alpha(40, 10, 0, 20, device), T0)
     assert d.is_keyframe and d.reason == "first frame"
@@ -59,7 +148,7 @@ def test_selector_decisions(device):
 @pytest.mark.parametrize("ratio", [0.0, 1.5])
 def test_selector_tracking_loss_trigger(device, ratio):
     cfg = KeyframeConfig(iou_threshold=0.8, min_translation_m=0.05, min_rotation_deg=5.0, max_loss_ratio=ratio)
-    sel = KeyframeSelector(cfg, 40, 10, device)
+    sel = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
     same = _alpha(40, 10, 0, 20, device)  # IoU 1 throughout: only the loss can make a keyframe
     T0, T_far = np.eye(4), se3_exp(np.array([0.1, 0, 0, 0, 0, 0]))
     sel.should_add(same, T0)

@@ -153,7 +153,7 @@ def keyframe_statistics(seq, camera, device) -> dict:
     from rgs_warp.render import Renderer
 
     cfg = KeyframeConfig()
-    selector = KeyframeSelector(cfg, camera.width, camera.height, device)
+    selector = KeyframeSelector(cfg, camera, device)
     buffer = KeyframeBuffer(cfg.buffer_size, camera.width, camera.height, device)
     renderer = Renderer(device)
     gmap = None

@@ -181,6 +181,12 @@ class KeyframeConfig:
     # 7-Scenes config (1.3; off: 3 of 3 runs fail at 42 cm, 1.3: 4.1-4.6 cm in 5 of 5, 1.2: 4.4-4.9);
     # off by default (office at 1.3: 0.47-0.51 cm, 32.9-33.2 dB against 0.42, 33.4; results/slam.md)
     max_loss_ratio: float = 0.0
+    # what the IoU compares (keyframes.KeyframeSelector): "pixels", the two visibility masks pixel by
+    # pixel (Eq. 9 as written), or "reprojected", the surface both views see (each visible pixel lifted
+    # with its rendered depth into the last keyframe, shared where that keyframe's depth agrees within
+    # depth_tol): a turn within a mapped room keeps the mask full, only the second sees it
+    covisibility: str = "pixels"
+    depth_tol: float = 0.05
 
 
 @dataclass
@@ -490,6 +496,7 @@ CHOICES = {
     "method": ("rgs", "baseline"),
     "tracking.brightness": ("gain", "affine", "off"),
     "tracking.exposure_from": ("map", "keyframes"),
+    "keyframes.covisibility": ("pixels", "reprojected"),
     "tracking.motion_check": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
     "tracking.graph": ("auto", "on", "off"),
@@ -575,6 +582,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "keyframes.min_rotation_deg": NON_NEGATIVE,
     "keyframes.buffer_size": Bound(lo=2),  # triangulation needs pairs
     "keyframes.max_loss_ratio": NON_NEGATIVE,
+    "keyframes.depth_tol": NON_NEGATIVE,
     "matching.classic_stride": AT_LEAST_1,
     "matching.n_neighbours": AT_LEAST_1,
     "matching.max_view_angle_deg": POSITIVE,

@@ -10,7 +10,8 @@ import warp as wp
 
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
-from rgs_warp.kernels.covisibility import visibility_iou
+from rgs_warp.kernels.covisibility import reprojected_iou, visibility_iou
+from rgs_warp.types import Camera
 
 
 @dataclass
@@ -29,29 +30,57 @@ class KeyframeSelector:
     (the bounds keep near-duplicate viewpoints out, which would add cost but no baseline).
     The first frame is always a keyframe.  With ``max_loss_ratio`` > 0, a frame whose tracking loss
     exceeds that multiple of the first loss after the last keyframe is one too (motion bounds
-    still apply)."""
+    still apply).
 
-    def __init__(self, cfg: KeyframeConfig, width: int, height: int, device: str):
+    ``covisibility``: "pixels" compares the two visibility masks pixel by pixel (Eq. 9 as written);
+    "reprojected" lifts each visible pixel with its rendered depth into the last keyframe and counts
+    it shared where the keyframe saw the same surface (``reprojected_iou``): a view that turns within
+    a mapped room keeps a full mask, so only this one sees that it shows other surface."""
+
+    def __init__(self, cfg: KeyframeConfig, camera: Camera, device: str):
+        if cfg.covisibility not in ("pixels", "reprojected"):
+            raise ValueError(f"keyframes.covisibility must be pixels or reprojected, got {cfg.covisibility!r}")
         self.cfg = cfg
+        self.camera = camera
         self.device = device
-        self._last_mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
-        self._mask = wp.zeros((height, width), dtype=wp.uint8, device=device)
+        shape = (camera.height, camera.width)
+        self._last_mask = wp.zeros(shape, dtype=wp.uint8, device=device)
+        self._mask = wp.zeros(shape, dtype=wp.uint8, device=device)
+        self._last_depth = wp.zeros(shape, dtype=wp.float32, device=device)
+        self._depth = wp.zeros(shape, dtype=wp.float32, device=device)
         self._counts = wp.zeros(3, dtype=wp.int32, device=device)
         self._loss_ref: float | None = None  # tracking loss of the first frame after the last keyframe
         self._last_pose: np.ndarray | None = None
 
-    def should_add(self, alpha: wp.array2d, T_WC: np.ndarray, loss: float | None = None) -> KeyframeDecision:
-        """Decide on a tracked frame from its rendered accumulated opacity, pose and (optional)
-        tracking loss."""
+    def _iou(self, alpha: wp.array2d, depth: wp.array2d | None, T_WC: np.ndarray) -> tuple[float, float]:
+        """(IoU with the last keyframe, coverage); writes the frame's mask (and depth) for ``accept``."""
+        n_pixels = float(alpha.shape[0] * alpha.shape[1])
+        if self.cfg.covisibility == "pixels":
+            visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
+            inter, union, visible = self._counts.numpy()
+            return (float(inter) / float(union) if union > 0 else 0.0), float(visible) / n_pixels
+        if depth is None:
+            raise ValueError("keyframes.covisibility=reprojected needs the frame's rendered depth")
+        c = self.camera
+        T_ref_cur = np.eye(4) if self._last_pose is None else invert_pose(self._last_pose) @ T_WC
+        reprojected_iou(
+            alpha, depth, self._last_mask, self._last_depth, self.cfg.alpha_threshold, T_ref_cur,
+            (c.fx, c.fy, c.cx, c.cy), self.cfg.depth_tol, self._mask, self._depth, self._counts,
+        )  # fmt: skip
+        shared, visible, last_visible = self._counts.numpy()
+        union = int(visible) + int(last_visible) - int(shared)
+        return (float(shared) / float(union) if union > 0 else 0.0), float(visible) / n_pixels
+
+    def should_add(
+        self, alpha: wp.array2d, T_WC: np.ndarray, loss: float | None = None, depth: wp.array2d | None = None
+    ) -> KeyframeDecision:
+        """Decide on a tracked frame from its rendered accumulated opacity, pose, (optional) tracking
+        loss and rendered depth (needed by ``covisibility=reprojected``)."""
         if alpha.shape != self._mask.shape:
             raise ValueError(f"alpha is {alpha.shape}, the selector was built for {self._mask.shape}")
+        iou, coverage = self._iou(alpha, depth, T_WC)
         if self._last_pose is None:
-            visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
             return KeyframeDecision(True, 1.0, 0.0, 0.0, "first frame")
-        visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
-        inter, union, visible = self._counts.numpy()
-        coverage = float(visible) / float(alpha.shape[0] * alpha.shape[1])
-        iou = float(inter) / float(union) if union > 0 else 0.0
         rel = invert_pose(self._last_pose) @ T_WC
         dt = float(np.linalg.norm(rel[:3, 3]))
         drot = rotation_angle_deg(rel[:3, :3])
@@ -71,18 +100,27 @@ class KeyframeSelector:
     def accept(self, T_WC: np.ndarray) -> None:
         """Make the frame last passed to ``should_add`` the reference keyframe."""
         wp.copy(self._last_mask, self._mask)
+        wp.copy(self._last_depth, self._depth)
         self._last_pose = np.array(T_WC, dtype=np.float64)
         self._loss_ref = None
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        """What the selector carries from frame to frame: the reference keyframe's visibility mask and
-        pose (none before the first), and the loss reference (NaN: none); ``load_state_dict`` restores it."""
+        """What the selector carries from frame to frame: the reference keyframe's visibility mask,
+        depth and pose (none before the first), and the loss reference (NaN: none); ``load_state_dict``
+        restores it."""
         pose = np.zeros((0, 4, 4)) if self._last_pose is None else self._last_pose[None]
         loss_ref = np.nan if self._loss_ref is None else self._loss_ref
-        return {"last_mask": self._last_mask.numpy().copy(), "last_pose": pose, "loss_ref": np.array(loss_ref)}
+        return {
+            "last_mask": self._last_mask.numpy().copy(),
+            "last_depth": self._last_depth.numpy().copy(),
+            "last_pose": pose,
+            "loss_ref": np.array(loss_ref),
+        }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self._last_mask.assign(np.asarray(state["last_mask"], dtype=np.uint8))
+        if "last_depth" in state:  # states saved before it was kept: the next keyframe sets it
+            self._last_depth.assign(np.asarray(state["last_depth"], dtype=np.float32))
         self._last_pose = np.array(state["last_pose"][0], dtype=np.float64) if len(state["last_pose"]) else None
         loss_ref = float(state["loss_ref"])
         self._loss_ref = None if np.isnan(loss_ref) else loss_ref

@@ -46,8 +46,9 @@ class TrackingResult:
     diverged: the estimate was not finite, or moved implausibly far from the start pose
     (``MAX_CORRECTION_M``, ``MAX_CORRECTION_DEG``): it is discarded and ``T_WC`` is the start pose;
     iters: Adam steps taken; residual: weighted mean |I - g I_hat - b| per channel; loss_history:
-    loss per iteration; alpha: the accumulated opacity of the last render (tracking resolution), for
-    the keyframe selector, valid until the tracker's renderer renders again; motion_inconsistent: lost by
+    loss per iteration; alpha, depth: the accumulated opacity and expected depth (not normalised) of the
+    last render (tracking resolution), for the keyframe selector, valid until the tracker's renderer
+    renders again; motion_inconsistent: lost by
     the motion check (``tracking.motion_check``, ``motion_inconsistency``): the translation collapsed
     while the rotation went on as predicted, so the pose is not to be mapped; settled_iters: the steps
     after which the pose stayed put (``settled_iters``), what an early stop could save.
@@ -65,6 +66,7 @@ class TrackingResult:
     residual: float
     loss_history: np.ndarray
     alpha: wp.array
+    depth: wp.array
     diverged: bool = False
     motion_inconsistent: bool = False
     settled_iters: int = 0
@@ -199,6 +201,13 @@ class Tracker:
         return self._last_render.alpha
 
     @property
+    def depth(self) -> wp.array:
+        """Expected depth (not normalised by ``alpha``) of the same render."""
+        if self._last_render is None:
+            raise RuntimeError("no frame tracked yet")
+        return self._last_render.depth
+
+    @property
     def frame(self) -> tuple[wp.array, wp.array | None]:
         """The last tracked frame's (rgb, depth) on the device at the input resolution (depth None in
         "mono"); valid until the next ``track``."""
@@ -265,7 +274,7 @@ class Tracker:
         self.reset(result.T_WC)  # the velocity before the loss is not this pose's
         if k != len(candidates) - 1:  # alpha is the last render's: render the chosen pose again
             self.exposure(gmap, result.T_WC)
-            result.alpha = self._last_render.alpha
+            result.alpha, result.depth = self._last_render.alpha, self._last_render.depth
         return result, k
 
     def load_frame(self, rgb, depth) -> None:
@@ -542,6 +551,7 @@ class Tracker:
             residual=residual,
             loss_history=hist[:, tk.H_LOSS].copy(),
             alpha=self._last_render.alpha,
+            depth=self._last_render.depth,
             diverged=diverged,
             motion_inconsistent=motion_inconsistent,
             settled_iters=settled_iters(poses_CW),

@@ -29,7 +29,7 @@ from rgs_warp.bootstrap import MonoBootstrap, to_triangulated_points
 from rgs_warp.config import Config, check_config, check_image_size, resolve_device
 from rgs_warp.exposure import KeyframeExposure
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
-from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
+from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeDecision, KeyframeHistory, KeyframeSelector
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
@@ -105,7 +105,7 @@ class SLAM:
         relocalize = cfg.tracking.relocalize
         self.relocalize = relocalize == "on" or (relocalize == "auto" and self.mode == "mono")
         tc = self.tracker.track_camera
-        self.selector = KeyframeSelector(cfg.keyframes, tc.width, tc.height, dev)
+        self.selector = KeyframeSelector(cfg.keyframes, tc, dev)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
         # mapping.history: the keyframes the buffer evicted, for mapping's views of older keyframes
         self.history = None
@@ -228,13 +228,13 @@ class SLAM:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
             exposure, pose_ok = (1.0, 0.0), True
-            decision = self.selector.should_add(self._alpha_at(tmap, T), T)  # "first frame"
+            decision = self._select_at(tmap, T)  # "first frame"
         elif given:
             T = np.array(T_WC, dtype=np.float64)
             self.tracker.load_frame(rgb, depth)  # the frame fill reads it
             self.tracker.reset(T, self.poses[-1])  # the motion model goes on from the given poses
             exposure, pose_ok = self.tracker.exposure(tmap, T), True
-            decision = self.selector.should_add(self.tracker.alpha, T)
+            decision = self.selector.should_add(self.tracker.alpha, T, depth=self.tracker.depth)
         else:
             tr0 = time.perf_counter()
             before = self.tracker.state_dict()
@@ -249,7 +249,8 @@ class SLAM:
                 result = FrameResult(i, self.poses[-1].copy(), tracking, False, "not mapped: tracking diverged")
                 return self._record(self._counted(result, frame, tracking.reason), timestamp, t0)
             T, exposure, pose_ok = tracking.T_WC, (tracking.gain, tracking.bias), not tracking.lost
-            decision = self.selector.should_add(tracking.alpha, T, None if tracking.lost else tracking.loss)
+            loss = None if tracking.lost else tracking.loss
+            decision = self.selector.should_add(tracking.alpha, T, loss, depth=tracking.depth)
         is_kf, reason = decision.is_keyframe, decision.reason + (" (pose given)" if given and i else "")
         if 0 < i < self._init_window_end:
             is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}{', pose given' if given else ''})"
@@ -355,13 +356,16 @@ class SLAM:
         result.seconds = time.perf_counter() - t0
         return result
 
-    def _alpha_at(self, gmap: GaussianMap, T_WC: np.ndarray) -> wp.array:
-        """``gmap``'s accumulated opacity seen from T_WC at the tracking resolution (zeros if empty)."""
+    def _select_at(self, gmap: GaussianMap, T_WC: np.ndarray) -> KeyframeDecision:
+        """The selector's decision on ``gmap`` seen from T_WC at the tracking resolution (an empty map:
+        nothing visible)."""
         tc = self.tracker.track_camera
         if len(gmap) == 0:
-            return wp.zeros((tc.height, tc.width), dtype=wp.float32, device=self.device)
+            empty = wp.zeros((tc.height, tc.width), dtype=wp.float32, device=self.device)
+            return self.selector.should_add(empty, T_WC, depth=empty)
         renderer = self.renderer if self.worker is None else self._tracking_renderer
-        return renderer.forward(gmap, tc, T_WC).alpha
+        res = renderer.forward(gmap, tc, T_WC)
+        return self.selector.should_add(res.alpha, T_WC, depth=res.depth)
 
     def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult, t_tracked: float) -> None:
         """Keyframe ``i`` into the buffer, seeded, its window mapped and maintained (a mapping job)."""
@@ -525,7 +529,7 @@ class SLAM:
                 self._counted(result, frame, tracking.reason if tracking.lost else "")
         if boot is not None:
             self.tracker.reset(result.T_WC, self.poses[i - 1] if i > 1 else T0)
-        self.selector.should_add(self._alpha_at(self.map, result.T_WC), result.T_WC)
+        self._select_at(self.map, result.T_WC)
         self.selector.accept(result.T_WC)
         return self._record(result, frames[-1][1], t0)
 

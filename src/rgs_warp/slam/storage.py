@@ -233,7 +233,7 @@ def load_slam(cls, directory: str | Path, device=None):
         slam.tracker.reset(slam.poses[-1], slam.poses[-2] if len(slam.poses) > 1 else None)
     if len(slam.keyframes):
         T_kf = slam.keyframes.poses[slam.keyframes.slots()[-1]]
-        slam.selector.should_add(slam._alpha_at(slam.map, T_kf), T_kf)
+        slam._select_at(slam.map, T_kf)
         slam.selector.accept(T_kf)
     return slam
 
