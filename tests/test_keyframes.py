@@ -24,7 +24,6 @@ def test_visibility_iou_matches_numpy(device):
     np.testing.assert_array_equal(counts.numpy(), [(vis & (last > 0)).sum(), (vis | (last > 0)).sum(), vis.sum()])
 
 
-
 def _reprojected_iou_numpy(alpha, depth, last_mask, last_depth, thr, T, K, tol):
     """Independent reference: the same counts from whole-image NumPy operations in float64."""
     fx, fy, cx, cy = K
