@@ -118,7 +118,9 @@ def _alpha(width, height, x0, x1, device):
 
 
 def test_selector_decisions(device):
-    cfg = KeyframeConfig(iou_threshold=0.8, alpha_threshold=0.5, min_translation_m=0.05, min_rotation_deg=5.0)
+    cfg = KeyframeConfig(
+        iou_threshold=0.8, alpha_threshold=0.5, min_translation_m=0.05, min_rotation_deg=5.0, covisibility="pixels"
+    )
     sel = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
     T0 = np.eye(4)
     d = sel.should_add(_alpha(40, 10, 0, 20, device), T0)
@@ -146,7 +148,9 @@ def test_selector_decisions(device):
 
 @pytest.mark.parametrize("ratio", [0.0, 1.5])
 def test_selector_tracking_loss_trigger(device, ratio):
-    cfg = KeyframeConfig(iou_threshold=0.8, min_translation_m=0.05, min_rotation_deg=5.0, max_loss_ratio=ratio)
+    cfg = KeyframeConfig(
+        iou_threshold=0.8, min_translation_m=0.05, min_rotation_deg=5.0, max_loss_ratio=ratio, covisibility="pixels"
+    )
     sel = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
     same = _alpha(40, 10, 0, 20, device)  # IoU 1 throughout: only the loss can make a keyframe
     T0, T_far = np.eye(4), se3_exp(np.array([0.1, 0, 0, 0, 0, 0]))

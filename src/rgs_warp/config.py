@@ -73,7 +73,11 @@ class DatasetConfig:
 
 @dataclass
 class RenderConfig:
-    sh_degree: int = 2
+    # view-dependent colour bands (SH degree; the design's 2, Table 2's 3).  0: H100, session 18, the
+    # office and 7-Scenes held-out PSNR within run-to-run noise of degree 2 (34.37 against 34.34 dB;
+    # 24.64-24.83 against 24.88-25.11 compensated), 27-33 % less GPU memory, 3-9 % more frames/s
+    # (experiments/results/fidelity.md, "Co-visibility of the surface")
+    sh_degree: int = 0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
@@ -170,7 +174,9 @@ class TrackingConfig:
 
 @dataclass
 class KeyframeConfig:
-    iou_threshold: float = 0.8  # Eq. 9 tau
+    # Eq. 9 tau; for covisibility=reprojected (below): 0.6 (H100, office: 0.5 / 0.6 / 0.7 / 0.8 give 24 /
+    # 31 / 43 / 67 keyframes, 33.2 / 35.3 / 35.9 / 35.5 dB; pixels at 0.8: 26 keyframes, 34.3 dB)
+    iou_threshold: float = 0.6
     alpha_threshold: float = 0.5  # visibility mask: accumulated opacity above this
     min_translation_m: float = 0.05
     min_rotation_deg: float = 5.0
@@ -185,7 +191,7 @@ class KeyframeConfig:
     # pixel (Eq. 9 as written), or "reprojected", the surface both views see (each visible pixel lifted
     # with its rendered depth into the last keyframe, shared where that keyframe's depth agrees within
     # depth_tol): a turn within a mapped room keeps the mask full, only the second sees it
-    covisibility: str = "pixels"
+    covisibility: str = "reprojected"
     depth_tol: float = 0.05
 
 
@@ -268,8 +274,9 @@ class SeedingConfig:
     # (experiments/results/fidelity.md, session 17)
     depth_extrapolate_px: int = 64
     # RGB-D: where the keyframe has detail (grey-level gradient magnitude, central differences, at least
-    # detail_min_gradient per pixel), depth seeds also at this finer stride (px); 0 = off
-    detail_stride: int = 0
+    # detail_min_gradient per pixel), depth seeds also at this finer stride (px); 0 = off.  H100 office:
+    # +1.2 dB held out, 1.4x the Gaussians (session 10, 17, 18)
+    detail_stride: int = 1
     detail_min_gradient: float = 0.03
     # RGB-D: a tracked frame that is not a keyframe also gets measured-depth seeds where the map does
     # not cover it, when more than this fraction of its pixels is uncovered (new surface shows up
