@@ -42,7 +42,7 @@ def _slam(device, gaussians: int = 40, frames: int = 3, keyframes: int = 2) -> S
             rng.normal(size=(n, 4)),
             rng.normal(size=(n, 3)) - 3.0,
             rng.normal(size=n),
-            rng.normal(size=(n, 9, 3)),
+            rng.normal(size=(n, slam.map.num_sh, 3)),
         )
     for i in range(frames):
         T = np.eye(4)
