@@ -73,10 +73,11 @@ class DatasetConfig:
 
 @dataclass
 class RenderConfig:
-    # view-dependent colour bands (SH degree; the design's 2, Table 2's 3).  1: H100, session 18, with
-    # detail seeds and reprojected keyframes: office 34.35 dB held out at 1 and 2 alike (0: 34.37);
-    # 7-Scenes compensated 24.75-24.76 at 1, 24.76-25.01 at 2, 24.54-24.62 at 0; GPU memory on the
-    # office 2.9 GiB at 0, 4.3 at 2 (over issue 19's 4 GiB) (experiments/results/fidelity.md)
+    # view-dependent colour bands (SH degree; the design's 2, Table 2's 3).  1 (H100, session 18): the
+    # office scores alike at 0, 1 and 2 (34.37 / 34.35 / 34.34 dB held out); 7-Scenes, with the
+    # reprojected keyframes and detail seeds, 24.75-24.76 dB compensated at 1, 24.76-25.01 at 2,
+    # 24.54-24.62 at 0; office GPU memory with the detail seeds 2.9 / 3.4 / 4.3 GiB at 0 / 1 / 2 (issue
+    # 19's bound: 4) (experiments/results/fidelity.md)
     sh_degree: int = 1
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
