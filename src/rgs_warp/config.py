@@ -284,11 +284,6 @@ class SeedingConfig:
     # between keyframes; seen by no keyframe it would stay a hole); negative = off
     frame_fill_min_uncovered: float = 0.002
     depth_max_rel_jump: float = 0.05  # skip depth seeds on discontinuities (second difference / depth)
-    # RGB-D: after a keyframe's window is mapped, depth (and detail) seeds where the map still renders
-    # that keyframe with a mean absolute residual above topup_residual (per channel, at its exposure),
-    # at most topup_max a keyframe (Seeder.top_up); 0 = off
-    topup_residual: float = 0.0
-    topup_max: int = 20000
 
 
 @dataclass
@@ -633,8 +628,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "seeding.depth_stride": AT_LEAST_1,
     "seeding.depth_extrapolate_px": NON_NEGATIVE,
     "seeding.detail_stride": NON_NEGATIVE,
-    "seeding.topup_residual": NON_NEGATIVE,
-    "seeding.topup_max": NON_NEGATIVE,
     "seeding.detail_min_gradient": NON_NEGATIVE,
     "seeding.depth_max_rel_jump": NON_NEGATIVE,
     "mapping.iters": NON_NEGATIVE,

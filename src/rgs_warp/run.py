@@ -510,8 +510,6 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
             entry[key] = getattr(result, key)
     if result.keyframe:
         entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
-        if result.topped_up:
-            entry["topped_up"] = result.topped_up
         if result.mapping is not None and result.mapping.iters:
             entry["mapping_l1"] = result.mapping.final_l1
         if cfg.method == "baseline" and result.mapping is not None:

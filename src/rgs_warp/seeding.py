@@ -383,31 +383,6 @@ class Seeder:
             added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
         return added
 
-    def top_up(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
-        """RGB-D, after keyframe ``slot``'s window was mapped: measured-depth seeds (and detail seeds)
-        where the map still renders it with a mean absolute residual above ``topup_residual`` (at its
-        exposure), at most ``topup_max`` of them (the most confident, ``_within_cap``); returns how
-        many.  Capacity where mapping could not fit the image (issue 18)."""
-        cfg = self.cfg
-        if self.mode != "rgbd" or cfg.topup_residual <= 0.0 or cfg.topup_max <= 0:
-            return 0
-        rendered = self.renderer.forward(gmap, self.camera, keyframes.poses[slot]).color
-        g, b = (float(v) for v in keyframes.exposure[slot])
-        gate = self._alpha
-        wp.launch(
-            ks.residual_gate,
-            dim=gate.shape,
-            inputs=[keyframes.rgb[slot], rendered, g, b, cfg.topup_residual],
-            outputs=[gate],
-            device=self.device,
-        )
-        limit = len(gmap) + cfg.topup_max
-        if self.max_gaussians > 0:
-            limit = min(limit, self.max_gaussians)
-        if limit <= len(gmap):
-            return 0
-        return self._seed_depth(keyframes, slot, gate, None, gmap, limit)
-
     def wants_fill(self, coverage: float) -> bool:
         """Whether a tracked frame that is not a keyframe, of which the map covers the fraction
         ``coverage``, gets ``fill_frame`` seeds: RGB-D, and more than ``frame_fill_min_uncovered``

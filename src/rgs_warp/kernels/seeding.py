@@ -468,24 +468,6 @@ def union_alpha(
 
 
 @wp.kernel
-def residual_gate(
-    # in: keyframe image, the map's render at its pose, the keyframe's exposure (Eq. 3: g I_hat + b)
-    rgb: wp.array2d(dtype=wp.vec3),
-    rendered: wp.array2d(dtype=wp.vec3),
-    gain: float,
-    bias: float,
-    threshold: float,
-    # out: 0 where the mean absolute residual over the channels exceeds threshold, 1 elsewhere (an
-    # opacity image for depth_points: it seeds where this is below covered_alpha)
-    gate_out: wp.array2d(dtype=wp.float32),
-):
-    y, x = wp.tid()
-    d = rgb[y, x] - (gain * rendered[y, x] + wp.vec3(bias))
-    r = (wp.abs(d[0]) + wp.abs(d[1]) + wp.abs(d[2])) / 3.0
-    gate_out[y, x] = wp.where(r > threshold, 0.0, 1.0)
-
-
-@wp.kernel
 def extrapolate_depth_step(
     # in: depth (metres, 0 = none)
     depth: wp.array2d(dtype=wp.float32),

@@ -59,9 +59,6 @@ class FrameResult:
     seeded: int = 0  # Gaussians added by seeding (a keyframe's, or a frame fill's: seeding.frame_fill_min_uncovered)
     pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0
-    topped_up: int = (
-        0  # Gaussians added after the keyframe's mapping where it still renders poorly (seeding.topup_residual)
-    )
     mapping: MappingResult | None = None
     seconds: float = 0.0
     tracking_seconds: float = 0.0
@@ -405,9 +402,6 @@ class SLAM:
         self.convergence += self.mapper.convergence(
             self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
         )
-        t0 = time.perf_counter()
-        result.topped_up = self.seeder.top_up(self.map, kf, slot)
-        self.stats["seeding_s"] += time.perf_counter() - t0
         self._add_landmarks(slot)
         if self.publisher is not None:
             self._publish()
