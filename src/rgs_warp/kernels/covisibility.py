@@ -1,5 +1,6 @@
-"""Co-visibility counting (supplement §4.3, Eq. 9): pixel visibility masks from accumulated opacity
-and their intersection / union counts, reduced on the device."""
+"""Keyframe scheduling on the device: co-visibility counting (supplement §4.3, Eq. 9: pixel visibility
+masks from accumulated opacity and their intersection / union counts; the reprojected variant) and
+an image's sharpness (Laplacian energy), each reduced per row."""
 
 import warp as wp
 
@@ -151,3 +152,31 @@ def reprojected_iou(
         outputs=[mask_out, depth_out, counts_out],
         device=alpha.device,
     )
+
+
+@wp.kernel
+def _laplacian_energy_rows(
+    # in: the image
+    rgb: wp.array2d(dtype=wp.vec3),
+    # out: sum over the interior pixels of the squared 4-neighbour Laplacian of the grey level
+    energy_out: wp.array(dtype=wp.float32),
+):
+    y = wp.tid() + 1
+    width = rgb.shape[1]
+    row = float(0.0)
+    for x in range(1, width - 1):
+        c = rgb[y, x]
+        n = rgb[y - 1, x] + rgb[y + 1, x] + rgb[y, x - 1] + rgb[y, x + 1]
+        lap = (n[0] + n[1] + n[2] - 4.0 * (c[0] + c[1] + c[2])) / 3.0
+        row += lap * lap
+    wp.atomic_add(energy_out, 0, row)
+
+
+def laplacian_energy(rgb: wp.array2d, energy_out: wp.array) -> None:
+    """Writes into ``energy_out[0]`` the sum of the squared Laplacian (4 neighbours) of ``rgb``'s grey
+    level over its interior pixels: high for a sharp image, low for a blurred one of the same scene."""
+    h, w = rgb.shape
+    if h < 3 or w < 3:
+        raise ValueError(f"the sharpness needs an image of at least 3x3 pixels, got {h}x{w}")
+    energy_out.zero_()
+    wp.launch(_laplacian_energy_rows, dim=h - 2, inputs=[rgb], outputs=[energy_out], device=rgb.device)
