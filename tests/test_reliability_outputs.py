@@ -301,14 +301,15 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys):
     assert "'mapping.iters=5' refused" in err and "device=..., data_root=..." in err
 
 
-# CPU-sized (the test of README's resume): 24 frames, keyframes 0-4, 9, 18, 21; a checkpoint every 2
+# CPU-sized (the test of README's resume): 24 frames, the initial window's 5 keyframes and a few more;
+# a checkpoint every 2 keyframes
 RESUMED = [*SMALL, "dataset.max_frames=24", "mapping.init_iters=40", "mapping.iters=8", "mapping.window=3"]
 
 
 @pytest.mark.slow
 def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, device):
-    """``kill -9`` once 14 frames are logged (the last checkpoint is then at keyframe 6, frame 9),
-    ``resume=``, and the run ends where an uninterrupted run without checkpoints ends.
+    """``kill -9`` four frames after the checkpoint at the 6th keyframe (read from the uninterrupted
+    run's log), ``resume=``, and the run ends where an uninterrupted run without checkpoints ends.
 
     Tolerance: none.  The checkpoint holds the whole state (``SLAM.save(..., state=True)``: Adam's
     moments and step, the mapper's statistics and view-order generator, the keyframe selector's
@@ -320,23 +321,32 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, device):
         pytest.skip("bit-exact resume is a CPU property: CUDA atomics make any two runs differ")
     argv = [*RESUMED, f"device={device}", f"output_dir={tmp_path}"]
     ref_dir, ref_metrics = run(load_config([*argv, "run_name=ref", "checkpoint_every=0"]), progress=False)
+    keyframes = [json.loads(line)["frame"] for line in open(ref_dir / "log.jsonl") if json.loads(line)["keyframe"]]
+    resume_at = keyframes[5] + 1  # the checkpoint at the 6th keyframe: the next frame to process
+    # that checkpoint still the latest 4 frames later (the next comes at the 8th keyframe), before the end
+    assert resume_at + 4 < min(keyframes[7] if len(keyframes) > 7 else 24, 24), keyframes
     killed = tmp_path / "killed"
     cmd = [sys.executable, "-m", "rgs_warp.slam", *argv, "run_name=killed", "checkpoint_every=2"]
     proc = subprocess.Popen(cmd, env=os.environ.copy(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     log, deadline = killed / "log.jsonl", time.monotonic() + 600
 
-    def pointer():  # checkpoints are written in a thread: wait until the one at frame 9 is named
+    def pointer():  # checkpoints are written in a thread: wait until the one at the 6th keyframe is named
         path = killed / "checkpoint.json"
         return json.loads(path.read_text()) if path.is_file() else {}
 
-    while not (log.is_file() and len(log.read_text().splitlines()) >= 14 and pointer().get("next_frame") == 10):
-        assert proc.poll() is None and time.monotonic() < deadline, "the run ended or stalled before frame 14"
+    def logged():
+        return len(log.read_text().splitlines()) if log.is_file() else 0
+
+    while not (logged() >= resume_at + 4 and pointer().get("next_frame") == resume_at):
+        assert proc.poll() is None and time.monotonic() < deadline, (
+            f"the run ended or stalled before frame {resume_at + 4}"
+        )
         time.sleep(0.1)
     proc.send_signal(signal.SIGKILL)
     assert proc.wait(timeout=60) == -signal.SIGKILL
     assert not (killed / "metrics.json").exists()
     checkpoint = json.loads((killed / "checkpoint.json").read_text())
-    assert checkpoint["next_frame"] == 10 and (killed / checkpoint["folder"] / "state.npz").is_file()
+    assert checkpoint["next_frame"] == resume_at and (killed / checkpoint["folder"] / "state.npz").is_file()
 
     assert main([f"resume={killed}"]) == 0
     ref_stamps, ref_poses = read_tum_trajectory(ref_dir / "trajectory.txt")
