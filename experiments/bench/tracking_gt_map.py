@@ -161,10 +161,11 @@ def keyframe_statistics(seq, camera, device) -> dict:
     for i, T_WC in enumerate(seq.poses):
         rgb, depth = seq.render(i)
         if gmap is None:
-            alpha = wp.zeros((camera.height, camera.width), dtype=wp.float32, device=device)
+            alpha = depth_r = wp.zeros((camera.height, camera.width), dtype=wp.float32, device=device)
         else:
-            alpha = renderer.forward(gmap, camera, T_WC).alpha
-        d = selector.should_add(alpha, T_WC)
+            res = renderer.forward(gmap, camera, T_WC)
+            alpha, depth_r = res.alpha, res.depth
+        d = selector.should_add(alpha, T_WC, depth=depth_r)
         decisions.append({"frame": i, "keyframe": d.is_keyframe, "iou": d.iou, "reason": d.reason})
         if d.is_keyframe:
             selector.accept(T_WC)
@@ -290,7 +291,8 @@ def markdown(report: dict) -> str:
                 "## Keyframe selection along the synthetic path",
                 "",
                 head,
-                f"KeyframeSelector defaults (IoU < {c['iou_threshold']} of alpha > {c['alpha_threshold']} masks AND "
+                f"KeyframeSelector defaults (IoU < {c['iou_threshold']} of alpha > {c['alpha_threshold']} masks, "
+                f"compared {c['covisibility']}, AND "
                 f"motion > {c['min_translation_m']} m or {c['min_rotation_deg']} deg), ground-truth poses, the map "
                 f"growing by each keyframe's discs ({k['map_gaussians']:,} Gaussians at the end).",
                 "",

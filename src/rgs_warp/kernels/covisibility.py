@@ -4,6 +4,8 @@ an image's sharpness (Laplacian energy), each reduced per row."""
 
 import warp as wp
 
+from rgs_warp.kernels.math import grey_level
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -165,9 +167,7 @@ def _laplacian_energy_rows(
     width = rgb.shape[1]
     row = float(0.0)
     for x in range(1, width - 1):
-        c = rgb[y, x]
-        n = rgb[y - 1, x] + rgb[y + 1, x] + rgb[y, x - 1] + rgb[y, x + 1]
-        lap = (n[0] + n[1] + n[2] - 4.0 * (c[0] + c[1] + c[2])) / 3.0
+        lap = grey_level(rgb[y - 1, x] + rgb[y + 1, x] + rgb[y, x - 1] + rgb[y, x + 1] - 4.0 * rgb[y, x])
         row += lap * lap
     wp.atomic_add(energy_out, 0, row)
 
