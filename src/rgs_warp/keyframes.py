@@ -60,8 +60,9 @@ class KeyframeSelector:
         self._loss_ref: float | None = None  # tracking loss of the first frame after the last keyframe
         self._last_pose: np.ndarray | None = None
 
-    def _iou(self, alpha: wp.array2d, depth: wp.array2d | None, T_WC: np.ndarray) -> tuple[float, float]:
-        """(IoU with the last keyframe, coverage); writes the frame's mask (and depth) for ``accept``."""
+    def _iou(self, alpha: wp.array2d, depth: wp.array2d | None, T_ref_cur: np.ndarray) -> tuple[float, float]:
+        """(IoU with the last keyframe, coverage); writes the frame's mask (and depth) for ``accept``.
+        ``T_ref_cur``: this frame's camera in the last keyframe's."""
         n_pixels = float(alpha.shape[0] * alpha.shape[1])
         if self.cfg.covisibility == "pixels":
             visibility_iou(alpha, self._last_mask, self.cfg.alpha_threshold, self._mask, self._counts)
@@ -70,7 +71,6 @@ class KeyframeSelector:
         if depth is None:
             raise ValueError("keyframes.covisibility=reprojected needs the frame's rendered depth")
         c = self.camera
-        T_ref_cur = np.eye(4) if self._last_pose is None else invert_pose(self._last_pose) @ T_WC
         reprojected_iou(
             alpha, depth, self._last_mask, self._last_depth, self.cfg.alpha_threshold, T_ref_cur,
             (c.fx, c.fy, c.cx, c.cy), self.cfg.depth_tol, self._mask, self._depth, self._counts,
@@ -98,12 +98,12 @@ class KeyframeSelector:
         size, the same for every frame)."""
         if alpha.shape != self._mask.shape:
             raise ValueError(f"alpha is {alpha.shape}, the selector was built for {self._mask.shape}")
-        iou, coverage = self._iou(alpha, depth, T_WC)
+        rel = np.eye(4) if self._last_pose is None else invert_pose(self._last_pose) @ T_WC
+        iou, coverage = self._iou(alpha, depth, rel)
         sharp = self.sharpness(rgb) if rgb is not None and self.cfg.blur_ratio > 0.0 else None
         if self._last_pose is None:
             self._remember(sharp)
             return KeyframeDecision(True, 1.0, 0.0, 0.0, "first frame")
-        rel = invert_pose(self._last_pose) @ T_WC
         dt = float(np.linalg.norm(rel[:3, 3]))
         drot = rotation_angle_deg(rel[:3, :3])
         moved = dt > self.cfg.min_translation_m or drot > self.cfg.min_rotation_deg
