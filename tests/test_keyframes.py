@@ -6,7 +6,7 @@ import warp as wp
 
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import se3_exp
-from rgs_warp.kernels.covisibility import laplacian_energy, reprojected_iou, visibility_iou
+from rgs_warp.kernels.covisibility import reprojected_iou, visibility_iou
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
 from rgs_warp.types import Camera
 
@@ -165,55 +165,6 @@ def test_selector_tracking_loss_trigger(device, ratio):
     assert not sel.should_add(same, T_far, loss=0.30).is_keyframe
     assert not sel.should_add(same, T0, loss=0.40).is_keyframe
     assert sel.should_add(same, T0, loss=0.46).is_keyframe == (ratio > 0)
-
-
-def test_laplacian_energy_matches_numpy(device):
-    rng = np.random.default_rng(5)
-    rgb = rng.random((17, 23, 3)).astype(np.float32)
-    out = wp.zeros(1, dtype=wp.float32, device=device)
-    for _ in range(2):  # reset on every call
-        laplacian_energy(wp.array(rgb, dtype=wp.vec3, device=device), out)
-    g = rgb.astype(np.float64).mean(axis=2)
-    lap = g[:-2, 1:-1] + g[2:, 1:-1] + g[1:-1, :-2] + g[1:-1, 2:] - 4.0 * g[1:-1, 1:-1]
-    np.testing.assert_allclose(out.numpy()[0], (lap**2).sum(), rtol=1e-4)
-
-
-def _textured(device, blur: int, seed: int = 3) -> wp.array:
-    """A random texture, box-blurred over ``blur`` pixels horizontally (0: sharp)."""
-    rng = np.random.default_rng(seed)
-    img = rng.random((20, 40, 3)).astype(np.float32)
-    if blur:
-        img = np.mean([np.roll(img, k, axis=1) for k in range(blur)], axis=0).astype(np.float32)
-    return wp.array(img, dtype=wp.vec3, device=device)
-
-
-@pytest.mark.parametrize("blur_ratio", [0.0, 0.7])
-def test_selector_waits_for_a_sharp_frame(device, blur_ratio):
-    """Keyframes are due (the view moved off the last one) while the images are motion-blurred: with
-    blur_ratio the selector waits, at most max_blur_delay frames, and takes the next sharp one at once."""
-    cfg = KeyframeConfig(covisibility="pixels", blur_ratio=blur_ratio, blur_window=3, max_blur_delay=2)
-    sel = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
-    sharp, blurred = _textured(device, 0), _textured(device, 6)
-    assert sel.sharpness(blurred) < 0.2 * sel.sharpness(sharp)
-    T0, T1 = np.eye(4), se3_exp(np.array([0.2, 0, 0, 0, 0, 0]))
-    full, moved = _alpha(40, 10, 0, 40, device), _alpha(40, 10, 20, 40, device)  # IoU 0.5 once moved
-    sel.should_add(full, T0, rgb=sharp)
-    sel.accept(T0)
-    assert not sel.should_add(full, T0, rgb=sharp).is_keyframe  # not due: nothing to wait for
-    decisions = [sel.should_add(moved, T1, rgb=blurred) for _ in range(3)]
-    if blur_ratio == 0.0:
-        assert all(d.is_keyframe for d in decisions)
-        return
-    assert [d.is_keyframe for d in decisions] == [False, False, True]  # waits twice, then takes it
-    assert "blurred" in decisions[0].reason and "waits 1/2" in decisions[0].reason
-    sel.accept(T1)
-    sel.should_add(full, T1, rgb=sharp)  # a sharp frame, not due
-    d = sel.should_add(_alpha(40, 10, 0, 20, device), T0, rgb=sharp)  # the other half: IoU 0
-    assert d.is_keyframe and "blurred" not in d.reason  # due and sharp: at once
-    state = sel.state_dict()
-    other = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
-    other.load_state_dict(state)
-    assert other.state_dict()["sharpness"].tolist() == state["sharpness"].tolist()
 
 
 def test_buffer_fifo(device):

@@ -194,11 +194,6 @@ class KeyframeConfig:
     # depth_tol): a turn within a mapped room keeps the mask full, only the second sees it
     covisibility: str = "reprojected"
     depth_tol: float = 0.05
-    # a frame due as a keyframe waits (at most max_blur_delay frames) while its sharpness (mean squared
-    # Laplacian) is below blur_ratio x the sharpest of the blur_window frames before it; 0 = off
-    blur_ratio: float = 0.0
-    blur_window: int = 5
-    max_blur_delay: int = 4
 
 
 @dataclass
@@ -596,9 +591,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "keyframes.buffer_size": Bound(lo=2),  # triangulation needs pairs
     "keyframes.max_loss_ratio": NON_NEGATIVE,
     "keyframes.depth_tol": NON_NEGATIVE,
-    "keyframes.blur_ratio": FRACTION,
-    "keyframes.blur_window": AT_LEAST_1,
-    "keyframes.max_blur_delay": NON_NEGATIVE,
     "matching.classic_stride": AT_LEAST_1,
     "matching.n_neighbours": AT_LEAST_1,
     "matching.max_view_angle_deg": POSITIVE,

@@ -10,7 +10,7 @@ import warp as wp
 
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
-from rgs_warp.kernels.covisibility import laplacian_energy, reprojected_iou, visibility_iou
+from rgs_warp.kernels.covisibility import reprojected_iou, visibility_iou
 from rgs_warp.types import Camera
 
 
@@ -35,12 +35,7 @@ class KeyframeSelector:
     ``covisibility``: "pixels" compares the two visibility masks pixel by pixel (Eq. 9 as written);
     "reprojected" lifts each visible pixel with its rendered depth into the last keyframe and counts
     it shared where the keyframe saw the same surface (``reprojected_iou``): a view that turns within
-    a mapped room keeps a full mask, so only this one sees that it shows other surface.
-
-    ``blur_ratio`` > 0: a frame due as a keyframe whose sharpness (mean squared Laplacian of its grey
-    level, ``laplacian_energy``) is below ``blur_ratio`` times the sharpest of the ``blur_window``
-    frames before it waits, at most ``max_blur_delay`` frames: a keyframe is mapped from its image,
-    and a motion-blurred one blurs the map."""
+    a mapped room keeps a full mask, so only this one sees that it shows other surface."""
 
     def __init__(self, cfg: KeyframeConfig, camera: Camera, device: str):
         if cfg.covisibility not in ("pixels", "reprojected"):
@@ -54,9 +49,6 @@ class KeyframeSelector:
         self._last_depth = wp.zeros(shape, dtype=wp.float32, device=device)
         self._depth = wp.zeros(shape, dtype=wp.float32, device=device)
         self._counts = wp.zeros(3, dtype=wp.int32, device=device)
-        self._energy = wp.zeros(1, dtype=wp.float32, device=device)
-        self._sharpness: list[float] = []  # of the last blur_window frames given an image
-        self._blur_delays = 0  # frames that waited since the last keyframe
         self._loss_ref: float | None = None  # tracking loss of the first frame after the last keyframe
         self._last_pose: np.ndarray | None = None
 
@@ -79,62 +71,31 @@ class KeyframeSelector:
         union = int(visible) + int(last_visible) - int(shared)
         return (float(shared) / float(union) if union > 0 else 0.0), float(visible) / n_pixels
 
-    def sharpness(self, rgb: wp.array2d) -> float:
-        """Mean squared Laplacian of ``rgb``'s grey level (``laplacian_energy``)."""
-        laplacian_energy(rgb, self._energy)
-        h, w = rgb.shape
-        return float(self._energy.numpy()[0]) / float((h - 2) * (w - 2))
-
     def should_add(
-        self,
-        alpha: wp.array2d,
-        T_WC: np.ndarray,
-        loss: float | None = None,
-        depth: wp.array2d | None = None,
-        rgb: wp.array2d | None = None,
+        self, alpha: wp.array2d, T_WC: np.ndarray, loss: float | None = None, depth: wp.array2d | None = None
     ) -> KeyframeDecision:
         """Decide on a tracked frame from its rendered accumulated opacity, pose, (optional) tracking
-        loss, rendered depth (needed by ``covisibility=reprojected``) and image (for ``blur_ratio``; any
-        size, the same for every frame)."""
+        loss and rendered depth (needed by ``covisibility=reprojected``)."""
         if alpha.shape != self._mask.shape:
             raise ValueError(f"alpha is {alpha.shape}, the selector was built for {self._mask.shape}")
         rel = np.eye(4) if self._last_pose is None else invert_pose(self._last_pose) @ T_WC
         iou, coverage = self._iou(alpha, depth, rel)
-        sharp = self.sharpness(rgb) if rgb is not None and self.cfg.blur_ratio > 0.0 else None
         if self._last_pose is None:
-            self._remember(sharp)
             return KeyframeDecision(True, 1.0, 0.0, 0.0, "first frame")
         dt = float(np.linalg.norm(rel[:3, 3]))
         drot = rotation_angle_deg(rel[:3, :3])
         moved = dt > self.cfg.min_translation_m or drot > self.cfg.min_rotation_deg
-        due = ""
         if iou < self.cfg.iou_threshold and moved:
-            due = f"IoU {iou:.3f} < {self.cfg.iou_threshold}"
+            return KeyframeDecision(True, iou, dt, drot, f"IoU {iou:.3f} < {self.cfg.iou_threshold}", coverage)
         ratio = self.cfg.max_loss_ratio
-        if not due and ratio > 0.0 and loss is not None and np.isfinite(loss):
+        if ratio > 0.0 and loss is not None and np.isfinite(loss):
             if self._loss_ref is None:
                 self._loss_ref = float(loss)
             elif moved and loss > ratio * self._loss_ref:
-                due = f"tracking loss {loss:.4f} > {ratio} x {self._loss_ref:.4f}"
-        if due and sharp is not None and self._sharpness and self._blur_delays < self.cfg.max_blur_delay:
-            sharpest = max(self._sharpness)
-            if sharp < self.cfg.blur_ratio * sharpest:
-                self._blur_delays += 1
-                self._remember(sharp)
-                reason = (
-                    f"{due}, but blurred: sharpness {sharp:.3g} < {self.cfg.blur_ratio} x {sharpest:.3g} "
-                    f"(waits {self._blur_delays}/{self.cfg.max_blur_delay})"
-                )
-                return KeyframeDecision(False, iou, dt, drot, reason, coverage)
-        self._remember(sharp)
-        if due:
-            return KeyframeDecision(True, iou, dt, drot, due, coverage)
+                reason = f"tracking loss {loss:.4f} > {ratio} x {self._loss_ref:.4f}"
+                return KeyframeDecision(True, iou, dt, drot, reason, coverage)
         reason = "overlap high" if iou >= self.cfg.iou_threshold else "motion below bounds"
         return KeyframeDecision(False, iou, dt, drot, reason, coverage)
-
-    def _remember(self, sharp: float | None) -> None:
-        if sharp is not None:
-            self._sharpness = (self._sharpness + [sharp])[-max(self.cfg.blur_window, 1) :]
 
     def accept(self, T_WC: np.ndarray) -> None:
         """Make the frame last passed to ``should_add`` the reference keyframe."""
@@ -142,7 +103,6 @@ class KeyframeSelector:
         wp.copy(self._last_depth, self._depth)
         self._last_pose = np.array(T_WC, dtype=np.float64)
         self._loss_ref = None
-        self._blur_delays = 0
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """What the selector carries from frame to frame: the reference keyframe's visibility mask,
@@ -155,16 +115,12 @@ class KeyframeSelector:
             "last_depth": self._last_depth.numpy().copy(),
             "last_pose": pose,
             "loss_ref": np.array(loss_ref),
-            "sharpness": np.array(self._sharpness, dtype=np.float64),
-            "blur_delays": np.array(self._blur_delays),
         }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self._last_mask.assign(np.asarray(state["last_mask"], dtype=np.uint8))
         if "last_depth" in state:  # states saved before it was kept: the next keyframe sets it
             self._last_depth.assign(np.asarray(state["last_depth"], dtype=np.float32))
-        self._sharpness = [float(v) for v in state.get("sharpness", ())]
-        self._blur_delays = int(state.get("blur_delays", 0))
         self._last_pose = np.array(state["last_pose"][0], dtype=np.float64) if len(state["last_pose"]) else None
         loss_ref = float(state["loss_ref"])
         self._loss_ref = None if np.isnan(loss_ref) else loss_ref

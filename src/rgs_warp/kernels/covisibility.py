@@ -1,16 +1,16 @@
-"""Keyframe scheduling on the device: co-visibility counting (supplement §4.3, Eq. 9: pixel visibility
-masks from accumulated opacity and their intersection / union counts; the reprojected variant) and
-an image's sharpness (Laplacian energy), each reduced per row."""
+"""Co-visibility counting (supplement §4.3, Eq. 9): pixel visibility masks from accumulated opacity
+and their intersection / union counts, and the reprojected variant (``reprojected_iou``): one thread
+per pixel, the counts summed per block on the device."""
 
 import warp as wp
 
-from rgs_warp.kernels.math import grey_level
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
 
 wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def _visibility_iou_rows(
+def _visibility_iou_blocks(
     # in:
     alpha: wp.array2d(dtype=wp.float32),
     last_mask: wp.array2d(dtype=wp.uint8),
@@ -19,25 +19,27 @@ def _visibility_iou_rows(
     mask_out: wp.array2d(dtype=wp.uint8),
     counts_out: wp.array(dtype=wp.int32),
 ):
-    # One thread per row, one atomic pair per row: a few hundred atomics per image instead of one
-    # per pixel, and no host round trip before the decision's single 8-byte read.
-    y = wp.tid()
-    inter = int(0)
-    union = int(0)
-    visible = int(0)
-    for x in range(alpha.shape[1]):
+    # One thread per pixel, the counts summed over the block and added with one atomic per block
+    # and count: no host round trip before the decision's single 12-byte read.
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    width = alpha.shape[1]
+    c = wp.vec3i(0, 0, 0)
+    if i < alpha.shape[0] * width:
+        y = i // width
+        x = i - y * width
         vis = alpha[y, x] > alpha_threshold
         mask_out[y, x] = wp.uint8(1) if vis else wp.uint8(0)
         prev = last_mask[y, x] != wp.uint8(0)
-        if vis and prev:
-            inter += 1
-        if vis or prev:
-            union += 1
-        if vis:
-            visible += 1
-    wp.atomic_add(counts_out, 0, inter)
-    wp.atomic_add(counts_out, 1, union)
-    wp.atomic_add(counts_out, 2, visible)
+        c = wp.vec3i(wp.where(vis and prev, 1, 0), wp.where(vis or prev, 1, 0), wp.where(vis, 1, 0))
+    total = block_sum(c)
+    if lane == 0:
+        for k in range(3):
+            wp.atomic_add(counts_out, k, total[k])
+
+
+def _blocks(image: wp.array2d) -> int:
+    return (image.shape[0] * image.shape[1] + REDUCE_BLOCK - 1) // REDUCE_BLOCK
 
 
 def visibility_iou(
@@ -48,17 +50,18 @@ def visibility_iou(
     if counts_out.shape[0] != 3:
         raise ValueError(f"counts_out needs 3 entries, got {counts_out.shape[0]}")
     counts_out.zero_()
-    wp.launch(
-        _visibility_iou_rows,
-        dim=alpha.shape[0],
+    wp.launch_tiled(
+        _visibility_iou_blocks,
+        dim=[_blocks(alpha)],
         inputs=[alpha, last_mask, float(alpha_threshold)],
         outputs=[mask_out, counts_out],
+        block_dim=REDUCE_BLOCK,
         device=alpha.device,
     )
 
 
 @wp.kernel
-def _reprojected_iou_rows(
+def _reprojected_iou_blocks(
     # in: the frame's render (accumulated opacity, expected depth not normalised by it)
     alpha: wp.array2d(dtype=wp.float32),
     depth: wp.array2d(dtype=wp.float32),
@@ -79,19 +82,20 @@ def _reprojected_iou_rows(
     depth_out: wp.array2d(dtype=wp.float32),
     counts_out: wp.array(dtype=wp.int32),
 ):
-    y = wp.tid()
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
     height = alpha.shape[0]
     width = alpha.shape[1]
-    shared = int(0)
-    visible = int(0)
-    last_visible = int(0)
-    for x in range(width):
+    c = wp.vec3i(0, 0, 0)  # shared, visible, visible in the reference
+    if i < height * width:
+        y = i // width
+        x = i - y * width
         if last_mask[y, x] != wp.uint8(0):
-            last_visible += 1
+            c[2] = 1
         a = alpha[y, x]
         z = float(0.0)
         if a > alpha_threshold:
-            visible += 1
+            c[1] = 1
             z = depth[y, x] / a
             X = wp.vec3((float(x) - cx) / fx * z, (float(y) - cy) / fy * z, z)
             Xr = R * X + t
@@ -103,12 +107,13 @@ def _reprojected_iou_rows(
                     if last_mask[v, u] != wp.uint8(0):
                         zr = last_depth[v, u]
                         if wp.abs(Xr[2] - zr) <= depth_tol * zr:
-                            shared += 1
+                            c[0] = 1
         mask_out[y, x] = wp.uint8(1) if a > alpha_threshold else wp.uint8(0)
         depth_out[y, x] = z
-    wp.atomic_add(counts_out, 0, shared)
-    wp.atomic_add(counts_out, 1, visible)
-    wp.atomic_add(counts_out, 2, last_visible)
+    total = block_sum(c)
+    if lane == 0:
+        for k in range(3):
+            wp.atomic_add(counts_out, k, total[k])
 
 
 def reprojected_iou(
@@ -134,9 +139,9 @@ def reprojected_iou(
         raise ValueError(f"counts_out needs 3 entries, got {counts_out.shape[0]}")
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     counts_out.zero_()
-    wp.launch(
-        _reprojected_iou_rows,
-        dim=alpha.shape[0],
+    wp.launch_tiled(
+        _reprojected_iou_blocks,
+        dim=[_blocks(alpha)],
         inputs=[
             alpha,
             depth,
@@ -152,31 +157,6 @@ def reprojected_iou(
             float(depth_tol),
         ],
         outputs=[mask_out, depth_out, counts_out],
+        block_dim=REDUCE_BLOCK,
         device=alpha.device,
     )
-
-
-@wp.kernel
-def _laplacian_energy_rows(
-    # in: the image
-    rgb: wp.array2d(dtype=wp.vec3),
-    # out: sum over the interior pixels of the squared 4-neighbour Laplacian of the grey level
-    energy_out: wp.array(dtype=wp.float32),
-):
-    y = wp.tid() + 1
-    width = rgb.shape[1]
-    row = float(0.0)
-    for x in range(1, width - 1):
-        lap = grey_level(rgb[y - 1, x] + rgb[y + 1, x] + rgb[y, x - 1] + rgb[y, x + 1] - 4.0 * rgb[y, x])
-        row += lap * lap
-    wp.atomic_add(energy_out, 0, row)
-
-
-def laplacian_energy(rgb: wp.array2d, energy_out: wp.array) -> None:
-    """Writes into ``energy_out[0]`` the sum of the squared Laplacian (4 neighbours) of ``rgb``'s grey
-    level over its interior pixels: high for a sharp image, low for a blurred one of the same scene."""
-    h, w = rgb.shape
-    if h < 3 or w < 3:
-        raise ValueError(f"the sharpness needs an image of at least 3x3 pixels, got {h}x{w}")
-    energy_out.zero_()
-    wp.launch(_laplacian_energy_rows, dim=h - 2, inputs=[rgb], outputs=[energy_out], device=rgb.device)

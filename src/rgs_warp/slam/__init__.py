@@ -234,9 +234,7 @@ class SLAM:
             self.tracker.load_frame(rgb, depth)  # the frame fill reads it
             self.tracker.reset(T, self.poses[-1])  # the motion model goes on from the given poses
             exposure, pose_ok = self.tracker.exposure(tmap, T), True
-            decision = self.selector.should_add(
-                self.tracker.alpha, T, depth=self.tracker.depth, rgb=self.tracker.frame[0]
-            )
+            decision = self.selector.should_add(self.tracker.alpha, T, depth=self.tracker.depth)
         else:
             tr0 = time.perf_counter()
             before = self.tracker.state_dict()
@@ -252,9 +250,7 @@ class SLAM:
                 return self._record(self._counted(result, frame, tracking.reason), timestamp, t0)
             T, exposure, pose_ok = tracking.T_WC, (tracking.gain, tracking.bias), not tracking.lost
             loss = None if tracking.lost else tracking.loss
-            decision = self.selector.should_add(
-                tracking.alpha, T, loss, depth=tracking.depth, rgb=self.tracker.frame[0]
-            )
+            decision = self.selector.should_add(tracking.alpha, T, loss, depth=tracking.depth)
         is_kf, reason = decision.is_keyframe, decision.reason + (" (pose given)" if given and i else "")
         if 0 < i < self._init_window_end:
             is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}{', pose given' if given else ''})"
