@@ -381,6 +381,24 @@ def test_merge_property_random_clusters(device):
 # ---- the Maintainer stage --------------------------------------------------------------------------
 
 
+def test_gaussians_out_of_view_spread_over_the_hash_grid(device):
+    """Gaussians without a footprint (here all behind the camera) take no part in merging, and must
+    not pile up in one hash-grid cell: a query reaching that cell would walk all of them (the merge
+    kernel's time was the slowest thread's).  The embedding is read back through the scratch buffers
+    and its cells counted as ``wp.HashGrid`` wraps them (128^3, cell = the query radius)."""
+    rows = _good_rows(20000, seed=3)
+    R, t = T_WC[:3, :3], T_WC[:3, 3]
+    rows["means"] = (rows["means"] * 0.2 - np.array([0.0, 0.0, 2.0])) @ R.T + t  # behind the camera
+    scratch = MergeScratch(device)
+    mask, n_merged = merge_duplicates(_map(rows, device), CAM, T_WC, scratch=scratch)
+    assert int(n_merged.numpy()[0]) == 0 and not mask.numpy().any()
+    assert not scratch.valid.numpy()[:20000].any()
+    cell = 0.5 * 1.4142136  # the default max_footprint_px's query radius
+    cells = np.floor(scratch.points.numpy()[:20000] / cell).astype(np.int64) % 128
+    _, per_cell = np.unique(cells, axis=0, return_counts=True)
+    assert per_cell.max() <= 4
+
+
 def test_maintainer_prunes_merges_and_compacts_every_column(device):
     # rows: 0 and 3 a duplicate pair (merged into 0), 1 transparent (pruned), 2 kept, 4 hidden behind
     # surfaces by the mapper's statistics (seen in 5 renders, contributing in none: pruned)
