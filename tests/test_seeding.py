@@ -761,3 +761,29 @@ def test_detail_seeds_go_where_the_image_has_detail(device):
     (tex0, plain0), (tex1, plain1) = counts[0], counts[1]
     assert abs(tex0 - plain0) <= 0.1 * plain0, counts
     assert tex1 > 3.0 * tex0 and plain1 == plain0, counts
+
+
+def test_dropped_points_park_behind_the_camera_spread_over_the_hash_grid(device):
+    """Points the seeding drops (invalid, or behind the view) stay in its hash grid: they must lie
+    where no seed can (behind the reference camera) and must not fill one cell, which a query
+    reaching it would walk whole.  Cells counted as ``wp.HashGrid`` wraps them (128^3) at a 1 cm cell,
+    about a plane-fit radius at a metre."""
+    n = 20000
+    T_WC = np.eye(4)
+    T_WC[:3, :3] = quat_to_matrix(np.array([0.1, -0.2, 0.05, 0.97]) / np.linalg.norm([0.1, -0.2, 0.05, 0.97]))
+    T_WC[:3, 3] = [0.4, -0.3, 1.2]
+    T_CW = invert_pose(T_WC)
+    prm = PointSeeder(SeedingConfig(), CAM, device)._params
+    X = wp.array(np.random.default_rng(0).normal(size=(n, 3)), dtype=wp.vec3d, device=device)
+    valid = wp.zeros(n, dtype=wp.int32, device=device)
+    points = wp.zeros(n, dtype=wp.vec3, device=device)
+    footprint, radius = wp.zeros(n, dtype=wp.float32, device=device), wp.zeros(n, dtype=wp.float32, device=device)
+    stats = wp.zeros(2, dtype=wp.float32, device=device)
+    view = wp.array([T_CW.astype(np.float32)], dtype=wp.mat44, device=device)
+    wp.launch(ks.seed_footprint, dim=n, inputs=[X, valid, view, prm], outputs=[points, footprint, radius, stats])
+    assert not footprint.numpy().any() and not stats.numpy().any()
+    P = points.numpy().astype(np.float64)
+    z = (P @ T_CW[:3, :3].T + T_CW[:3, 3])[:, 2]
+    assert z.max() < -0.5  # behind the camera
+    _, per_cell = np.unique(np.floor(P / 0.01).astype(np.int64) % 128, axis=0, return_counts=True)
+    assert per_cell.max() <= 4

@@ -54,6 +54,28 @@ def camera_centre(T_CW: wp.mat44) -> wp.vec3:
     )
 
 
+# Where dropped points wait in the hash grid (``parked_point``): a 128^3 lattice of this spacing
+# (metres) behind the reference camera.
+PARKED_SPACING = wp.constant(0.033)
+
+
+@wp.func
+def parked_point(T_CW: wp.mat44, i: int) -> wp.vec3:
+    """Where dropped point ``i`` sits in the hash grid: behind the reference camera (z < 0 there),
+    where no seed lies, and spread over the grid's cells.  All at one point, they filled one cell, and
+    a query that reached it walked every one of them."""
+    q = wp.vec3(
+        PARKED_SPACING * float(i % 128),
+        PARKED_SPACING * float((i // 128) % 128),
+        -1.0 - PARKED_SPACING * float((i // 16384) % 128),
+    )
+    return camera_centre(T_CW) + wp.vec3(
+        T_CW[0, 0] * q[0] + T_CW[1, 0] * q[1] + T_CW[2, 0] * q[2],
+        T_CW[0, 1] * q[0] + T_CW[1, 1] * q[1] + T_CW[2, 1] * q[2],
+        T_CW[0, 2] * q[0] + T_CW[1, 2] * q[1] + T_CW[2, 2] * q[2],
+    )
+
+
 @wp.func
 def focal(prm: SeedParams) -> float:
     """One focal length for an isotropic footprint: the geometric mean keeps the pixel's area."""
@@ -81,9 +103,9 @@ def seed_footprint(
     z = to_camera(view_T_CW[0], p)[2]
     ok = valid[i] != 0 and z > wp.float32(0.0) and wp.isfinite(p)
     footprint = wp.where(ok, z / focal(prm), wp.float32(0.0))
-    # Dropped points still sit in the hash grid: park them at the reference camera centre, where
-    # no seed lies, rather than at the world origin, which may be inside the scene.
-    points_out[i] = wp.where(ok, p, camera_centre(view_T_CW[0]))
+    # Dropped points still sit in the hash grid: parked behind the reference camera, not at the world
+    # origin, which may be inside the scene
+    points_out[i] = wp.where(ok, p, parked_point(view_T_CW[0], i))
     footprint_out[i] = footprint
     radius_out[i] = prm.poisson_radius_px * footprint
     if ok:
