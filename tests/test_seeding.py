@@ -711,6 +711,34 @@ def test_seeder_extrapolates_depth_into_the_border_without_it(device, extrapolat
     assert added > 50
 
 
+def test_frame_fill_with_the_callers_alpha_seeds_as_its_own_render(device):
+    # half of a wall mapped; a fill given the map's opacity (as the SLAM passes tracking's last render)
+    # adds the same seeds as one that renders it, and leaves that opacity as it was
+    keyframes, slot = _wall_keyframe(device)
+    depth = keyframes.depth[slot].numpy().copy()
+    depth[:, CAM.width // 2 :] = 0.0
+    half = keyframes.add(1, np.eye(4), keyframes.rgb[slot].numpy(), depth)
+    cfg = SeedingConfig(depth_extrapolate_px=0, frame_fill_min_uncovered=0.0)
+    rgb, full = keyframes.rgb[slot], keyframes.depth[slot]
+    runs = []
+    for given in (False, True):
+        renderer = Renderer(device)
+        seeder = Seeder(cfg, CAM, device, mode="rgbd", renderer=renderer)
+        gmap = GaussianMap(16, sh_degree=1, device=device)
+        seeder.seed_depth(gmap, keyframes, half)
+        alpha = wp.clone(Renderer(device).forward(gmap, CAM, np.eye(4)).alpha) if given else None
+        before = None if alpha is None else alpha.numpy().copy()
+        added = seeder.fill_frame(gmap, 2, rgb, full, np.eye(4), (1.0, 0.0), alpha)
+        if given:
+            np.testing.assert_array_equal(alpha.numpy(), before)
+        runs.append((added, seeder.pending.to_numpy()["means"]))
+    assert runs[0][0] == runs[1][0] > 20
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    wrong = wp.zeros((CAM.height // 2, CAM.width // 2), dtype=wp.float32, device=device)
+    with pytest.raises(ValueError, match="alpha is"):
+        seeder.fill_frame(gmap, 3, rgb, full, np.eye(4), (1.0, 0.0), wrong)
+
+
 def test_keep_detail_points_matches_numpy(device):
     rng = np.random.default_rng(21)
     H, W, stride, coarse, min_gradient = 13, 19, 1, 4, 0.05

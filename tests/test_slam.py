@@ -273,12 +273,20 @@ def test_frame_fill_seeds_wait_for_the_next_keyframe(device):
     cfg = load_config([*base, "keyframes.iou_threshold=0.0"])
     camera, frames = _frames(cfg, n)
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    fill, given = slam.seeder.fill_frame, []
+
+    def spy(*args):  # the fill gets tracking's last render of the map instead of rendering it again
+        given.append(args[-1] is not None and args[-1].ptr == slam.tracker.alpha.ptr)
+        return fill(*args)
+
+    slam.seeder.fill_frame = spy
     results, sizes = [], []
     for f in frames:
         results.append(slam.process(f.rgb, f.depth, f.timestamp))
         sizes.append(len(slam.map))
     after_init = results[5:]
     assert not any(r.keyframe or r.tracking.lost for r in after_init)
+    assert len(given) == n - 5 and all(given)
     pending = len(slam.seeder.pending)
     assert pending == sum(r.seeded for r in after_init) > 20  # the camera pans into new surface
     size = sizes[4]

@@ -390,15 +390,22 @@ class Seeder:
         fill = self.cfg.frame_fill_min_uncovered
         return self.mode == "rgbd" and fill >= 0.0 and 1.0 - coverage > fill
 
-    def fill_frame(self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure) -> int:
+    def fill_frame(
+        self, gmap: GaussianMap, frame_id: int, rgb, depth, T_WC: np.ndarray, exposure, alpha: wp.array | None = None
+    ) -> int:
         """Measured-depth seeds into ``pending`` from a tracked frame (``rgb``, ``depth`` on the device)
         that is not a keyframe and that ``wants_fill``, where neither the map nor the pending seeds
-        cover it; returns how many."""
+        cover it; returns how many.  ``alpha``: ``gmap``'s accumulated opacity at ``T_WC`` at this
+        stage's camera size, if the caller has it (tracking's last render: not rendered again); it is
+        not written to."""
         dev = self.device
         if self._fill_frame is None:
             self._fill_frame = KeyframeBuffer(1, self.camera.width, self.camera.height, dev)
         self._fill_frame.add(frame_id, T_WC, rgb, depth, exposure)
-        alpha = self.renderer.forward(gmap, self.camera, T_WC).alpha
+        if alpha is None:
+            alpha = self.renderer.forward(gmap, self.camera, T_WC).alpha
+        elif alpha.shape != (self.camera.height, self.camera.width):
+            raise ValueError(f"alpha is {alpha.shape}, the Seeder's camera is {self.camera}")
         if len(self.pending):
             wp.copy(self._alpha, alpha)  # the renderer's buffers are reused by the next render
             alpha = self._alpha

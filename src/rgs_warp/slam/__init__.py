@@ -268,7 +268,12 @@ class SLAM:
         else:
             if pose_ok and self.seeder.wants_fill(decision.coverage):
                 rgb_t, depth_t = self.tracker.frame
-                self._run("fill", self._fill_frame, i, self._own(rgb_t), self._own(depth_t), T, exposure, result)
+                # synchronous: the map as tracking's last render saw it (not rendered again)
+                alpha = tracking.alpha if tracking is not None else self.tracker.alpha
+                if self.worker is not None or alpha.shape != (self.camera.height, self.camera.width):
+                    alpha = None
+                fill_args = (i, self._own(rgb_t), self._own(depth_t), T, exposure, result, alpha)
+                self._run("fill", self._fill_frame, *fill_args)
             # refinement between keyframes: one job waiting at most (it only uses the worker's idle time)
             if self.cfg.mapping.frame_iters > 0 and self.keyframe_indices:
                 if self.worker is None or self.worker.queued("refine") == 0:
@@ -307,11 +312,11 @@ class SLAM:
             return image
         return wp.clone(image) if isinstance(image, wp.array) else np.array(image, dtype=np.float32, copy=True)
 
-    def _fill_frame(self, i: int, rgb, depth, T: np.ndarray, exposure, result: FrameResult) -> None:
+    def _fill_frame(self, i: int, rgb, depth, T: np.ndarray, exposure, result: FrameResult, alpha=None) -> None:
         t1 = time.perf_counter()
         if self.exposure is not None:  # tracking.exposure_from=keyframes: against the older keyframes
             exposure = self.exposure.estimate(self.keyframes, rgb, depth, T, exposure)
-        result.seeded = self.seeder.fill_frame(self.map, i, rgb, depth, T, exposure)
+        result.seeded = self.seeder.fill_frame(self.map, i, rgb, depth, T, exposure, alpha)
         self.stats["seeding_s"] += time.perf_counter() - t1
 
     def _refine_window(self, result: FrameResult) -> None:
