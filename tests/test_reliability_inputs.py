@@ -566,6 +566,50 @@ def test_fuzz_frame_check(frame):
     assert out.nonfinite_rgb == np.count_nonzero(~np.isfinite(np.asarray(rgb, np.float32)).all(axis=2))
 
 
+def test_frame_check_uploaded_numpy_frames_agree_with_host():
+    """NumPy frames uploaded first and counted by the kernel (the default on CUDA devices, forced here
+    on the CPU) get the host check's answers; a clean frame comes back as the checker's device arrays."""
+    import warp as wp
+
+    from rgs_warp.frame_check import FrameChecker
+
+    host, uploaded = FrameChecker(CAMERA, "cpu", upload=False), FrameChecker(CAMERA, "cpu", upload=True)
+    rgb, depth = _frame()
+    out = uploaded.check(rgb, depth)
+    assert isinstance(out.rgb, wp.array) and isinstance(out.depth, wp.array) and not out.unusable
+    assert np.array_equal(out.rgb.numpy(), rgb) and np.array_equal(out.depth.numpy(), depth)
+    rgb[3, 3] = np.nan
+    depth[4, 4] = np.inf
+    a, b = host.check(rgb, depth), uploaded.check(rgb, depth)
+    assert (a.nonfinite_rgb, a.nonfinite_depth) == (b.nonfinite_rgb, b.nonfinite_depth) == (1, 1)
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+    for bad, message in (((rgb * 255, depth), "8-bit values"), ((rgb, -np.abs(depth)), "negative")):
+        with pytest.raises(ValueError, match=message):
+            uploaded.check(*bad)
+    sparse = np.zeros_like(depth)
+    assert uploaded.check(np.nan_to_num(rgb), sparse).unusable == host.check(np.nan_to_num(rgb), sparse).unusable != ""
+    # float64 frames take the host path (which converts them)
+    assert isinstance(uploaded.check(np.nan_to_num(rgb).astype(np.float64), depth.astype(np.float64)).rgb, np.ndarray)
+
+
+@pytest.mark.slow
+def test_uploaded_frame_check_tracks_as_the_host_check(monkeypatch):
+    """The SLAM with frames uploaded and checked on the device (forced on the CPU) tracks bit for bit as
+    with the host check: the tracker reads the checker's buffers in place."""
+    import rgs_warp.slam as slam_module
+    from rgs_warp.frame_check import FrameChecker
+
+    cfg, camera, frames = _office("cpu", 6)
+    poses = []
+    for upload in (False, True):
+        monkeypatch.setattr(slam_module, "FrameChecker", lambda *a, up=upload, **k: FrameChecker(*a, **k, upload=up))
+        slam = SLAM(cfg, camera, device="cpu", T_first_WC=frames[0].pose_gt)
+        assert slam.frame_check.upload == upload
+        poses.append([slam.process(f.rgb, f.depth).T_WC for f in frames])
+    assert len(slam.map) > 0
+    np.testing.assert_array_equal(np.array(poses[0]), np.array(poses[1]))
+
+
 @pytest.mark.slow
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(frames(), min_size=2, max_size=3))

@@ -4,6 +4,8 @@ reduced on the device so that a clean frame costs one small read."""
 
 import warp as wp
 
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
+
 wp.set_module_options({"enable_backward": False})
 
 # columns of counts_out
@@ -27,8 +29,11 @@ def _channel_in_range(v: wp.vec3, tol: float):
     return lo >= -tol and hi <= 1.0 + tol
 
 
+vec5i = wp.types.vector(length=N_COUNTS, dtype=wp.int32)
+
+
 @wp.kernel
-def _frame_counts_rows(
+def _frame_counts_blocks(
     # in: the frame (depth read only when has_depth)
     rgb: wp.array2d(dtype=wp.vec3),
     depth: wp.array2d(dtype=wp.float32),
@@ -37,32 +42,32 @@ def _frame_counts_rows(
     # out: the C_* counts (zeroed beforehand)
     counts_out: wp.array(dtype=wp.int32),
 ):
-    # one thread per row and one atomic per row and count, as the co-visibility counts
-    y = wp.tid()
-    nonfinite = int(0)
-    out_of_range = int(0)
-    d_nonfinite = int(0)
-    d_negative = int(0)
-    d_valid = int(0)
-    for x in range(rgb.shape[1]):
-        c = rgb[y, x]
-        if not _channel_finite(c):
-            nonfinite += 1
-        elif not _channel_in_range(c, tol):
-            out_of_range += 1
+    # one thread per pixel, the counts summed over the block and added with one atomic per block and
+    # count, as the co-visibility counts
+    block, lane = wp.tid()
+    i = block * REDUCE_BLOCK + lane
+    width = rgb.shape[1]
+    c = vec5i()
+    if i < rgb.shape[0] * width:
+        y = i // width
+        x = i - y * width
+        v = rgb[y, x]
+        if not _channel_finite(v):
+            c[C_RGB_NONFINITE] = 1
+        elif not _channel_in_range(v, tol):
+            c[C_RGB_OUT_OF_RANGE] = 1
         if has_depth != 0:
             d = depth[y, x]
             if not wp.isfinite(d):
-                d_nonfinite += 1
+                c[C_DEPTH_NONFINITE] = 1
             elif d < 0.0:
-                d_negative += 1
+                c[C_DEPTH_NEGATIVE] = 1
             elif d > 0.0:
-                d_valid += 1
-    wp.atomic_add(counts_out, C_RGB_NONFINITE, nonfinite)
-    wp.atomic_add(counts_out, C_RGB_OUT_OF_RANGE, out_of_range)
-    wp.atomic_add(counts_out, C_DEPTH_NONFINITE, d_nonfinite)
-    wp.atomic_add(counts_out, C_DEPTH_NEGATIVE, d_negative)
-    wp.atomic_add(counts_out, C_DEPTH_VALID, d_valid)
+                c[C_DEPTH_VALID] = 1
+    total = block_sum(c)
+    if lane == 0:
+        for k in range(N_COUNTS):
+            wp.atomic_add(counts_out, k, total[k])
 
 
 def frame_counts(rgb: wp.array2d, depth: wp.array2d, has_depth: bool, tol: float, counts_out: wp.array) -> None:
@@ -71,10 +76,11 @@ def frame_counts(rgb: wp.array2d, depth: wp.array2d, has_depth: bool, tol: float
     if counts_out.shape[0] != N_COUNTS:
         raise ValueError(f"counts_out needs {N_COUNTS} entries, got {counts_out.shape[0]}")
     counts_out.zero_()
-    wp.launch(
-        _frame_counts_rows,
-        dim=rgb.shape[0],
+    wp.launch_tiled(
+        _frame_counts_blocks,
+        dim=[(rgb.shape[0] * rgb.shape[1] + REDUCE_BLOCK - 1) // REDUCE_BLOCK],
         inputs=[rgb, depth, int(has_depth), float(tol)],
         outputs=[counts_out],
+        block_dim=REDUCE_BLOCK,
         device=rgb.device,
     )

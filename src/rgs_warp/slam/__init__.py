@@ -475,7 +475,9 @@ class SLAM:
             self._boot_frames.append((None, stamp))
             result = FrameResult(i, T0, None, False, f"monocular bootstrap: frame not used: {frame.unusable}")
             return self._record(self._counted(result, frame, frame.unusable), stamp, t0)
-        rgb_host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
+        # a copy: the frame waits beyond this call, and a wp.array's NumPy view on the CPU device is its
+        # live memory (the caller's, or the frame check's buffer that the next frame reuses)
+        rgb_host = np.array(rgb.numpy() if isinstance(rgb, wp.array) else rgb, dtype=np.float32, copy=True)
         self._boot_frames.append((rgb_host, stamp))
         result = FrameResult(i, T0, None, False, "monocular bootstrap: first frame, waiting for parallax")
         self._counted(result, frame, "")
