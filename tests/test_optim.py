@@ -53,11 +53,11 @@ def _numpy_adam(params, grads_seq, lrs, n, max_norm, b1=0.9, b2=0.999, eps=1e-15
     return p
 
 
-@pytest.mark.parametrize("sh_rest", [None, 2.5e-4])
+@pytest.mark.parametrize("sh_rest, n", [(None, 40), (2.5e-4, 40), (None, 600)])  # 600: 3 blocks of the norms
 @pytest.mark.parametrize("grad_scale", [1e-3, 10.0])  # below and far above the clipping norm
-def test_adam_matches_numpy(device, grad_scale, sh_rest):
+def test_adam_matches_numpy(device, grad_scale, sh_rest, n):
     rng = np.random.default_rng(0)
-    gmap = _map(rng, 40, device, capacity=64)
+    gmap = _map(rng, n, device, capacity=n + 24)
     start = {k: v.copy() for k, v in gmap.to_numpy().items()}
     lrs = MapLearningRates(means=1e-3, rotations=2e-3, log_scales=3e-3, opacity_logits=4e-3, sh=5e-3, sh_rest=sh_rest)
     opt = MapAdam(gmap, lrs, max_grad_norm=1.0)
@@ -68,11 +68,11 @@ def test_adam_matches_numpy(device, grad_scale, sh_rest):
         opt.step(g, lr_factor=f)
         seq.append(values)
         factors.append(f)
-    expected = _numpy_adam(start, seq, lrs, 40, 1.0, factors=factors)
+    expected = _numpy_adam(start, seq, lrs, n, 1.0, factors=factors)
     got = gmap.to_numpy()
     for k in GaussianMap.PARAMETERS:
         np.testing.assert_allclose(got[k], expected[k], rtol=1e-5, atol=1e-6, err_msg=k)
-    norm = np.sqrt(sum((seq[-1][k][:40].astype(np.float64) ** 2).sum() for k in GaussianMap.PARAMETERS))
+    norm = np.sqrt(sum((seq[-1][k][:n].astype(np.float64) ** 2).sum() for k in GaussianMap.PARAMETERS))
     assert opt.clip.numpy()[1] == pytest.approx(norm, rel=1e-4)
 
 

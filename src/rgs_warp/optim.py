@@ -8,7 +8,8 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from rgs_warp.kernels.adam import adam_step, clip_scale_from_sq_norms
+from rgs_warp.kernels.adam import adam_gaussians, clip_scale_from_sq_norms, grad_sq_norms, vec6
+from rgs_warp.kernels.math import REDUCE_BLOCK
 from rgs_warp.types import GaussianMap
 
 
@@ -82,35 +83,38 @@ class MapAdam:
 
     def step(self, grads, lr_factor: float = 1.0) -> None:
         """One Adam step on the live rows from ``grads`` (a ``GaussianGrads`` of the same capacity
-        layout), learning rates scaled by ``lr_factor`` (the cosine schedule)."""
-        n = len(self.gmap)
+        layout), learning rates scaled by ``lr_factor`` (the cosine schedule): three launches (the
+        squared gradient norms, the clip scale, the fused update of every parameter)."""
+        gmap = self.gmap
+        n = len(gmap)
         if n == 0:
             return
         self.t += 1
-        correction = math.sqrt(1.0 - self.beta2**self.t) / (1.0 - self.beta1**self.t)
-        flats = []
-        for i, name in enumerate(GaussianMap.PARAMETERS):
-            g = _flat(getattr(grads, name))
-            count = n * (g.shape[0] // grads.means.shape[0])
-            wp.utils.array_inner(g, g, out=self._sq[i : i + 1], count=count)
-            flats.append((name, g, count))
+        scale = lr_factor * math.sqrt(1.0 - self.beta2**self.t) / (1.0 - self.beta1**self.t)
+        names = GaussianMap.PARAMETERS
+        lr = vec6(*[self.lrs.of(name) * scale for name in names], self.lrs.rest("sh") * scale)
+        g = [getattr(grads, name) for name in names]
+        self._sq.zero_()
+        wp.launch_tiled(
+            grad_sq_norms,
+            dim=[(n + REDUCE_BLOCK - 1) // REDUCE_BLOCK],
+            inputs=[*g, n],
+            outputs=[self._sq],
+            block_dim=REDUCE_BLOCK,
+            device=gmap.device,
+        )
         wp.launch(
             clip_scale_from_sq_norms,
             dim=1,
             inputs=[self._sq, float(self.max_grad_norm)],
             outputs=[self.clip],
-            device=self.gmap.device,
+            device=gmap.device,
         )
-        width_sh = 3 * self.gmap.num_sh
-        for name, g, count in flats:
-            m, v = self.moments(name)
-            scale = lr_factor * correction
-            lr_t, lr_rest_t = self.lrs.of(name) * scale, self.lrs.rest(name) * scale
-            width, lead = (width_sh, 3) if name == "sh" else (1, 1)
-            wp.launch(
-                adam_step,
-                dim=count,
-                inputs=[g, self.clip, lr_t, width, lead, lr_rest_t, self.beta1, self.beta2, self.eps],
-                outputs=[_flat(getattr(self.gmap, name)), m, v],
-                device=self.gmap.device,
-            )
+        moments = [gmap.column(f"{moment}.{name}") for moment in ("adam_m", "adam_v") for name in names]
+        wp.launch(
+            adam_gaussians,
+            dim=n,
+            inputs=[*g, self.clip, lr, self.beta1, self.beta2, self.eps],
+            outputs=[*(getattr(gmap, name) for name in names), *moments],
+            device=gmap.device,
+        )
