@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import warp as wp
 
-from rgs_warp.kernels.adam import adam_gaussians, clip_scale_from_sq_norms, grad_sq_norms, vec6
+from rgs_warp.kernels.adam import adam_entries, clip_scale_from_sq_norms, grad_sq_norms, vec5i, vec6
 from rgs_warp.kernels.math import REDUCE_BLOCK
 from rgs_warp.types import GaussianMap
 
@@ -66,6 +67,8 @@ class MapAdam:
         dev = gmap.device
         self._sq = wp.zeros(len(GaussianMap.PARAMETERS), dtype=wp.float32, device=dev)
         self.clip = wp.zeros(2, dtype=wp.float32, device=dev)  # [scale applied, gradient norm]
+        self._views_key: tuple = ()
+        self._flat_views: list[list[wp.array]] = []
         for name, dtype, inner in gmap.parameter_layout():
             for moment in ("adam_m", "adam_v"):
                 gmap.add_column(f"{moment}.{name}", dtype, inner)
@@ -83,8 +86,8 @@ class MapAdam:
 
     def step(self, grads, lr_factor: float = 1.0) -> None:
         """One Adam step on the live rows from ``grads`` (a ``GaussianGrads`` of the same capacity
-        layout), learning rates scaled by ``lr_factor`` (the cosine schedule): three launches (the
-        squared gradient norms, the clip scale, the fused update of every parameter)."""
+        layout), learning rates scaled by ``lr_factor`` (the cosine schedule): three launches over the
+        flat entries of all five parameters (the squared gradient norms, the clip scale, the update)."""
         gmap = self.gmap
         n = len(gmap)
         if n == 0:
@@ -93,12 +96,14 @@ class MapAdam:
         scale = lr_factor * math.sqrt(1.0 - self.beta2**self.t) / (1.0 - self.beta1**self.t)
         names = GaussianMap.PARAMETERS
         lr = vec6(*[self.lrs.of(name) * scale for name in names], self.lrs.rest("sh") * scale)
-        g = [getattr(grads, name) for name in names]
+        g, p, m, v = self._views(grads)
+        rows = n * 3 * gmap.num_sh
+        ends = vec5i(*np.cumsum([3 * n, 4 * n, 3 * n, n, rows]).tolist())
         self._sq.zero_()
         wp.launch_tiled(
             grad_sq_norms,
-            dim=[(n + REDUCE_BLOCK - 1) // REDUCE_BLOCK],
-            inputs=[*g, n],
+            dim=[(int(ends[4]) + REDUCE_BLOCK - 1) // REDUCE_BLOCK],
+            inputs=[*g, ends],
             outputs=[self._sq],
             block_dim=REDUCE_BLOCK,
             device=gmap.device,
@@ -110,11 +115,23 @@ class MapAdam:
             outputs=[self.clip],
             device=gmap.device,
         )
-        moments = [gmap.column(f"{moment}.{name}") for moment in ("adam_m", "adam_v") for name in names]
         wp.launch(
-            adam_gaussians,
-            dim=n,
-            inputs=[*g, self.clip, lr, self.beta1, self.beta2, self.eps],
-            outputs=[*(getattr(gmap, name) for name in names), *moments],
+            adam_entries,
+            dim=int(ends[4]),
+            inputs=[*g, ends, self.clip, lr, 3 * gmap.num_sh, self.beta1, self.beta2, self.eps],
+            outputs=[*p, *m, *v],
             device=gmap.device,
         )
+
+    def _views(self, grads) -> tuple[list[wp.array], ...]:
+        """Flat float32 views of the gradients, parameters and moments, made again only when an array
+        changed (the map grew, or other gradient arrays)."""
+        gmap, names = self.gmap, GaussianMap.PARAMETERS
+        arrays = [getattr(grads, name) for name in names] + [getattr(gmap, name) for name in names]
+        arrays += [gmap.column(f"{moment}.{name}") for moment in ("adam_m", "adam_v") for name in names]
+        key = tuple(a.ptr for a in arrays) + tuple(a.shape[0] for a in arrays)
+        if key != self._views_key:
+            flat = [_flat(a) for a in arrays]
+            self._flat_views = [flat[k : k + 5] for k in range(0, 20, 5)]
+            self._views_key = key
+        return tuple(self._flat_views)

@@ -1,7 +1,8 @@
-"""Adam over the GaussianMap's parameters in two launches a step: the squared gradient norms of the
-five parameters (one block sum per 256 Gaussians), then one thread per Gaussian that updates all its
-parameters and moments, scaled by the global gradient-norm clip computed on the device in between (no
-host read-back between the norm and the update)."""
+"""Adam over the GaussianMap's parameters in three launches a step, each over the flat float32 entries
+of all five parameters at once (entry i belongs to the parameter whose range of ``ends`` holds it: the
+same coalesced access as one launch per parameter): the five squared gradient norms (one block sum
+per 256 entries), the global gradient-norm clip computed on the device (no host read-back between the
+norm and the update), then the update of every entry and its two moments."""
 
 import warp as wp
 
@@ -9,42 +10,95 @@ from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
 
 wp.set_module_options({"enable_backward": False})
 
-# per-parameter squared gradient norms, in GaussianMap.PARAMETERS' order
+# per-parameter squared gradient norms and entry ranges, in GaussianMap.PARAMETERS' order
 N_PARAMETERS = 5
 vec5 = wp.types.vector(length=N_PARAMETERS, dtype=wp.float32)
-# learning rates of the fused step: the five parameters', then the higher SH bands'
+vec5i = wp.types.vector(length=N_PARAMETERS, dtype=wp.int32)
+# learning rates of the step: the five parameters', then the higher SH bands'
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 LR_SH_REST = wp.constant(5)
 
 
+@wp.func
+def parameter_of(i: int, ends: vec5i):
+    """(parameter, entry within it) of flat entry ``i``; ``ends``: the cumulative entry counts."""
+    f = int(0)
+    start = int(0)
+    for k in range(N_PARAMETERS - 1):
+        if i >= ends[k]:
+            f = k + 1
+            start = ends[k]
+    return f, i - start
+
+
+@wp.func
+def entry(
+    a0: wp.array(dtype=wp.float32),
+    a1: wp.array(dtype=wp.float32),
+    a2: wp.array(dtype=wp.float32),
+    a3: wp.array(dtype=wp.float32),
+    a4: wp.array(dtype=wp.float32),
+    f: int,
+    j: int,
+):
+    if f == 0:
+        return a0[j]
+    if f == 1:
+        return a1[j]
+    if f == 2:
+        return a2[j]
+    if f == 3:
+        return a3[j]
+    return a4[j]
+
+
+@wp.func
+def set_entry(
+    a0: wp.array(dtype=wp.float32),
+    a1: wp.array(dtype=wp.float32),
+    a2: wp.array(dtype=wp.float32),
+    a3: wp.array(dtype=wp.float32),
+    a4: wp.array(dtype=wp.float32),
+    f: int,
+    j: int,
+    x: float,
+):
+    if f == 0:
+        a0[j] = x
+    elif f == 1:
+        a1[j] = x
+    elif f == 2:
+        a2[j] = x
+    elif f == 3:
+        a3[j] = x
+    else:
+        a4[j] = x
+
+
 @wp.kernel
 def grad_sq_norms(
-    # in: the gradients of the first n Gaussians
-    g_means: wp.array(dtype=wp.vec3),
-    g_rotations: wp.array(dtype=wp.quat),
-    g_log_scales: wp.array(dtype=wp.vec3),
-    g_opacity_logits: wp.array(dtype=wp.float32),
-    g_sh: wp.array2d(dtype=wp.vec3),
-    n: int,
+    # in: flat float32 views of the five gradients, their live entry ranges (cumulative)
+    g0: wp.array(dtype=wp.float32),
+    g1: wp.array(dtype=wp.float32),
+    g2: wp.array(dtype=wp.float32),
+    g3: wp.array(dtype=wp.float32),
+    g4: wp.array(dtype=wp.float32),
+    ends: vec5i,
     # out: the five squared norms (zeroed beforehand)
     sq_out: wp.array(dtype=wp.float32),
 ):
     block, lane = wp.tid()
     i = block * REDUCE_BLOCK + lane
     s = vec5()
-    if i < n:
-        s[0] = wp.length_sq(g_means[i])
-        q = g_rotations[i]
-        s[1] = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-        s[2] = wp.length_sq(g_log_scales[i])
-        o = g_opacity_logits[i]
-        s[3] = o * o
-        for k in range(g_sh.shape[1]):
-            s[4] += wp.length_sq(g_sh[i, k])
+    if i < ends[N_PARAMETERS - 1]:
+        f, j = parameter_of(i, ends)
+        g = entry(g0, g1, g2, g3, g4, f, j)
+        s[f] = g * g
     total = block_sum(s)
     if lane == 0:
         for k in range(N_PARAMETERS):
-            wp.atomic_add(sq_out, k, total[k])
+            if total[k] != 0.0:
+                wp.atomic_add(sq_out, k, total[k])
 
 
 @wp.kernel
@@ -72,82 +126,48 @@ def adam_entry(p: float, g: float, m: float, v: float, lr: float, beta1: float, 
     return p - lr * mi / (wp.sqrt(vi) + eps), mi, vi
 
 
-@wp.func
-def adam_vec3(p: wp.vec3, g: wp.vec3, m: wp.vec3, v: wp.vec3, lr: float, beta1: float, beta2: float, eps: float):
-    po = wp.vec3()
-    mo = wp.vec3()
-    vo = wp.vec3()
-    for c in range(3):
-        pc, mc, vc = adam_entry(p[c], g[c], m[c], v[c], lr, beta1, beta2, eps)
-        po[c] = pc
-        mo[c] = mc
-        vo[c] = vc
-    return po, mo, vo
-
-
 @wp.kernel
-def adam_gaussians(
-    # in: gradients (scaled by clip[0]), learning rates (lr x sqrt(1 - b2^t) / (1 - b1^t), LR_* order)
-    g_means: wp.array(dtype=wp.vec3),
-    g_rotations: wp.array(dtype=wp.quat),
-    g_log_scales: wp.array(dtype=wp.vec3),
-    g_opacity_logits: wp.array(dtype=wp.float32),
-    g_sh: wp.array2d(dtype=wp.vec3),
+def adam_entries(
+    # in: flat float32 views of the gradients (scaled by clip[0]), their live entry ranges (cumulative),
+    # the learning rates (lr x sqrt(1 - b2^t) / (1 - b1^t); the SH entries past the first 3 of each row
+    # of sh_width take LR_SH_REST)
+    g0: wp.array(dtype=wp.float32),
+    g1: wp.array(dtype=wp.float32),
+    g2: wp.array(dtype=wp.float32),
+    g3: wp.array(dtype=wp.float32),
+    g4: wp.array(dtype=wp.float32),
+    ends: vec5i,
     clip: wp.array(dtype=wp.float32),
     lr: vec6,
+    sh_width: int,
     beta1: float,
     beta2: float,
     eps: float,
-    # in/out: the parameters, then their first and second moments (the map's adam_m / adam_v columns)
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    opacity_logits: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.vec3),
-    m_means: wp.array(dtype=wp.vec3),
-    m_rotations: wp.array(dtype=wp.quat),
-    m_log_scales: wp.array(dtype=wp.vec3),
-    m_opacity_logits: wp.array(dtype=wp.float32),
-    m_sh: wp.array2d(dtype=wp.vec3),
-    v_means: wp.array(dtype=wp.vec3),
-    v_rotations: wp.array(dtype=wp.quat),
-    v_log_scales: wp.array(dtype=wp.vec3),
-    v_opacity_logits: wp.array(dtype=wp.float32),
-    v_sh: wp.array2d(dtype=wp.vec3),
+    # in/out: flat views of the parameters, their first and second moments (the map's adam_m / adam_v)
+    p0: wp.array(dtype=wp.float32),
+    p1: wp.array(dtype=wp.float32),
+    p2: wp.array(dtype=wp.float32),
+    p3: wp.array(dtype=wp.float32),
+    p4: wp.array(dtype=wp.float32),
+    m0: wp.array(dtype=wp.float32),
+    m1: wp.array(dtype=wp.float32),
+    m2: wp.array(dtype=wp.float32),
+    m3: wp.array(dtype=wp.float32),
+    m4: wp.array(dtype=wp.float32),
+    v0: wp.array(dtype=wp.float32),
+    v1: wp.array(dtype=wp.float32),
+    v2: wp.array(dtype=wp.float32),
+    v3: wp.array(dtype=wp.float32),
+    v4: wp.array(dtype=wp.float32),
 ):
     i = wp.tid()
-    c = clip[0]
-    p3, m3, v3 = adam_vec3(means[i], c * g_means[i], m_means[i], v_means[i], lr[0], beta1, beta2, eps)
-    means[i] = p3
-    m_means[i] = m3
-    v_means[i] = v3
-    q = rotations[i]
-    gq = g_rotations[i]
-    mq = m_rotations[i]
-    vq = v_rotations[i]
-    for k in range(4):
-        pk, mk, vk = adam_entry(q[k], c * gq[k], mq[k], vq[k], lr[1], beta1, beta2, eps)
-        q[k] = pk
-        mq[k] = mk
-        vq[k] = vk
-    rotations[i] = q
-    m_rotations[i] = mq
-    v_rotations[i] = vq
-    p3, m3, v3 = adam_vec3(
-        log_scales[i], c * g_log_scales[i], m_log_scales[i], v_log_scales[i], lr[2], beta1, beta2, eps
-    )
-    log_scales[i] = p3
-    m_log_scales[i] = m3
-    v_log_scales[i] = v3
-    po, mo, vo = adam_entry(
-        opacity_logits[i], c * g_opacity_logits[i], m_opacity_logits[i], v_opacity_logits[i], lr[3], beta1, beta2, eps
-    )
-    opacity_logits[i] = po
-    m_opacity_logits[i] = mo
-    v_opacity_logits[i] = vo
-    for k in range(sh.shape[1]):
-        rate = wp.where(k == 0, lr[4], lr[LR_SH_REST])
-        p3, m3, v3 = adam_vec3(sh[i, k], c * g_sh[i, k], m_sh[i, k], v_sh[i, k], rate, beta1, beta2, eps)
-        sh[i, k] = p3
-        m_sh[i, k] = m3
-        v_sh[i, k] = v3
+    f, j = parameter_of(i, ends)
+    g = entry(g0, g1, g2, g3, g4, f, j) * clip[0]
+    m = beta1 * entry(m0, m1, m2, m3, m4, f, j) + (1.0 - beta1) * g
+    v = beta2 * entry(v0, v1, v2, v3, v4, f, j) + (1.0 - beta2) * g * g
+    rate = lr[f]
+    if f == N_PARAMETERS - 1 and j % sh_width >= 3:
+        rate = lr[LR_SH_REST]
+    set_entry(m0, m1, m2, m3, m4, f, j, m)
+    set_entry(v0, v1, v2, v3, v4, f, j, v)
+    set_entry(p0, p1, p2, p3, p4, f, j, entry(p0, p1, p2, p3, p4, f, j) - rate * m / (wp.sqrt(v) + eps))
