@@ -72,7 +72,8 @@ def test_mapping_loss_matches_numpy(device, robust_scale, use_depth):
         km.mapping_loss,
         dim=_blocks(shape),
         inputs=[_arr(obs, device, wp.vec3), _arr(obs_depth, device), _arr(color, device, wp.vec3), _arr(depth, device)]
-        + [wp.array([[0.5, 0.5], [g, b]], dtype=wp.vec2, device=device), 1, robust_scale, use_depth, lam_d, l1_w, row],
+        + [wp.array([[0.5, 0.5], [g, b]], dtype=wp.vec2, device=device), 1, robust_scale, use_depth, lam_d, l1_w]
+        + [row - 1, wp.array([1], dtype=wp.int32, device=device)],  # the row is row + counter[0]
         outputs=[x_out, grad_x, d_depth, loss],
         block_dim=km.REDUCE_BLOCK,
         device=device,
@@ -625,3 +626,33 @@ def test_mapping_renders_do_not_overflow_between_views(device, room):
     mapper.optimize(kf, slots, 24)
     mapper.renderer.forward(gmap, cam, T)  # reads the last mapping render's count
     assert mapper.renderer.overflowed_renders <= 1
+
+
+@pytest.mark.parametrize("history", [0.0, 0.5])
+def test_mapping_steps_replayed_from_graphs_match_eager_steps(device, room, history):
+    """``mapping.graph=on`` (Warp's CPU graphs here): a view's first step in a call runs eagerly, the
+    second is captured, the rest replay it, each step reading its loss row and learning rates from the
+    device counter.  The map, its moments and statistics, the loss history and Adam's clock come out
+    bit for bit as with eager steps; with history views besides the window's."""
+    cam = room["camera"]
+    out = {}
+    for graph in ("off", "on"):
+        gmap = _room_map(room, device)
+        kf, slots = _keyframes(room, room["frames"][:2], device)
+        older_kf, older = _keyframes(room, room["frames"][2:], device)
+        mapper = Mapper(MappingConfig(graph=graph, history=history), cam, gmap, device, seed=3)
+        result = mapper.optimize(kf, slots, 14, history=[(older_kf, s) for s in older])
+        columns = {name: gmap.column(name).numpy()[: len(gmap)].copy() for name in ("obs_count", "vis_count")}
+        moments = {name: [a.numpy().copy() for a in mapper.adam.moments(name)] for name in GaussianMap.PARAMETERS}
+        out[graph] = (gmap.to_numpy(), columns, moments, result, mapper.adam.t)
+    (p0, c0, m0, r0, t0), (p1, c1, m1, r1, t1) = out["off"], out["on"]
+    assert r1.graph_steps["captured"] >= 1 and r1.graph_steps["replayed"] >= 6 and r1.graph_overflows == 0
+    assert r0.graph_steps == {"eager": 0, "captured": 0, "replayed": 0}
+    assert sum(r1.graph_steps.values()) == 14 and t0 == t1 == 14
+    for name in GaussianMap.PARAMETERS:
+        np.testing.assert_array_equal(p1[name], p0[name], err_msg=name)
+        for a, b in zip(m1[name], m0[name], strict=True):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+    for name in c0:
+        np.testing.assert_array_equal(c1[name], c0[name], err_msg=name)
+    np.testing.assert_array_equal(r1.loss_history, r0.loss_history)

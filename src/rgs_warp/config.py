@@ -310,6 +310,12 @@ class MappingConfig:
     # views of the window rendered per mapping iteration, a fresh random subset each time (0: every view,
     # Table 1's joint window step); fewer views make an iteration cheaper in proportion
     views_per_iter: int = 1
+    # With one view per iteration, each window view's mapping step runs as a captured graph (a CUDA
+    # graph on a GPU, Warp's CPU graph on the CPU): eagerly the first time a view is rendered in a
+    # window's mapping (its render sizes the renderer for it), captured the second, replayed after; one
+    # launch instead of about 30 per step.  auto: on on CUDA devices (not with asynchronous mapping,
+    # densification or mapping.lr_exposure), off on the CPU; on / off force it.
+    graph: str = "auto"
     # each view a mapping iteration renders is, with this probability, an older keyframe (outside the
     # window) drawn at random instead of a window view, as MonoGS and SplaTAM do: each window is
     # fitted and left, and later windows move the Gaussians earlier keyframes share; 0 = off.  With
@@ -508,6 +514,7 @@ CHOICES = {
     "tracking.motion_check": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
     "tracking.graph": ("auto", "on", "off"),
+    "mapping.graph": ("auto", "on", "off"),
     "tracking.colour_per_opacity": ("auto", "on", "off"),
     "tracking.keypoint_prior": ("auto", "on", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),

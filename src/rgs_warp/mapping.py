@@ -30,6 +30,7 @@ from rgs_warp.config import DensifyConfig, MappingConfig
 from rgs_warp.densification import Densifier
 from rgs_warp.kernels import mapping as km
 from rgs_warp.kernels.math import REDUCE_BLOCK
+from rgs_warp.kernels.tracking import advance_step
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer
 from rgs_warp.losses import DSSIMLoss
 from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
@@ -53,6 +54,10 @@ class MappingResult:
     opacity_resets: int = 0
     # (cumulative iteration, mean window PSNR dB, Gaussians) every ``psnr_every`` iterations
     psnr_curve: list[tuple[int, float, int]] = field(default_factory=list)
+    # steps as captured graphs (mapping.graph): run eagerly, captured, replayed; replayed renders that
+    # needed more intersections than their graph had room for (they dropped the excess)
+    graph_steps: dict[str, int] = field(default_factory=lambda: {"eager": 0, "captured": 0, "replayed": 0})
+    graph_overflows: int = 0
 
     @property
     def final_l1(self) -> float:
@@ -62,6 +67,8 @@ class MappingResult:
 
 
 STATISTICS = ("obs_count", "vis_count", "ema_means")  # map columns: m_i, v_i, EMA position (Eq. 15)
+# intersections a captured mapping step has room for: this times what its view's eager render needed
+GRAPH_HEADROOM = 1.3
 
 
 class Mapper:
@@ -135,6 +142,11 @@ class Mapper:
         self._squared_error = wp.zeros(1, dtype=wp.float64, device=dev)
         self._window_capacity = 0
         self.total_iters = 0
+        # the step counter of an optimize call: the loss row and the learning rates of a step are read
+        # from it on the device (tk.advance_step), so one captured graph replays every step of its view
+        self._step = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._overflows = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.use_graph = cfg.graph == "on" or (cfg.graph == "auto" and self.device.is_cuda)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The optimiser's clocks besides the map's columns: Adam's step count (bias correction), the
@@ -176,18 +188,23 @@ class Mapper:
         held = [int(s in fixed_exposure) for s in window] + [1] * len(history)
         self._exposure_fixed[:k].assign(np.array(held, dtype=np.int32))
 
-    def _view_loss(self, keyframes, slot, j, it, weight, use_depth, blocks) -> RenderResult:
+    def _view_loss(self, keyframes, slot, j, weight, use_depth, blocks, graph_capacity=None) -> RenderResult:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
-        loss in ``_d_color``, ``_d_depth``; its loss sums go to row ``it``."""
+        loss in ``_d_color``, ``_d_depth``; its loss sums go to the step counter's row.
+        ``graph_capacity``: the render is being captured with room for that many intersections (a
+        replay that needs more is counted in ``_overflows``)."""
         cfg, dev = self.cfg, self.device
         # consecutive iterations render different views: each sized by its own last render (view key)
         view = int(keyframes.frame_ids[slot])
         res = self.renderer.forward(self.gmap, self.camera, self._T_WC[j : j + 1], view=view)
+        if graph_capacity is not None:
+            needed = self.renderer.intersection_count_array
+            wp.launch(km.count_overflow, dim=1, inputs=[needed, graph_capacity], outputs=[self._overflows], device=dev)
         wp.launch_tiled(
             km.mapping_loss,
             dim=blocks,
             inputs=[keyframes.rgb[slot], keyframes.depth[slot], res.color, res.depth, self._exposure, j]
-            + [cfg.robust_scale, use_depth, weight * cfg.depth_weight, weight, it],
+            + [cfg.robust_scale, use_depth, weight * cfg.depth_weight, weight, 0, self._step],
             outputs=[self._x, self._grad_x, self._d_depth, self._loss],
             block_dim=REDUCE_BLOCK,
             device=dev,
@@ -256,6 +273,10 @@ class Mapper:
         n_pixels = self.camera.width * self.camera.height
         blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
         result = MappingResult(iters, np.zeros(0), np.zeros(0), np.zeros(0))
+        self._step.zero_()
+        self._overflows.zero_()
+        self.adam.schedule([cosine_factor(it, iters, self.cfg.lr_final_factor) for it in range(iters)])
+        graphs = _StepGraphs(self) if self._graphs_apply() else None
         for it in range(iters):
             views = list(self.rng.permutation(k_win))[::-1]  # every view, in a fresh order each iteration
             if 0 < self.cfg.views_per_iter < k_win:
@@ -264,9 +285,11 @@ class Mapper:
                 older = self.rng.random(len(views)) < self.cfg.history
                 picks = self.rng.integers(len(history), size=len(views))
                 views = [k_win + int(p) if o else v for v, o, p in zip(views, older, picks, strict=True)]
-            self._map_step(
-                buffers, slots, views, it, use_depth, blocks, cosine_factor(it, iters, self.cfg.lr_final_factor)
-            )
+            lr_factor = cosine_factor(it, iters, self.cfg.lr_final_factor)
+            if graphs is not None:
+                graphs.step(buffers, slots, views[0], use_depth, blocks, result)
+            else:
+                self._map_step(buffers, slots, views, it, use_depth, blocks, lr_factor)
             self.total_iters += 1
             if psnr_every > 0 and self.total_iters % psnr_every == 0:
                 psnr_db = self._window_psnr(keyframes, window, self._T_WC)
@@ -278,6 +301,9 @@ class Mapper:
 
         if self.cfg.lr_exposure > 0.0:
             keyframes.exposure[window] = self._exposure[:k_win].numpy()
+        if graphs is not None and result.graph_steps["captured"]:
+            result.graph_overflows = int(self._overflows.numpy()[0])
+            self.renderer.overflowed_renders += result.graph_overflows
         loss = self._loss[:iters].numpy()
         pixels = np.maximum(loss[:, km.L_PIXELS], 1.0)
         depth_px = loss[:, km.L_DEPTH_PIXELS]
@@ -286,9 +312,23 @@ class Mapper:
         result.depth_l1_history = np.where(depth_px > 0, loss[:, km.L_DEPTH] / np.maximum(depth_px, 1.0), np.nan)
         return result
 
-    def _map_step(self, buffers, slots, views, it, use_depth, blocks, lr_factor) -> None:
+    def _graphs_apply(self) -> bool:
+        """Whether this call's steps run as captured graphs (``mapping.graph``): one view per step, and
+        nothing a step does on the host that a replay would not repeat."""
+        cfg = self.cfg
+        return (
+            self.use_graph
+            and cfg.views_per_iter == 1
+            and self.densifier is None
+            and cfg.lr_exposure == 0.0
+            and not cfg.asynchronous
+        )
+
+    def _map_step(self, buffers, slots, views, it, use_depth, blocks, lr_factor, graph_capacity=None) -> None:
         """One Adam step on the map from the gradients of ``views`` (positions j of the uploaded views:
-        keyframe ``slots[j]`` of ``buffers[j]``), averaged."""
+        keyframe ``slots[j]`` of ``buffers[j]``), averaged; the step counter advances at its end (the loss
+        row and the learning rates are read from it).  ``graph_capacity``: the step is being captured
+        (``_view_loss``)."""
         cfg, dev, gmap = self.cfg, self.device, self.gmap
         n = len(gmap)
         share = 1.0 / len(views)
@@ -297,7 +337,7 @@ class Mapper:
         before = gmap.column("grad.opacity_before")
         obs_count, vis_count = gmap.column("obs_count"), gmap.column("vis_count")
         for v, j in enumerate(views):
-            res = self._view_loss(buffers[j], slots[j], j, it, share, use_depth, blocks)
+            res = self._view_loss(buffers[j], slots[j], j, share, use_depth, blocks, graph_capacity)
             if v == 0:
                 before[:n].zero_()
             else:
@@ -322,7 +362,7 @@ class Mapper:
             outputs=[grads.means, grads.log_scales, grads.opacity_logits],
             device=dev,
         )
-        self.adam.step(grads, lr_factor)
+        self.adam.step(grads, counter=self._step)
         wp.launch(km.update_ema, dim=n, inputs=[gmap.means, cfg.ema_eta], outputs=[ema_means], device=dev)
         if cfg.lr_exposure > 0.0:
             wp.launch(
@@ -333,6 +373,7 @@ class Mapper:
                 outputs=[self._exposure_m, self._exposure_v, self._exposure],
                 device=dev,
             )
+        wp.launch(advance_step, dim=1, inputs=[self._step], device=dev)
 
     def _densify(self, result: MappingResult) -> None:
         """The densifier's step at iteration ``total_iters``: the appended rows got their optimiser
@@ -429,3 +470,45 @@ class Mapper:
             )
         mse = np.maximum(self._squared_error.numpy()[:k] / (3.0 * n_pixels), 1e-20)
         return float(np.mean(-10.0 * np.log10(mse)))
+
+
+class _StepGraphs:
+    """The captured mapping steps of one ``Mapper.optimize`` call, one graph per view (its pose,
+    keyframe images and exposure are the graph's arrays; the step counter gives the rest).  A view's
+    first step in the call runs eagerly, and its render sizes the renderer for that view; the second is
+    captured with ``GRAPH_HEADROOM`` x those intersections reserved, and replayed from then on.  The
+    renderer reallocating its buffers (an eager render of a denser view) drops every graph (they hold
+    its addresses); the map does not change size within a call.  Views rendered once (most history
+    views) stay eager: a capture costs more than it saves there."""
+
+    def __init__(self, mapper: Mapper):
+        self.mapper = mapper
+        self._graphs: dict[int, tuple] = {}
+        self._seen: set[int] = set()
+
+    def step(self, buffers, slots, j: int, use_depth: int, blocks, result: MappingResult) -> None:
+        m = self.mapper
+        renderer = m.renderer
+        entry = self._graphs.get(j)
+        if entry is not None and entry[1] != renderer.buffers_version:
+            self._graphs.clear()
+            entry = None
+        if entry is not None:
+            wp.capture_launch(entry[0])
+            m.adam.t += 1  # the replayed step's, as an eager step counts it
+            result.graph_steps["replayed"] += 1
+            return
+        view = int(buffers[j].frame_ids[slots[j]])
+        needed = renderer.view_intersections(view) if j in self._seen else 0
+        if needed <= 0:
+            m._map_step(buffers, slots, [j], 0, use_depth, blocks, 1.0)
+            self._seen.add(j)
+            result.graph_steps["eager"] += 1
+            return
+        renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * needed))
+        capacity, version = renderer.intersection_capacity, renderer.buffers_version
+        with wp.ScopedCapture(device=m.device) as capture:
+            m._map_step(buffers, slots, [j], 0, use_depth, blocks, 1.0, graph_capacity=capacity)
+        self._graphs[j] = (capture.graph, version)
+        wp.capture_launch(capture.graph)  # the captured step itself (Adam counted it while capturing)
+        result.graph_steps["captured"] += 1

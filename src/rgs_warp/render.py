@@ -213,6 +213,19 @@ class Renderer:
         """Tile intersections the latest forward (eager or replayed from a graph) needed; waits for it."""
         return self._read_count()
 
+    def view_intersections(self, view) -> int:
+        """Tile intersections the latest eager render of ``view`` (``forward``'s key) needed, 0 if none
+        was seen; waits for that render if it is the latest."""
+        if self._count_view == view and self._count_view is not None:
+            return self._read_count()
+        return self._view_counts.get(view, 0)
+
+    @property
+    def intersection_count_array(self) -> wp.array:
+        """(1,) int32 on the device: the tile intersections the latest forward needed (a captured
+        forward writes it at each replay)."""
+        return self._isect_count
+
     def intersections_overflowed(self) -> bool:
         """Whether the latest forward (eager or replayed from a graph) dropped intersections."""
         return self._read_count() > self._isect_capacity

@@ -139,6 +139,9 @@ def adam_entries(
     ends: vec5i,
     clip: wp.array(dtype=wp.float32),
     lr: vec6,
+    # a schedule instead of lr when it has rows: row counter[0] (a captured step reads its own)
+    lr_schedule: wp.array(dtype=vec6),
+    counter: wp.array(dtype=wp.int32),
     sh_width: int,
     beta1: float,
     beta2: float,
@@ -165,9 +168,12 @@ def adam_entries(
     g = entry(g0, g1, g2, g3, g4, f, j) * clip[0]
     m = beta1 * entry(m0, m1, m2, m3, m4, f, j) + (1.0 - beta1) * g
     v = beta2 * entry(v0, v1, v2, v3, v4, f, j) + (1.0 - beta2) * g * g
-    rate = lr[f]
+    rates = lr
+    if lr_schedule.shape[0] > 0:
+        rates = lr_schedule[counter[0]]
+    rate = rates[f]
     if f == N_PARAMETERS - 1 and j % sh_width >= 3:
-        rate = lr[LR_SH_REST]
+        rate = rates[LR_SH_REST]
     set_entry(m0, m1, m2, m3, m4, f, j, m)
     set_entry(v0, v1, v2, v3, v4, f, j, v)
     set_entry(p0, p1, p2, p3, p4, f, j, entry(p0, p1, p2, p3, p4, f, j) - rate * m / (wp.sqrt(v) + eps))

@@ -38,6 +38,8 @@ def mapping_loss(
     depth_weight: float,
     l1_weight: float,
     row: int,
+    # the row is row + counter[0] (the mapping step counter, kernels.tracking.advance_step)
+    counter: wp.array(dtype=wp.int32),
     # out: x = g I_hat + b (SSIM's input), dL/dx of the L1 part, dL/dD_hat, loss sums of row `row`
     x_out: wp.array2d(dtype=wp.vec3),
     grad_x_out: wp.array2d(dtype=wp.vec3),
@@ -50,6 +52,7 @@ def mapping_loss(
     # pull with at most ~c / 2 instead of their full residual.  The depth is the un-normalised
     # rendered depth sum_i w_i z_i: matching it also drives the opacity of observed surfaces to 1.
     block, lane = wp.tid()
+    row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
     height = observed.shape[0]
     width = observed.shape[1]
@@ -262,3 +265,15 @@ def exposed_squared_error(
     total = block_sum(e)
     if lane == 0:
         wp.atomic_add(sums_out, row, wp.float64(total))
+
+
+@wp.kernel
+def count_overflow(
+    # in: the intersections a render needed (Renderer.intersection_count_array), its capacity
+    needed: wp.array(dtype=wp.int32),
+    capacity: int,
+    # out: renders that needed more than their capacity (a replayed graph's dropped intersections)
+    overflows_out: wp.array(dtype=wp.int32),
+):
+    if needed[0] > capacity:
+        overflows_out[0] = overflows_out[0] + 1
