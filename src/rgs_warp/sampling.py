@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from rgs_warp.graph_cache import GraphCache, launch_key
 from rgs_warp.kernels.sampling import (
     mask_indices,
     poisson_accept,
@@ -27,14 +28,18 @@ from rgs_warp.kernels.sampling import (
 CONFIDENCE_LEVELS = 32
 
 
-def loop_until_zero(condition: wp.array, body) -> None:
+def loop_until_zero(condition: wp.array, body, graphs: GraphCache | None = None, key=None) -> None:
     """Run ``body()`` while ``condition[0] != 0`` (the body updates it) without a host round trip
     on CUDA: the loop is captured as a CUDA graph with a conditional while-node and launched once.
     ``wp.capture_while`` alone reads the condition back to the host before every round when no
-    capture is active.  Inside an enclosing capture, or where the driver lacks conditional nodes
-    (CUDA < 12.4), the loop is recorded / run as ``wp.capture_while`` does; on the CPU the condition
-    is read from host memory at no cost."""
+    capture is active.  With ``graphs`` the loop's graph is kept under ``key`` (which must hold every
+    address and scalar the body bakes in) and replayed by later calls instead of captured again.
+    Inside an enclosing capture, or where the driver lacks conditional nodes (CUDA < 12.4), the loop is
+    recorded / run as ``wp.capture_while`` does; on the CPU the condition is read from host memory at
+    no cost."""
     device = condition.device
+    if graphs is not None and graphs.run_while(key, condition, body):
+        return
     if device.is_cuda and not device.is_capturing and wp.is_conditional_graph_supported():
         with wp.ScopedCapture(device=device) as capture:
             wp.capture_while(condition, body)
@@ -43,10 +48,20 @@ def loop_until_zero(condition: wp.array, body) -> None:
         wp.capture_while(condition, body)
 
 
-def _throw_darts(accept, accept_inputs: list, reject, reject_inputs: list, dim, state: wp.array, counters: wp.array):
+def _throw_darts(
+    accept,
+    accept_inputs: list,
+    reject,
+    reject_inputs: list,
+    dim,
+    state: wp.array,
+    counters: wp.array,
+    graphs: GraphCache | None = None,
+):
     """Rounds of the ``accept`` then the ``reject`` launch over ``dim`` (``kernels/sampling.py``) until
     no point of ``state`` is undecided: ``reject`` counts the undecided ones into ``counters[0]``,
-    the loop's condition, and the rounds into ``counters[1]``."""
+    the loop's condition, and the rounds into ``counters[1]``.  ``graphs``: the loop's graph is kept
+    there (by its kernels, size and arguments) and replayed by a call with the same ones."""
     device = state.device
     counters.fill_(1)
 
@@ -56,8 +71,9 @@ def _throw_darts(accept, accept_inputs: list, reject, reject_inputs: list, dim, 
         wp.launch(reject, dim=dim, inputs=reject_inputs, outputs=[state, counters], device=device)
 
     counters[1:2].zero_()
+    key = (accept.key, reject.key, str(dim)) + launch_key([*accept_inputs, *reject_inputs, state, counters])
     # the loop condition is counters[0]: capture_while needs a one-element array (CUDA checks its size)
-    loop_until_zero(counters[:1], one_round)
+    loop_until_zero(counters[:1], one_round, graphs, key)
 
 
 def poisson_disk_subsample(
@@ -71,6 +87,7 @@ def poisson_disk_subsample(
     counters: wp.array | None = None,
     radius_max: wp.array | None = None,
     levels: int = CONFIDENCE_LEVELS,
+    graphs: GraphCache | None = None,
 ) -> wp.array:
     """Poisson-disk subset of world points, higher confidence winning conflicts.
 
@@ -83,7 +100,8 @@ def poisson_disk_subsample(
     ``cell_size`` sets the hash grid's cells (performance only; default: the largest radius, read
     back once).  ``grid`` (a ``wp.HashGrid``), ``keep_out``, ``counters`` ((2,) int32) and
     ``radius_max`` ((1,) float32) let a stage reuse its buffers; ``counters[1]`` holds the number
-    of rounds afterwards.
+    of rounds afterwards.  ``graphs``: where the rounds' loop graph is kept for the next call with the
+    same buffers (``GraphCache``; the grid's address stays as it is rebuilt).
     """
     device = points.device
     n = points.shape[0]
@@ -112,6 +130,7 @@ def poisson_disk_subsample(
         n,
         keep_out,
         counters,
+        graphs,
     )
     return keep_out
 

@@ -14,6 +14,7 @@ import warp as wp
 
 from rgs_warp.config import SeedingConfig
 from rgs_warp.geometry import invert_pose
+from rgs_warp.graph_cache import GraphCache, launch_key
 from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.math import camera_params
 from rgs_warp.kernels.seeding import MAX_VIEWS, SeedParams, seed_footprint, seed_gaussians
@@ -78,6 +79,7 @@ class PointSeeder:
         kw = {"device": self.device}
         host = {"device": "cpu", "pinned": self.device.is_cuda}
         self._grid = wp.HashGrid(128, 128, 128, device=self.device)
+        self._graphs = GraphCache(self.device)  # the Poisson-disk rounds' loop of each set of buffers
         self._counters = wp.zeros(2, dtype=wp.int32, **kw)
         self._radius_max = wp.zeros(1, dtype=wp.float32, **kw)
         self._count = wp.zeros(1, dtype=wp.int32, **kw)
@@ -194,6 +196,7 @@ class PointSeeder:
             keep_out=keep,
             counters=self._counters,
             radius_max=self._radius_max,
+            graphs=self._graphs,
         )
         compact_mask(keep, self._indices, self._count, self._offsets[:n])
         row0 = len(gmap)
@@ -294,6 +297,7 @@ class Seeder:
         self._extrapolated = None
         if mode == "rgbd" and cfg.depth_extrapolate_px > 0:
             self._extrapolated = tuple(wp.zeros(shape, dtype=wp.float32, device=dev) for _ in range(2))
+        self._graphs = GraphCache(dev, size=16)  # the extrapolation of each source image (keyframe slots, fills)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
     def _point_seeders(self) -> list[tuple[str, PointSeeder]]:
@@ -449,11 +453,17 @@ class Seeder:
         if self._extrapolated is None:
             return frames.depth[slot]
         src = frames.depth[slot]
-        for k in range(self.cfg.depth_extrapolate_px):
-            dst = self._extrapolated[k % 2]
-            wp.launch(ks.extrapolate_depth_step, dim=dst.shape, inputs=[src], outputs=[dst], device=self.device)
-            src = dst
-        return src
+        steps = self.cfg.depth_extrapolate_px
+
+        def extrapolate():  # one launch per pixel of reach: replayed as one graph per source image
+            image = src
+            for k in range(steps):
+                dst = self._extrapolated[k % 2]
+                wp.launch(ks.extrapolate_depth_step, dim=dst.shape, inputs=[image], outputs=[dst], device=self.device)
+                image = dst
+
+        self._graphs.run(("extrapolate",) + launch_key([src, *self._extrapolated, steps]), extrapolate)
+        return self._extrapolated[(steps - 1) % 2]
 
     def _seed_depth(
         self,
