@@ -34,7 +34,7 @@ from rgs_warp.kernels.tracking import advance_step
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer
 from rgs_warp.losses import DSSIMLoss
 from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
-from rgs_warp.render import GaussianGrads, Renderer, RenderResult
+from rgs_warp.render import GRAPH_HEADROOM, GaussianGrads, Renderer, RenderResult
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
 
@@ -67,8 +67,6 @@ class MappingResult:
 
 
 STATISTICS = ("obs_count", "vis_count", "ema_means")  # map columns: m_i, v_i, EMA position (Eq. 15)
-# intersections a captured mapping step has room for: this times what its view's eager render needed
-GRAPH_HEADROOM = 1.3
 
 
 class Mapper:

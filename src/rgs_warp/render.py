@@ -47,6 +47,10 @@ from rgs_warp.kernels.rasterize import (
 )
 from rgs_warp.types import Camera, GaussianMap, grown_capacity
 
+# Intersections reserved before a render is captured in a graph (tracking's steps, mapping's), x the
+# count its view last needed: a replayed forward cannot grow its buffers
+GRAPH_HEADROOM = 1.3
+
 __all__ = ["GaussianGrads", "RenderResult", "Renderer", "render"]
 
 

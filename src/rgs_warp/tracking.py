@@ -26,7 +26,7 @@ from rgs_warp.frame_check import as_float_image
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.kernels.math import REDUCE_BLOCK
-from rgs_warp.render import Renderer
+from rgs_warp.render import GRAPH_HEADROOM, Renderer
 from rgs_warp.types import Camera, GaussianMap
 
 __all__ = ["Tracker", "TrackingResult", "motion_inconsistency", "pose_error"]
@@ -88,9 +88,6 @@ SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, track
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
 GRAPHS_KEPT = 3
-# Intersections reserved before a capture, x the latest render's count: a replayed forward cannot grow
-# its buffers, so a frame whose view needs more than this is tracked again eagerly (and captured anew)
-GRAPH_HEADROOM = 1.3
 BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
 
 
@@ -367,7 +364,7 @@ class Tracker:
 
         A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
         is kept by those (``_graph_key``).  At a new key one step runs eagerly on every tile (its render
-        sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` x
+        sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` (render.py) x
         the intersections that render needed are reserved, and the two steps are captured and replayed:
         the frame after a keyframe costs one eager step and two captures more than a replayed frame
         (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
