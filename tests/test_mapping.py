@@ -645,6 +645,8 @@ def test_mapping_steps_replayed_from_graphs_match_eager_steps(device, room, hist
         columns = {name: gmap.column(name).numpy()[: len(gmap)].copy() for name in ("obs_count", "vis_count")}
         moments = {name: [a.numpy().copy() for a in mapper.adam.moments(name)] for name in GaussianMap.PARAMETERS}
         out[graph] = (gmap.to_numpy(), columns, moments, result, mapper.adam.t)
+        if graph == "on":  # the mapper's running counts, as metrics.json reports them
+            assert mapper.graph_counts == {**result.graph_steps, "overflowed": result.graph_overflows}
     (p0, c0, m0, r0, t0), (p1, c1, m1, r1, t1) = out["off"], out["on"]
     assert r1.graph_steps["captured"] >= 1 and r1.graph_steps["replayed"] >= 6 and r1.graph_overflows == 0
     assert r0.graph_steps == {"eager": 0, "captured": 0, "replayed": 0}

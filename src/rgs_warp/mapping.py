@@ -145,6 +145,8 @@ class Mapper:
         self._step = wp.zeros(1, dtype=wp.int32, device=dev)
         self._overflows = wp.zeros(1, dtype=wp.int32, device=dev)
         self.use_graph = cfg.graph == "on" or (cfg.graph == "auto" and self.device.is_cuda)
+        # steps of every call so far: eager, captured, replayed (mapping.graph), and overflowed replays
+        self.graph_counts = {"eager": 0, "captured": 0, "replayed": 0, "overflowed": 0}
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The optimiser's clocks besides the map's columns: Adam's step count (bias correction), the
@@ -302,6 +304,10 @@ class Mapper:
         if graphs is not None and result.graph_steps["captured"]:
             result.graph_overflows = int(self._overflows.numpy()[0])
             self.renderer.overflowed_renders += result.graph_overflows
+        if graphs is not None:
+            for k, v in result.graph_steps.items():
+                self.graph_counts[k] += v
+            self.graph_counts["overflowed"] += result.graph_overflows
         loss = self._loss[:iters].numpy()
         pixels = np.maximum(loss[:, km.L_PIXELS], 1.0)
         depth_px = loss[:, km.L_DEPTH_PIXELS]

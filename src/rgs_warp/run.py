@@ -819,6 +819,8 @@ def evaluate_run(
     metrics["mapping_iterations"] = slam.mapper.total_iters
     # renders of the mapping renderer (mapping, seeding) found to have dropped intersections
     metrics["mapping_renders_overflowed"] = slam.renderer.overflowed_renders
+    # mapping steps run eagerly, captured and replayed (mapping.graph), replays that overflowed
+    metrics["mapping_graph_steps"] = dict(slam.mapper.graph_counts)
     metrics["mapping"] = "asynchronous" if cfg.mapping.asynchronous else "synchronous"
     if slam.keyframe_latency_s:  # asynchronous: from a keyframe's tracking to its map published
         lat = np.array(slam.keyframe_latency_s)
