@@ -53,7 +53,8 @@ def _numpy_adam(params, grads_seq, lrs, n, max_norm, b1=0.9, b2=0.999, eps=1e-15
     return p
 
 
-@pytest.mark.parametrize("sh_rest, n", [(None, 40), (2.5e-4, 40), (None, 600)])  # 600: 3 blocks of the norms
+# 600 Gaussians: 54 blocks of the norms; 12000: the 1024 blocks' threads stride over the entries
+@pytest.mark.parametrize("sh_rest, n", [(None, 40), (2.5e-4, 40), (None, 600), (None, 12000)])
 @pytest.mark.parametrize("grad_scale", [1e-3, 10.0])  # below and far above the clipping norm
 def test_adam_matches_numpy(device, grad_scale, sh_rest, n):
     rng = np.random.default_rng(0)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from rgs_warp.kernels.adam import adam_entries, clip_scale_from_sq_norms, grad_sq_norms, vec5i, vec6
+from rgs_warp.kernels.adam import NORM_BLOCKS, adam_entries, clip_scale_from_sq_norms, grad_sq_norms, vec5i, vec6
 from rgs_warp.kernels.math import REDUCE_BLOCK
 from rgs_warp.types import GaussianMap
 
@@ -119,7 +119,7 @@ class MapAdam:
         self._sq.zero_()
         wp.launch_tiled(
             grad_sq_norms,
-            dim=[(int(ends[4]) + REDUCE_BLOCK - 1) // REDUCE_BLOCK],
+            dim=[min((int(ends[4]) + REDUCE_BLOCK - 1) // REDUCE_BLOCK, NORM_BLOCKS)],
             inputs=[*g, ends],
             outputs=[self._sq],
             block_dim=REDUCE_BLOCK,

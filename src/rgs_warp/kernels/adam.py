@@ -17,6 +17,8 @@ vec5i = wp.types.vector(length=N_PARAMETERS, dtype=wp.int32)
 # learning rates of the step: the five parameters', then the higher SH bands'
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
 LR_SH_REST = wp.constant(5)
+# blocks of the norms' launch at most (each thread then strides over the entries)
+NORM_BLOCKS = wp.constant(1024)
 
 
 @wp.func
@@ -87,13 +89,17 @@ def grad_sq_norms(
     # out: the five squared norms (zeroed beforehand)
     sq_out: wp.array(dtype=wp.float32),
 ):
+    # each thread strides over the entries (the launch has at most NORM_BLOCKS blocks), so the block
+    # sums and atomics are a few thousand, not one per 256 entries (90k at 1M Gaussians)
     block, lane = wp.tid()
-    i = block * REDUCE_BLOCK + lane
+    stride = NORM_BLOCKS * REDUCE_BLOCK
     s = vec5()
-    if i < ends[N_PARAMETERS - 1]:
+    i = block * REDUCE_BLOCK + lane
+    while i < ends[N_PARAMETERS - 1]:
         f, j = parameter_of(i, ends)
         g = entry(g0, g1, g2, g3, g4, f, j)
-        s[f] = g * g
+        s[f] += g * g
+        i += stride
     total = block_sum(s)
     if lane == 0:
         for k in range(N_PARAMETERS):
