@@ -658,3 +658,45 @@ def test_mapping_steps_replayed_from_graphs_match_eager_steps(device, room, hist
     for name in c0:
         np.testing.assert_array_equal(c1[name], c0[name], err_msg=name)
     np.testing.assert_array_equal(r1.loss_history, r0.loss_history)
+
+
+def test_mapping_graphs_captured_again_when_the_renderer_reallocates(device, room):
+    """Views of different density (the room from a keyframe, and from 40 and 60 m behind two others),
+    in a set order: each rendered once eagerly, then captured in turn and replayed; then the renderer's
+    buffers grow (as a denser view's render would make them), which drops every graph (they hold the old
+    addresses), and the views are captured again.  The steps equal eager steps bit for bit (the eager run sizes each
+    view by its own count, so neither run drops intersections), as do the renderer's overflow counts."""
+    cam = room["camera"]
+    frames = []
+    for k, (rgb, depth, T) in enumerate(room["frames"]):
+        if k:
+            T = T.copy()
+            T[:3, 3] -= (20.0 + 20.0 * k) * T[:3, 2]
+            depth = np.zeros_like(depth)
+        frames.append((rgb, depth, T))
+    order = [0, 1, 2, 0, 1, 2, 0, 2, 1, 0, 2, 1, 1, 0, 2, 0]
+
+    class Scripted:  # optimize renders the first of the reversed permutation: the scripted view
+        def __init__(self, renderer):
+            self.k, self.renderer = 0, renderer
+
+        def permutation(self, n):
+            view = order[self.k]
+            if self.k == 9:  # as a denser view's render would: the buffers grow, at new addresses
+                self.renderer.reserve_intersections(4 * self.renderer.intersection_capacity)
+            self.k += 1
+            return np.array([v for v in range(n) if v != view] + [view])
+
+    out = {}
+    for graph in ("off", "on"):
+        gmap = _room_map(room, device)
+        kf, slots = _keyframes(room, frames, device)
+        mapper = Mapper(MappingConfig(graph=graph, history=0.0), cam, gmap, device)
+        mapper.rng = Scripted(mapper.renderer)
+        out[graph] = (mapper.optimize(kf, slots, len(order)), gmap.to_numpy(), mapper.renderer.overflowed_renders)
+    on, off = out["on"], out["off"]
+    assert on[0].graph_steps["captured"] > len(frames) and on[0].graph_steps["replayed"] > 0  # captured again
+    assert on[0].graph_overflows == 0 and on[2] == off[2]
+    np.testing.assert_array_equal(on[0].loss_history, off[0].loss_history)
+    for name in GaussianMap.PARAMETERS:
+        np.testing.assert_array_equal(on[1][name], off[1][name], err_msg=name)

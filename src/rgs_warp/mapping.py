@@ -503,6 +503,7 @@ class _StepGraphs:
             result.graph_steps["replayed"] += 1
             return
         view = int(buffers[j].frame_ids[slots[j]])
+        # (settles the latest eager render's count under its view: the capture's forward cannot)
         needed = renderer.view_intersections(view) if j in self._seen else 0
         if needed <= 0:
             m._map_step(buffers, slots, [j], 0, use_depth, blocks, 1.0)

@@ -217,11 +217,24 @@ class Renderer:
         """Tile intersections the latest forward (eager or replayed from a graph) needed; waits for it."""
         return self._read_count()
 
+    def settle(self) -> None:
+        """What a forward does with the previous (eager) render's count, done now, waiting for it: count
+        it if it overflowed, keep it as its view's count.  Before a capture, whose forwards cannot wait
+        (a view rendered just before a capture was otherwise never counted, and its next eager render was
+        sized by another view's count)."""
+        if self._count_key is None or self.device.is_capturing:
+            return
+        count = self._read_count()
+        if self._last_capacity is not None and count > self._last_capacity:
+            self.overflowed_renders += 1
+        if self._count_view is not None:
+            self._view_counts[self._count_view] = count
+        self._last_capacity, self._count_view = None, None
+
     def view_intersections(self, view) -> int:
         """Tile intersections the latest eager render of ``view`` (``forward``'s key) needed, 0 if none
-        was seen; waits for that render if it is the latest."""
-        if self._count_view == view and self._count_view is not None:
-            return self._read_count()
+        was seen (``settle`` first: waits for the latest render)."""
+        self.settle()
         return self._view_counts.get(view, 0)
 
     @property
