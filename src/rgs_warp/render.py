@@ -218,18 +218,24 @@ class Renderer:
         return self._read_count()
 
     def settle(self) -> None:
-        """What a forward does with the previous (eager) render's count, done now, waiting for it: count
-        it if it overflowed, keep it as its view's count.  Before a capture, whose forwards cannot wait
-        (a view rendered just before a capture was otherwise never counted, and its next eager render was
-        sized by another view's count)."""
-        if self._count_key is None or self.device.is_capturing:
-            return
+        """What a forward does with the previous (eager) render's count, done now (``_settle``): before a
+        capture, whose forwards cannot wait (a view rendered just before a capture was otherwise never
+        counted, and its next eager render was sized by another view's count)."""
+        if not self.device.is_capturing:
+            self._settle()
+
+    def _settle(self) -> int | None:
+        """The previous eager render's intersection count (waiting for it), after its bookkeeping: counted
+        if it overflowed its capacity, kept as its view's count; None before any render."""
+        if self._count_key is None:
+            return None
         count = self._read_count()
         if self._last_capacity is not None and count > self._last_capacity:
             self.overflowed_renders += 1
         if self._count_view is not None:
             self._view_counts[self._count_view] = count
         self._last_capacity, self._count_view = None, None
+        return count
 
     def view_intersections(self, view) -> int:
         """Tile intersections the latest eager render of ``view`` (``forward``'s key) needed, 0 if none
@@ -320,12 +326,7 @@ class Renderer:
         exact = False
         if not capturing:
             if self._count_key == (n, camera):
-                count = self._read_count()
-                if self._last_capacity is not None and count > self._last_capacity:
-                    self.overflowed_renders += 1
-                if self._count_view is not None:
-                    self._view_counts[self._count_view] = count
-                self._size_intersections(count)
+                self._size_intersections(self._settle())
             else:
                 exact = n > 0
         if n > 0:
