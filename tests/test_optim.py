@@ -62,13 +62,15 @@ def test_adam_matches_numpy(device, grad_scale, sh_rest, n):
     start = {k: v.copy() for k, v in gmap.to_numpy().items()}
     lrs = MapLearningRates(means=1e-3, rotations=2e-3, log_scales=3e-3, opacity_logits=4e-3, sh=5e-3, sh_rest=sh_rest)
     opt = MapAdam(gmap, lrs, max_grad_norm=1.0)
-    seq, factors = [], []
+    factors = [cosine_factor(step, 3, final=0.1) for step in range(3)]
+    opt.schedule(factors)  # each step reads its row through the device counter
+    counter = wp.zeros(1, dtype=wp.int32, device=device)
+    seq = []
     for step in range(3):
         g, values = _grads(rng, gmap, grad_scale)
-        f = cosine_factor(step, 3, final=0.1)
-        opt.step(g, lr_factor=f)
+        counter.assign(np.array([step], dtype=np.int32))
+        opt.step(g, counter)
         seq.append(values)
-        factors.append(f)
     expected = _numpy_adam(start, seq, lrs, n, 1.0, factors=factors)
     got = gmap.to_numpy()
     for k in GaussianMap.PARAMETERS:
@@ -84,7 +86,8 @@ def test_moments_follow_growth_and_removal(device):
     gmap = _map(rng, 6, device, capacity=8)
     opt = MapAdam(gmap, MapLearningRates())
     g, _ = _grads(rng, gmap, 0.1)
-    opt.step(g)
+    opt.schedule([1.0])
+    opt.step(g, wp.zeros(1, dtype=wp.int32, device=device))
     m_means, v_sh = opt.moments("means")[0], opt.moments("sh")[1]
     m_before = m_means.numpy().reshape(-1, 3)[:6].copy()
     v_sh_before = v_sh.numpy().reshape(-1, 27)[:6].copy()

@@ -73,9 +73,6 @@ class GraphCache:
         wp.capture_launch(graph)
         return True
 
-    def clear(self) -> None:
-        self._graphs.clear()
-
     def __len__(self) -> int:
         return len(self._graphs)
 

@@ -67,8 +67,7 @@ class MapAdam:
         dev = gmap.device
         self._sq = wp.zeros(len(GaussianMap.PARAMETERS), dtype=wp.float32, device=dev)
         self.clip = wp.zeros(2, dtype=wp.float32, device=dev)  # [scale applied, gradient norm]
-        self._schedule = self._no_schedule = wp.zeros(0, dtype=vec6, device=dev)
-        self._no_counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._schedule = wp.zeros(1, dtype=vec6, device=dev)
         self._views_key: tuple = ()
         self._flat_views: list[list[wp.array]] = []
         for name, dtype, inner in gmap.parameter_layout():
@@ -87,9 +86,9 @@ class MapAdam:
             moment.zero_()
 
     def schedule(self, lr_factors) -> None:
-        """The learning rates of the next ``len(lr_factors)`` steps (each scaled by its factor, the bias
-        correction of its step folded in) on the device, for ``step(grads, counter=...)``: a captured step
-        then reads its own."""
+        """The learning rates of the next ``len(lr_factors)`` steps on the device: each step's rates
+        scaled by its factor (the cosine schedule), the bias correction of its step folded in.  ``step``
+        reads row ``counter[0]``, so a captured step reads its own at each replay."""
         rows = [self._rates(f, self.t + 1 + k) for k, f in enumerate(lr_factors)]
         if self._schedule.shape[0] < len(rows):
             self._schedule = wp.zeros(len(rows), dtype=vec6, device=self.gmap.device)
@@ -99,20 +98,16 @@ class MapAdam:
         scale = lr_factor * math.sqrt(1.0 - self.beta2**t) / (1.0 - self.beta1**t)
         return vec6(*[self.lrs.of(name) * scale for name in GaussianMap.PARAMETERS], self.lrs.rest("sh") * scale)
 
-    def step(self, grads, lr_factor: float = 1.0, counter: wp.array | None = None) -> None:
+    def step(self, grads, counter: wp.array) -> None:
         """One Adam step on the live rows from ``grads`` (a ``GaussianGrads`` of the same capacity
-        layout), learning rates scaled by ``lr_factor`` (the cosine schedule): three launches over the
-        flat entries of all five parameters (the squared gradient norms, the clip scale, the update).
-        ``counter``: a device step counter; the rates are then row ``counter[0]`` of ``schedule``'s (and
-        ``lr_factor`` is not used), which a captured step reads at each replay."""
+        layout) at the learning rates of row ``counter[0]`` (a one-int device array, the caller's step
+        counter) of ``schedule``'s: three launches over the flat entries of all five parameters (the
+        squared gradient norms, the clip scale, the update)."""
         gmap = self.gmap
         n = len(gmap)
         if n == 0:
             return
         self.t += 1
-        lr = self._rates(lr_factor, self.t)
-        schedule = self._no_schedule if counter is None else self._schedule
-        counter = self._no_counter if counter is None else counter
         g, p, m, v = self._views(grads)
         rows = n * 3 * gmap.num_sh
         ends = vec5i(*np.cumsum([3 * n, 4 * n, 3 * n, n, rows]).tolist())
@@ -135,7 +130,7 @@ class MapAdam:
         wp.launch(
             adam_entries,
             dim=int(ends[4]),
-            inputs=[*g, ends, self.clip, lr, schedule, counter, 3 * gmap.num_sh, self.beta1, self.beta2, self.eps],
+            inputs=[*g, ends, self.clip, self._schedule, counter, 3 * gmap.num_sh, self.beta1, self.beta2, self.eps],
             outputs=[*p, *m, *v],
             device=gmap.device,
         )

@@ -37,14 +37,9 @@ def loop_until_zero(condition: wp.array, body, graphs: GraphCache | None = None,
     Inside an enclosing capture, or where the driver lacks conditional nodes (CUDA < 12.4), the loop is
     recorded / run as ``wp.capture_while`` does; on the CPU the condition is read from host memory at
     no cost."""
-    device = condition.device
-    if graphs is not None and graphs.run_while(key, condition, body):
-        return
-    if device.is_cuda and not device.is_capturing and wp.is_conditional_graph_supported():
-        with wp.ScopedCapture(device=device) as capture:
-            wp.capture_while(condition, body)
-        wp.capture_launch(capture.graph)
-    else:
+    if graphs is None:
+        graphs = GraphCache(condition.device, size=1)  # captured for this call only
+    if not graphs.run_while(key, condition, body):
         wp.capture_while(condition, body)
 
 

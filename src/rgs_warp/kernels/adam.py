@@ -144,8 +144,7 @@ def adam_entries(
     g4: wp.array(dtype=wp.float32),
     ends: vec5i,
     clip: wp.array(dtype=wp.float32),
-    lr: vec6,
-    # a schedule instead of lr when it has rows: row counter[0] (a captured step reads its own)
+    # the step's learning rates: row counter[0] of the schedule (a captured step reads its own)
     lr_schedule: wp.array(dtype=vec6),
     counter: wp.array(dtype=wp.int32),
     sh_width: int,
@@ -174,9 +173,7 @@ def adam_entries(
     g = entry(g0, g1, g2, g3, g4, f, j) * clip[0]
     m = beta1 * entry(m0, m1, m2, m3, m4, f, j) + (1.0 - beta1) * g
     v = beta2 * entry(v0, v1, v2, v3, v4, f, j) + (1.0 - beta2) * g * g
-    rates = lr
-    if lr_schedule.shape[0] > 0:
-        rates = lr_schedule[counter[0]]
+    rates = lr_schedule[counter[0]]
     rate = rates[f]
     if f == N_PARAMETERS - 1 and j % sh_width >= 3:
         rate = rates[LR_SH_REST]
