@@ -26,7 +26,7 @@ import warp as wp
 
 from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels import exposure as ke
-from rgs_warp.kernels.math import REDUCE_BLOCK, camera_params
+from rgs_warp.kernels.math import REDUCE_BLOCK, camera_params, reduce_blocks
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.types import Camera
 
@@ -57,7 +57,7 @@ class KeyframeExposure:
         self._exposure_host = wp.zeros(capacity, dtype=wp.vec2, device="cpu", pinned=pinned)
         self._moments = wp.zeros(ke.M_COLUMNS, dtype=wp.float64, device=self.device)
         self._moments_host = wp.zeros(ke.M_COLUMNS, dtype=wp.float64, device="cpu", pinned=pinned)
-        self._blocks = [(camera.width * camera.height + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
+        self._blocks = [reduce_blocks(camera.width * camera.height)]
 
     def estimate(
         self,

@@ -29,7 +29,7 @@ import warp as wp
 from rgs_warp.config import DensifyConfig, MappingConfig
 from rgs_warp.densification import Densifier
 from rgs_warp.kernels import mapping as km
-from rgs_warp.kernels.math import REDUCE_BLOCK
+from rgs_warp.kernels.math import REDUCE_BLOCK, reduce_blocks
 from rgs_warp.kernels.tracking import advance_step
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer
 from rgs_warp.losses import DSSIMLoss
@@ -271,7 +271,7 @@ class Mapper:
 
         use_depth = int(self.mode == "rgbd")
         n_pixels = self.camera.width * self.camera.height
-        blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
+        blocks = [reduce_blocks(n_pixels)]
         result = MappingResult(iters, np.zeros(0), np.zeros(0), np.zeros(0))
         self._step.zero_()
         self._overflows.zero_()
@@ -461,7 +461,7 @@ class Mapper:
             self._squared_error = wp.zeros(k, dtype=wp.float64, device=self.device)
         self._squared_error.zero_()
         n_pixels = self.camera.width * self.camera.height
-        blocks = [(n_pixels + REDUCE_BLOCK - 1) // REDUCE_BLOCK]
+        blocks = [reduce_blocks(n_pixels)]
         for j, slot in enumerate(window):
             res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1])
             wp.launch_tiled(

@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.kernels.adam import NORM_BLOCKS, adam_entries, clip_scale_from_sq_norms, grad_sq_norms, vec5i, vec6
-from rgs_warp.kernels.math import REDUCE_BLOCK
+from rgs_warp.kernels.math import REDUCE_BLOCK, reduce_blocks
 from rgs_warp.types import GaussianMap
 
 
@@ -114,7 +114,7 @@ class MapAdam:
         self._sq.zero_()
         wp.launch_tiled(
             grad_sq_norms,
-            dim=[min((int(ends[4]) + REDUCE_BLOCK - 1) // REDUCE_BLOCK, NORM_BLOCKS)],
+            dim=[min(reduce_blocks(ends[4]), NORM_BLOCKS)],
             inputs=[*g, ends],
             outputs=[self._sq],
             block_dim=REDUCE_BLOCK,

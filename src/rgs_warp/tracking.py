@@ -25,7 +25,7 @@ from rgs_warp.config import TrackingConfig
 from rgs_warp.frame_check import as_float_image
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels import tracking as tk
-from rgs_warp.kernels.math import REDUCE_BLOCK
+from rgs_warp.kernels.math import REDUCE_BLOCK, reduce_blocks
 from rgs_warp.render import GRAPH_HEADROOM, Renderer
 from rgs_warp.types import Camera, GaussianMap
 
@@ -152,7 +152,7 @@ class Tracker:
         self._d_color = wp.zeros(shape, dtype=wp.vec3, device=dev)
         self._d_depth = wp.zeros(shape, dtype=wp.float32, device=dev)
         self._d_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
-        self._blocks = [(shape[0] * shape[1] + REDUCE_BLOCK - 1) // REDUCE_BLOCK]  # per-pixel reductions
+        self._blocks = [reduce_blocks(shape[0] * shape[1])]  # per-pixel reductions
         self._history = wp.zeros((cfg.iters, tk.H_COLUMNS), dtype=wp.float64, device=dev)
         self._history_host = wp.zeros((cfg.iters, tk.H_COLUMNS), dtype=wp.float64, device="cpu", pinned=pinned)
         self._adam_m = wp.zeros(6, dtype=wp.float32, device=dev)

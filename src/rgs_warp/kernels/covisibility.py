@@ -4,7 +4,7 @@ per pixel, the counts summed per block on the device."""
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, reduce_blocks
 
 wp.set_module_options({"enable_backward": False})
 
@@ -38,10 +38,6 @@ def _visibility_iou_blocks(
             wp.atomic_add(counts_out, k, total[k])
 
 
-def _blocks(image: wp.array2d) -> int:
-    return (image.shape[0] * image.shape[1] + REDUCE_BLOCK - 1) // REDUCE_BLOCK
-
-
 def visibility_iou(
     alpha: wp.array2d, last_mask: wp.array2d, alpha_threshold: float, mask_out: wp.array2d, counts_out: wp.array
 ) -> None:
@@ -52,7 +48,7 @@ def visibility_iou(
     counts_out.zero_()
     wp.launch_tiled(
         _visibility_iou_blocks,
-        dim=[_blocks(alpha)],
+        dim=[reduce_blocks(alpha.shape[0] * alpha.shape[1])],
         inputs=[alpha, last_mask, float(alpha_threshold)],
         outputs=[mask_out, counts_out],
         block_dim=REDUCE_BLOCK,
@@ -141,7 +137,7 @@ def reprojected_iou(
     counts_out.zero_()
     wp.launch_tiled(
         _reprojected_iou_blocks,
-        dim=[_blocks(alpha)],
+        dim=[reduce_blocks(alpha.shape[0] * alpha.shape[1])],
         inputs=[
             alpha,
             depth,

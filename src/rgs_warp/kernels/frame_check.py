@@ -4,7 +4,7 @@ reduced on the device so that a clean frame costs one small read."""
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, reduce_blocks
 
 wp.set_module_options({"enable_backward": False})
 
@@ -78,7 +78,7 @@ def frame_counts(rgb: wp.array2d, depth: wp.array2d, has_depth: bool, tol: float
     counts_out.zero_()
     wp.launch_tiled(
         _frame_counts_blocks,
-        dim=[(rgb.shape[0] * rgb.shape[1] + REDUCE_BLOCK - 1) // REDUCE_BLOCK],
+        dim=[reduce_blocks(rgb.shape[0] * rgb.shape[1])],
         inputs=[rgb, depth, int(has_depth), float(tol)],
         outputs=[counts_out],
         block_dim=REDUCE_BLOCK,

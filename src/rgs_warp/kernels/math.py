@@ -12,6 +12,11 @@ import warp as wp
 REDUCE_BLOCK = 256
 
 
+def reduce_blocks(count: int) -> int:
+    """Blocks of REDUCE_BLOCK threads that cover ``count`` items (one thread each)."""
+    return (int(count) + REDUCE_BLOCK - 1) // REDUCE_BLOCK
+
+
 @wp.func
 def block_sum(x: Any):
     """Sum of ``x`` (a scalar, vector or matrix) over the threads of the block, as a block tile;
