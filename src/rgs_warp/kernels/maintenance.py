@@ -22,7 +22,15 @@ Merging runs in three launches over one view:
 
 import warp as wp
 
-from rgs_warp.kernels.math import COV2D_DILATION, SH_C0, CameraParams, exp3, projection_jacobian, quat_to_rot
+from rgs_warp.kernels.math import (
+    COV2D_DILATION,
+    SH_C0,
+    CameraParams,
+    exp3,
+    hash_lattice,
+    projection_jacobian,
+    quat_to_rot,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -34,7 +42,7 @@ PRUNE_SCALE = wp.constant(3)
 PRUNE_HIDDEN = wp.constant(4)
 PRUNE_STATS = 5
 # Embedded positions of the Gaussians without a footprint in the merge view (``far_point``): far from
-# every image point, FAR_SPACING apart on a 128^3 lattice.
+# every image point, FAR_SPACING apart on the hash lattice.
 FAR = wp.constant(-1.0e6)
 FAR_SPACING = wp.constant(3.3)
 # Smallest variance of a merged axis (a scale of 1e-12 m): keeps the log finite for degenerate inputs.
@@ -112,13 +120,8 @@ def prune_flags(
 @wp.func
 def far_point(i: int):
     """Where Gaussian ``i`` sits in the merge embedding when it has no footprint: out of every query's
-    reach, and spread over the hash grid's cells.  All in one point, they filled one cell, and a query
-    that visited it walked every one of them (a 1M-Gaussian office keyframe on an H100: 41 ms, the
-    slowest thread's)."""
-    a = float(i % 128)
-    b = float((i // 128) % 128)
-    c = float((i // 16384) % 128)
-    return wp.vec3(FAR - FAR_SPACING * a, FAR - FAR_SPACING * b, FAR - FAR_SPACING * c)
+    reach, on the hash lattice (``kernels/math.hash_lattice``)."""
+    return wp.vec3(FAR) - FAR_SPACING * hash_lattice(i)
 
 
 @wp.kernel

@@ -17,6 +17,24 @@ def reduce_blocks(count: int) -> int:
     return (int(count) + REDUCE_BLOCK - 1) // REDUCE_BLOCK
 
 
+# ---- points out of play in a hash grid ------------------------------------------------------------
+# wp.HashGrid wraps cell coordinates modulo its dimensions (128^3 here) and a query walks whole cells,
+# so points that take no part in the queries must not share a cell: one shared point made a merge kernel
+# walk 600k of them per query (41 ms of an office keyframe on an H100).  They go on this lattice.
+HASH_LATTICE = 128
+
+
+@wp.func
+def hash_lattice(i: int) -> wp.vec3:
+    """Integer coordinates of point ``i`` on a HASH_LATTICE^3 lattice (unit spacing), one point per
+    index up to HASH_LATTICE^3: spaced a few cells apart, they fall in different wrapped cells."""
+    return wp.vec3(
+        float(i % HASH_LATTICE),
+        float((i // HASH_LATTICE) % HASH_LATTICE),
+        float((i // (HASH_LATTICE * HASH_LATTICE)) % HASH_LATTICE),
+    )
+
+
 @wp.func
 def block_sum(x: Any):
     """Sum of ``x`` (a scalar, vector or matrix) over the threads of the block, as a block tile;

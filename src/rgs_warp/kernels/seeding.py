@@ -9,7 +9,7 @@ poses, ``view_slot`` their keyframe-buffer slots, ``view_exposure`` their (g, b)
 
 import warp as wp
 
-from rgs_warp.kernels.math import SH_C0, CameraParams, bilerp, bilinear_corner, grey_level
+from rgs_warp.kernels.math import SH_C0, CameraParams, bilerp, bilinear_corner, grey_level, hash_lattice
 
 wp.set_module_options({"enable_backward": False})
 
@@ -54,21 +54,17 @@ def camera_centre(T_CW: wp.mat44) -> wp.vec3:
     )
 
 
-# Where dropped points wait in the hash grid (``parked_point``): a 128^3 lattice of this spacing
-# (metres) behind the reference camera.
+# Where dropped points wait in the hash grid (``parked_point``): the hash lattice at this spacing
+# (metres), behind the reference camera.
 PARKED_SPACING = wp.constant(0.033)
 
 
 @wp.func
 def parked_point(T_CW: wp.mat44, i: int) -> wp.vec3:
-    """Where dropped point ``i`` sits in the hash grid: behind the reference camera (z < 0 there),
-    where no seed lies, and spread over the grid's cells.  All at one point, they filled one cell, and
-    a query that reached it walked every one of them."""
-    q = wp.vec3(
-        PARKED_SPACING * float(i % 128),
-        PARKED_SPACING * float((i // 128) % 128),
-        -1.0 - PARKED_SPACING * float((i // 16384) % 128),
-    )
+    """Where dropped point ``i`` sits in the hash grid: behind the reference camera (z < 0 there), where
+    no seed lies, on the hash lattice (``kernels/math.hash_lattice``)."""
+    q = PARKED_SPACING * hash_lattice(i)
+    q = wp.vec3(q[0], q[1], -1.0 - q[2])
     return camera_centre(T_CW) + wp.vec3(
         T_CW[0, 0] * q[0] + T_CW[1, 0] * q[1] + T_CW[2, 0] * q[2],
         T_CW[0, 1] * q[0] + T_CW[1, 1] * q[1] + T_CW[2, 1] * q[2],
