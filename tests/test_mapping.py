@@ -701,3 +701,17 @@ def test_mapping_graphs_captured_again_when_the_renderer_reallocates(device, roo
     np.testing.assert_array_equal(on[0].loss_history, off[0].loss_history)
     for name in GaussianMap.PARAMETERS:
         np.testing.assert_array_equal(on[1][name], off[1][name], err_msg=name)
+
+
+def test_count_overflow_counts_renders_beyond_their_capacity(device):
+    # what a replayed mapping step adds when its render needed more intersections than its graph holds
+    overflows = wp.zeros(1, dtype=wp.int32, device=device)
+    for needed, capacity in ((10, 12), (12, 12), (13, 12), (500, 12)):
+        wp.launch(
+            km.count_overflow,
+            dim=1,
+            inputs=[wp.array([needed], dtype=wp.int32, device=device), capacity],
+            outputs=[overflows],
+            device=device,
+        )
+    assert int(overflows.numpy()[0]) == 2
