@@ -392,6 +392,12 @@ class GaussianMap:
         return gmap
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """Live parameter rows as float32 NumPy arrays keyed by name (rotations as x, y, z, w)."""
-        n = self._count
-        return {name: self.column(name).numpy()[:n] for name in self.PARAMETERS}
+        """Live parameter rows as float32 NumPy arrays keyed by name (rotations as x, y, z, w), each a
+        host copy of its own (``live_rows``)."""
+        return {name: self.live_rows(name) for name in self.PARAMETERS}
+
+    def live_rows(self, name: str) -> np.ndarray:
+        """Column ``name``'s live rows as a NumPy array of its own: from a GPU only the live rows are
+        copied (not the capacity), and on the CPU device the copy is no view of the map's memory."""
+        rows = self.column(name)[: self._count].numpy()
+        return rows.copy() if self.device.is_cpu else rows

@@ -67,17 +67,17 @@ def snapshot_slam(slam, state: bool = False) -> SlamSnapshot:
     Without ``state``, a ``state.npz`` of an earlier save in the folder is removed."""
     gathered: dict = {}
     failed: dict[str, Exception] = {}
-    # each part's arrays as copies of their own: the trajectory and the keyframes are gathered as new
-    # arrays (the keyframes' images, most of a checkpoint's bytes, copied once); the map's and the
-    # state's may be views of live memory (the CPU device, the stages' state) and are copied (_owned)
+    # each part's arrays are copies of their own, copied once: the trajectory and the keyframes are
+    # gathered as new arrays, the map's columns as their live rows (GaussianMap.live_rows), the stages'
+    # state as their state_dict's copies
     parts = {
         "trajectory.txt": slam.trajectory,
         "keyframes.npz": lambda: _keyframe_arrays(slam),
-        "map.ply": lambda: _owned((slam.map.to_numpy(), slam.map.num_sh)),
+        "map.ply": lambda: (slam.map.to_numpy(), slam.map.num_sh),
         "config.yaml": lambda: slam.cfg,
     }
     if state:
-        parts["state.npz"] = lambda: _owned(_state_arrays(slam))
+        parts["state.npz"] = lambda: _state_arrays(slam)
     for name, gather in parts.items():
         try:
             gathered[name] = gather()
@@ -94,17 +94,6 @@ def snapshot_slam(slam, state: bool = False) -> SlamSnapshot:
         # uncompressed: optimiser moments do not compress, and checkpoints are frequent
         writers["state.npz"] = lambda path: _write_npz(path, gathered["state.npz"], compress=False)
     return SlamSnapshot(writers, failed, state)
-
-
-def _owned(value):
-    """``value`` with every NumPy array in it (in dicts and tuples) a copy of its own."""
-    if isinstance(value, np.ndarray):
-        return value.copy()
-    if isinstance(value, dict):
-        return {k: _owned(v) for k, v in value.items()}
-    if isinstance(value, tuple):
-        return tuple(_owned(v) for v in value)
-    return value
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray], compress: bool) -> None:
@@ -137,7 +126,7 @@ def _state_arrays(slam) -> dict[str, np.ndarray]:
         raise ValueError("the monocular bootstrap is waiting for parallax: its frames are not saved")
     n = len(slam.map)
     columns = [name for name in slam.map.column_names() if name not in GaussianMap.PARAMETERS]
-    state = {f"map.{name}": slam.map.column(name).numpy()[:n] for name in columns}
+    state = {f"map.{name}": slam.map.live_rows(name) for name in columns}
     for prefix, stage in (("selector.", slam.selector), ("tracker.", slam.tracker), ("mapper.", slam.mapper)):
         state.update({prefix + k: v for k, v in stage.state_dict().items()})
     state.update({f"seeder.{k}": v for k, v in slam.seeder.state_dict().items()})
