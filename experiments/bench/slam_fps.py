@@ -130,7 +130,8 @@ def main(argv=None) -> int:
             print(f"{name}: FAILED {e}", file=sys.stderr)
             continue
         log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
-        ate = ((metrics.get("ate") or {}).get("all_frames") or {}).get("rmse_cm")
+        ate_all = (metrics.get("ate") or {}).get("all_frames") or {}
+        ate = ate_all.get("rmse_cm")
         photometric = metrics.get("photometric") or {}
         results[name] = {
             "overrides": overrides,
@@ -139,12 +140,14 @@ def main(argv=None) -> int:
             "tracking_fps": metrics.get("tracking_fps"),
             "peak_memory_mib": metrics.get("peak_memory_mib"),
             "ate_cm": ate,
+            "ate_align_scale": ate_all.get("align_scale"),
             "psnr_db": photometric.get("psnr_db"),
             "psnr_compensated_db": photometric.get("psnr_compensated_db"),
             "keyframe_psnr_db": photometric.get("keyframe_psnr_db"),
             "time_s": metrics.get("time_s"),
             "mapping": metrics.get("mapping"),
             "mapping_iterations": metrics.get("mapping_iterations"),
+            "mapping_graph_steps": metrics.get("mapping_graph_steps"),
             "mapping_iterations_per_s": metrics.get("mapping_iterations", 0) / metrics["wall_s"],
             "keyframe_to_map_s": metrics.get("keyframe_to_map_s"),
             **summarise(log),
