@@ -14,7 +14,7 @@ from rgs_warp.datasets.base import downscale_depth, downscale_rgb
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 from rgs_warp.datasets.synthetic.textures import linear_to_srgb
 from rgs_warp.eval import ate
-from rgs_warp.geometry import invert_pose, rotation_angle_deg, se3_exp
+from rgs_warp.geometry import invert_pose, se3_exp
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.render import Renderer
 from rgs_warp.tracking import SETTLED_DEG, SETTLED_M, Tracker, motion_inconsistency, pose_error, settled_iters
@@ -753,71 +753,3 @@ def test_colour_per_opacity_takes_the_edge_of_the_map_out_of_the_pose_gradient(d
             _, grad = renderer.backward(d_color, d_depth, d_alpha, pose_only=True)
             norms[per_opacity] = float(np.linalg.norm(grad.numpy()))
         assert norms[1] < 0.01 * norms[0], (i, norms)
-
-
-@pytest.mark.parametrize("bounds", [(0.01, 0.05), (0.5, 0.05), (0.01, 1.0), (-1.0, -1.0)])
-def test_trust_region_step_matches_numpy(device, bounds):
-    """``tk.trust_region_step``: the pose's motion from the start (in the camera frame) keeps its
-    direction and axis, its translation and rotation angle cut to the bounds (scipy's rotation vectors
-    as the reference); a bound <= 0 leaves it, and the outputs are the projected pose."""
-    from scipy.spatial.transform import Rotation
-
-    rng = np.random.default_rng(5)
-    start = invert_pose(se3_exp(rng.normal(size=6)))  # world-to-camera
-    moved = se3_exp(np.concatenate([rng.normal(0, 0.1, 3), rng.normal(0, 0.2, 3)])) @ start
-    D = moved @ invert_pose(start)
-    t, rotvec = D[:3, 3], Rotation.from_matrix(D[:3, :3]).as_rotvec()
-    max_m, max_rad = bounds
-    if max_m > 0 and np.linalg.norm(t) > max_m:
-        t = t * max_m / np.linalg.norm(t)
-    if max_rad > 0 and np.linalg.norm(rotvec) > max_rad:
-        rotvec = rotvec * max_rad / np.linalg.norm(rotvec)
-    want = np.eye(4)
-    want[:3, :3], want[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), t
-    want = want @ start
-    T_CW = wp.array([moved], dtype=wp.mat44d, device=device)
-    T_WC = wp.zeros(1, dtype=wp.mat44, device=device)
-    poses = wp.zeros(3, dtype=wp.mat44d, device=device)
-    wp.launch(
-        tk.trust_region_step,
-        dim=1,
-        inputs=[wp.array([start], dtype=wp.mat44d, device=device), wp.array([bounds], dtype=wp.vec2d, device=device)]
-        + [2, _step0(device)],
-        outputs=[T_CW, T_WC, poses],
-        device=device,
-    )
-    np.testing.assert_allclose(T_CW.numpy()[0], want, atol=1e-12)
-    np.testing.assert_allclose(poses.numpy()[2], want, atol=1e-12)
-    np.testing.assert_allclose(T_WC.numpy()[0], invert_pose(want), atol=2e-6)
-    if bounds[0] < 0:
-        np.testing.assert_allclose(want, moved, atol=1e-12)
-
-
-def test_trust_region_holds_the_pose_near_the_prediction(device, scene):
-    """Monocular tracking from the constant-velocity prediction of a frame that is really 1 cm and 1 deg
-    off it: with the trust region (auto: on in mono) the pose ends on its bound (trust_ratio x the
-    predicted step + the floors) and says so; without it, or from a given start pose, it goes on to the
-    frame's pose."""
-    poses = scene["poses"]
-    trust = dict(trust_ratio=0.05, trust_translation_m=0.002, trust_rotation_deg=0.2, motion_check="off")
-    results = {}
-    for setting in ("auto", "off"):
-        tracker = Tracker(TrackingConfig(trust_region=setting, **trust), scene["camera"], device, mode="mono")
-        tracker.reset(poses[1], poses[0])
-        T_pred = tracker.predict()
-        T_true = _perturbed(T_pred, 0.01, 1.0, 0)
-        rgb, _ = scene["view"](T_true)
-        results[setting] = tracker.track(rgb, None, scene["map"])
-    step = invert_pose(poses[0]) @ poses[1]
-    bound_m = 0.05 * np.linalg.norm(step[:3, 3]) + 0.002
-    bound_deg = 0.05 * rotation_angle_deg(step[:3, :3]) + 0.2
-    held = results["auto"]
-    moved_m, moved_deg = pose_error(held.T_WC, T_pred)
-    assert moved_m <= bound_m * (1 + 1e-6) and moved_deg <= bound_deg * (1 + 1e-6), (moved_m, moved_deg)
-    assert held.trust_limited and max(moved_m / bound_m, moved_deg / bound_deg) > 0.999
-    free = results["off"]
-    assert not free.trust_limited and pose_error(free.T_WC, T_true)[0] < 2e-3, pose_error(free.T_WC, T_true)
-    # from a given start pose there is no bound
-    tracker = Tracker(TrackingConfig(trust_region="auto", **trust), scene["camera"], device, mode="mono")
-    given = tracker.track(rgb, None, scene["map"], T_pred)
-    assert not given.trust_limited and pose_error(given.T_WC, T_true)[0] < 2e-3

@@ -151,18 +151,6 @@ class TrackingConfig:
     # motion_min_rotation_deg: below them tracking noise (~1 mm, 0.05 deg) is a large part of the ratio
     motion_min_step_m: float = 0.005
     motion_min_rotation_deg: float = 0.2
-    # Trust region (issue 22): each pose step is projected back within trust_ratio x the predicted
-    # step plus trust_translation_m (map units: mono's are metres at the bootstrap's scale) and
-    # trust_ratio x the predicted turn plus trust_rotation_deg of the constant-velocity prediction it
-    # started from (the relative motion between them, in the camera frame).  Monocular translation is
-    # constrained only by the map: where the view turns onto surface the map lacks, the office's tracked
-    # steps went from 0.3 to 5-60x the true ones within a few frames, each then seeded from
-    # (experiments/results/mono.md).  A frame whose pose ends on the bound is logged (``trust_limited``).
-    # auto: on in mode=mono, off in rgbd (measured depth pins it); on / off force it.  Off until measured.
-    trust_region: str = "off"
-    trust_ratio: float = 0.3
-    trust_translation_m: float = 0.001
-    trust_rotation_deg: float = 0.2
     # Relocalisation (issue 22): a lost frame is tracked again from the last good pose and from the
     # poses of the (up to three) keyframes nearest it, and the best try that is not lost (lowest loss) is its pose;
     # the motion model then restarts there (zero velocity).  auto: on in mode=mono, off in rgbd (where a
@@ -524,7 +512,6 @@ CHOICES = {
     "tracking.exposure_from": ("map", "keyframes"),
     "keyframes.covisibility": ("pixels", "reprojected"),
     "tracking.motion_check": ("auto", "on", "off"),
-    "tracking.trust_region": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
     "tracking.graph": ("auto", "on", "off"),
     "mapping.graph": ("auto", "on", "off"),
@@ -602,9 +589,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "tracking.max_residual": POSITIVE,
     "tracking.depth_edge_spread": NON_NEGATIVE,
     "tracking.motion_min_ratio": FRACTION,
-    "tracking.trust_ratio": NON_NEGATIVE,
-    "tracking.trust_translation_m": POSITIVE,
-    "tracking.trust_rotation_deg": POSITIVE,
     "tracking.motion_min_step_m": NON_NEGATIVE,
     "tracking.motion_min_rotation_deg": NON_NEGATIVE,
     "keyframes.iou_threshold": FRACTION,

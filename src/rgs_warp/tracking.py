@@ -51,8 +51,7 @@ class TrackingResult:
     renders again; motion_inconsistent: lost by
     the motion check (``tracking.motion_check``, ``motion_inconsistency``): the translation collapsed
     while the rotation went on as predicted, so the pose is not to be mapped; settled_iters: the steps
-    after which the pose stayed put (``settled_iters``), what an early stop could save;
-    trust_limited: the pose ended on the trust region's bound (``tracking.trust_region``).
+    after which the pose stayed put (``settled_iters``), what an early stop could save.
     """
 
     T_WC: np.ndarray
@@ -71,7 +70,6 @@ class TrackingResult:
     diverged: bool = False
     motion_inconsistent: bool = False
     settled_iters: int = 0
-    trust_limited: bool = False
 
 
 # Converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps its
@@ -86,9 +84,7 @@ MAX_CORRECTION_DEG = 45.0
 # this fraction of the constant-velocity prediction's (a camera that stops turns far less; the office's
 # collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
 STILL_TURNING = 0.5
-# A pose within this fraction of a trust-region bound ended on it (the projection puts it on the bound)
-TRUST_BOUND_REACHED = 0.999
-SWITCHES = ("auto", "on", "off")  # tracking.motion_check, graph, colour_per_opacity, trust_region
+SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, tracking.colour_per_opacity
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
 GRAPHS_KEPT = 3
@@ -120,7 +116,7 @@ class Tracker:
             raise ValueError(
                 f"tracking.brightness must be one of {', '.join(BRIGHTNESS_MODELS)}, got {cfg.brightness!r}"
             )
-        for key in ("motion_check", "graph", "colour_per_opacity", "trust_region"):
+        for key in ("motion_check", "graph", "colour_per_opacity"):
             if getattr(cfg, key) not in SWITCHES:
                 raise ValueError(f"tracking.{key} must be one of {', '.join(SWITCHES)}, got {getattr(cfg, key)!r}")
         if cfg.iters < 1 or cfg.downscale < 1:
@@ -128,7 +124,6 @@ class Tracker:
         self.cfg = cfg
         self.mode = mode
         self.motion_check = cfg.motion_check == "on" or (cfg.motion_check == "auto" and mode == "mono")
-        self.trust_region = cfg.trust_region == "on" or (cfg.trust_region == "auto" and mode == "mono")
         self.colour_per_opacity = cfg.colour_per_opacity == "on" or (
             cfg.colour_per_opacity == "auto" and mode == "mono"
         )
@@ -168,11 +163,6 @@ class Tracker:
         self._T_WC = wp.zeros(1, dtype=wp.mat44, device=dev)
         self._T_CW_host = wp.zeros(1, dtype=wp.mat44d, device="cpu", pinned=pinned)
         self._T_WC_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=pinned)
-        # the trust region's centre (the start pose, world-to-camera) and radii (tk.trust_region_step)
-        self._T_CW_start = wp.zeros(1, dtype=wp.mat44d, device=dev)
-        self._trust_radii = wp.zeros(1, dtype=wp.vec2d, device=dev)
-        self._trust_radii_host = wp.zeros(1, dtype=wp.vec2d, device="cpu", pinned=pinned)
-        self._trust: tuple[float, float] | None = None
         self._poses: list[np.ndarray] = []
         self._last_render = None
         self._frame: tuple | None = None
@@ -256,24 +246,9 @@ class Tracker:
         if T_init is None:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
         self.load_frame(rgb, depth)
-        # the trust region bounds the steps about a constant-velocity prediction, not about a given pose
-        predicted = T_init_WC is None and len(self._poses) == 2
-        self._begin(T_init, self._trust_bounds() if predicted else None)
+        self._begin(T_init)
         self._steps(gmap, use_depth, T_init)
         return self._finish(T_init)
-
-    def _trust_bounds(self) -> tuple[float, float] | None:
-        """(metres, radians) the frame's pose may move from the constant-velocity prediction
-        (``tracking.trust_region``): ``trust_ratio`` x the predicted step plus a floor; None: no bound."""
-        if not self.trust_region:
-            return None
-        cfg = self.cfg
-        step = invert_pose(self._poses[-2]) @ self._poses[-1]
-        step_m, step_deg = float(np.linalg.norm(step[:3, 3])), rotation_angle_deg(step[:3, :3])
-        return (
-            cfg.trust_ratio * step_m + cfg.trust_translation_m,
-            math.radians(cfg.trust_ratio * step_deg + cfg.trust_rotation_deg),
-        )
 
     def relocalize(
         self, rgb, depth, gmap: GaussianMap, candidates: list[np.ndarray], state_before: dict
@@ -370,19 +345,12 @@ class Tracker:
         wp.copy(dst, host)
         return dst
 
-    def _begin(self, T_init_WC: np.ndarray, trust: tuple[float, float] | None) -> None:
-        """The frame's steps start at ``T_init_WC``, within ``trust`` (metres, radians) of it (None: no
-        bound; ``_trust_bounds``)."""
+    def _begin(self, T_init_WC: np.ndarray) -> None:
         T_CW = invert_pose(T_init_WC)
         self._T_CW_host.numpy()[0] = T_CW
         self._T_WC_host.numpy()[0] = T_init_WC.astype(np.float32)
         wp.copy(self._T_CW, self._T_CW_host)
         wp.copy(self._T_WC, self._T_WC_host)
-        if self.trust_region:
-            self._trust = trust
-            wp.copy(self._T_CW_start, self._T_CW_host)
-            self._trust_radii_host.numpy()[0] = trust if trust is not None else (-1.0, -1.0)
-            wp.copy(self._trust_radii, self._trust_radii_host)
         self._adam_m.zero_()
         self._adam_v.zero_()
         self._history.zero_()
@@ -411,7 +379,7 @@ class Tracker:
         if entry is None:
             renderer = self.renderer
             self._iteration(gmap, 0, use_depth, tile_stride=1)  # sizes the buffers (may reallocate them)
-            self._begin(T_init_WC, self._trust)
+            self._begin(T_init_WC)
             renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
             key = self._graph_key(gmap, use_depth)
             # one step on part of the tiles and the last step on all, each reading its row from the
@@ -435,7 +403,7 @@ class Tracker:
         if self.renderer.intersection_count() > entry[1]:
             self.graph_counts["overflowed"] += 1
             self._graphs.pop(key, None)
-            self._begin(T_init_WC, self._trust)
+            self._begin(T_init_WC)
             self._eager_steps(gmap, use_depth)
 
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
@@ -513,14 +481,6 @@ class Tracker:
             outputs=[self._adam_m, self._adam_v, self._T_CW, self._T_WC, self._pose_history],
             device=dev,
         )
-        if self.trust_region:
-            wp.launch(
-                tk.trust_region_step,
-                dim=1,
-                inputs=[self._T_CW_start, self._trust_radii, k, counter],
-                outputs=[self._T_CW, self._T_WC, self._pose_history],
-                device=dev,
-            )
         if step is not None:
             wp.launch(tk.advance_step, dim=1, inputs=[step], device=dev)
 
@@ -550,11 +510,6 @@ class Tracker:
         moved_m, moved_deg = pose_error(T_WC, before)
         lost, converged, diverged, motion_inconsistent = True, False, False, False
         correction_m, correction_deg = pose_error(T_WC, T_init_WC)
-        trust = self._trust if self.trust_region else None
-        trust_limited = trust is not None and (
-            correction_m >= TRUST_BOUND_REACHED * trust[0]
-            or math.radians(correction_deg) >= TRUST_BOUND_REACHED * trust[1]
-        )
         if not (np.all(np.isfinite(T_WC)) and np.isfinite(last[tk.H_LOSS])):
             diverged, reason = True, "diverged: non-finite pose or loss; the estimate is discarded"
         elif not (correction_m <= MAX_CORRECTION_M and correction_deg <= MAX_CORRECTION_DEG):
@@ -597,7 +552,6 @@ class Tracker:
             diverged=diverged,
             motion_inconsistent=motion_inconsistent,
             settled_iters=settled_iters(poses_CW),
-            trust_limited=trust_limited,
         )
 
 

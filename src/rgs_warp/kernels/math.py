@@ -209,47 +209,6 @@ def se3_exp(rho: wp.vec3d, phi: wp.vec3d):
 
 
 @wp.func
-def rigid_inverse_d(T: wp.mat44d):
-    """Inverse of a rigid float64 transform."""
-    R = wp.mat33d(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
-    Rt = wp.transpose(R)
-    t = -(Rt @ wp.vec3d(T[0, 3], T[1, 3], T[2, 3]))
-    z = wp.float64(0.0)
-    return wp.mat44d(
-        Rt[0, 0], Rt[0, 1], Rt[0, 2], t[0],
-        Rt[1, 0], Rt[1, 1], Rt[1, 2], t[1],
-        Rt[2, 0], Rt[2, 1], Rt[2, 2], t[2],
-        z, z, z, wp.float64(1.0),
-    )  # fmt: skip
-
-
-@wp.func
-def rigid_within(D: wp.mat44d, max_m: wp.float64, max_rad: wp.float64):
-    """The rigid transform ``D`` brought within a trust region: its translation scaled down to length
-    ``max_m`` and its rotation to angle ``max_rad`` about the same axis where they exceed them (a bound
-    <= 0: none).  A rotation within 1e-9 of a half turn (no axis from its antisymmetric part) is kept."""
-    R = wp.mat33d(D[0, 0], D[0, 1], D[0, 2], D[1, 0], D[1, 1], D[1, 2], D[2, 0], D[2, 1], D[2, 2])
-    t = wp.vec3d(D[0, 3], D[1, 3], D[2, 3])
-    zero = wp.float64(0.0)
-    length = wp.length(t)
-    if max_m > zero and length > max_m:
-        t = t * (max_m / length)
-    cos_angle = wp.clamp((R[0, 0] + R[1, 1] + R[2, 2] - wp.float64(1.0)) * wp.float64(0.5), wp.float64(-1.0), wp.float64(1.0))
-    angle = wp.acos(cos_angle)
-    sin_angle = wp.sin(angle)
-    if max_rad > zero and angle > max_rad and sin_angle > wp.float64(1.0e-9):
-        axis = wp.vec3d(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]) / (wp.float64(2.0) * sin_angle)
-        E = se3_exp(wp.vec3d(zero, zero, zero), axis * max_rad)
-        R = wp.mat33d(E[0, 0], E[0, 1], E[0, 2], E[1, 0], E[1, 1], E[1, 2], E[2, 0], E[2, 1], E[2, 2])
-    return wp.mat44d(
-        R[0, 0], R[0, 1], R[0, 2], t[0],
-        R[1, 0], R[1, 1], R[1, 2], t[1],
-        R[2, 0], R[2, 1], R[2, 2], t[2],
-        zero, zero, zero, wp.float64(1.0),
-    )  # fmt: skip
-
-
-@wp.func
 def rigid_inverse_f32(T: wp.mat44d):
     """Inverse of a rigid float64 transform, as the float32 matrix the renderer takes."""
     R = wp.mat33d(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])

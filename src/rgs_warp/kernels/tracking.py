@@ -9,7 +9,7 @@ Reductions sum 256 pixels in a block tile, then add one float64 atomic per block
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, rigid_inverse_d, rigid_inverse_f32, rigid_within, se3_exp, vec6
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, rigid_inverse_f32, se3_exp, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -387,31 +387,6 @@ def adam_pose_step(
     E[1, 3] = t[1]
     E[2, 3] = t[2]
     T = E @ T_CW[0]
-    T_CW[0] = T
-    T_WC_out[0] = rigid_inverse_f32(T)
-    pose_history_out[row] = T
-
-
-@wp.kernel
-def trust_region_step(
-    # in: the frame's start pose (world-to-camera) and the trust region about it: (metres, radians) of the
-    # relative motion start -> pose in the camera frame (<= 0: no bound)
-    T_CW_start: wp.array(dtype=wp.mat44d),
-    radii: wp.array(dtype=wp.vec2d),
-    row: int,
-    counter: wp.array(dtype=wp.int32),  # the step is row + counter[0] (see advance_step)
-    # in/out: the pose adam_pose_step left; out: as adam_pose_step's
-    T_CW: wp.array(dtype=wp.mat44d),
-    T_WC_out: wp.array(dtype=wp.mat44),
-    pose_history_out: wp.array(dtype=wp.mat44d),
-):
-    """After each pose step, the pose brought back within the trust region about the start pose
-    (projected Adam): T_CW = D T_CW_start with D's translation (the camera centre's displacement) and
-    rotation angle bounded (``rigid_within``)."""
-    row = row + counter[0]
-    start = T_CW_start[0]
-    D = rigid_within(T_CW[0] @ rigid_inverse_d(start), radii[0][0], radii[0][1])
-    T = D @ start
     T_CW[0] = T
     T_WC_out[0] = rigid_inverse_f32(T)
     pose_history_out[row] = T
