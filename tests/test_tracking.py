@@ -575,6 +575,67 @@ def test_motion_check_flags_a_collapsed_translation_not_a_stop():
     assert motion_inconsistency(T_prev, T_prev @ no_turn, T_prev @ no_turn @ flat, cfg) == ""
 
 
+def test_motion_check_flags_a_jump_from_the_prediction():
+    """The other half of the check: a pose that leaves the constant-velocity prediction by more than
+    motion_max_ratio x the predicted step plus the floor (in translation or in rotation) is flagged; one
+    within it is not (the bound computed here independently)."""
+    cfg = TrackingConfig()
+    step = se3_exp(np.array([0.006, 0.0, 0.004, 0.0, 0.02, 0.01]))  # 7.2 mm, 1.3 deg: the office's pace
+    T_prev = se3_exp(np.array([0.5, 1.0, -0.2, 0.1, 0.2, 0.3]))
+    T_last = T_prev @ step
+    T_pred = T_last @ step
+    step_m = np.linalg.norm(step[:3, 3])
+    step_deg = np.degrees(np.linalg.norm([0.0, 0.02, 0.01]))
+    bound_m = cfg.motion_max_ratio * step_m + cfg.motion_max_jump_m
+    bound_deg = cfg.motion_max_ratio * step_deg + cfg.motion_max_jump_deg
+    for scale, flagged in ((0.95, False), (1.05, True)):
+        shifted = T_pred.copy()
+        shifted[:3, 3] += np.array([0.0, 1.0, 0.0]) * bound_m * scale  # sideways, the rotation predicted
+        reason = motion_inconsistency(T_prev, T_last, shifted, cfg)
+        assert reason.startswith("motion check: the pose jumped") == flagged, (scale, reason)
+        turned = T_pred @ se3_exp(np.array([0, 0, 0, np.radians(bound_deg * scale), 0, 0]))
+        turned[:3, 3] = T_pred[:3, 3]  # the position predicted
+        reason = motion_inconsistency(T_prev, T_last, turned, cfg)
+        assert reason.startswith("motion check: the pose jumped") == flagged, (scale, reason)
+
+
+def test_a_frame_that_jumped_is_lost_and_keeps_the_prediction(device, scene):
+    """A monocular frame whose tracked pose leaves the prediction by more than the jump bound (here
+    tightened to 5 mm so that a frame 1 cm off the prediction is one) is lost as motion-inconsistent, and
+    its pose is the prediction, not the estimate."""
+    poses = scene["poses"]
+    cfg = TrackingConfig(motion_max_ratio=0.0, motion_max_jump_m=0.005, iters=15)
+    tracker = Tracker(cfg, scene["camera"], device, mode="mono")
+    tracker.reset(poses[1], poses[0])
+    T_pred = tracker.predict()
+    rgb, _ = scene["view"](_perturbed(T_pred, 0.01, 0.0, 0))
+    result = tracker.track(rgb, None, scene["map"])
+    assert result.lost and result.motion_inconsistent and result.reason.startswith("motion check: the pose jumped")
+    np.testing.assert_array_equal(result.T_WC, T_pred)
+
+
+@pytest.mark.parametrize("path", ["office0/300", "room0/100", "7scenes"])
+def test_motion_check_passes_true_paths(request, path):
+    """No frame of a ground-truth path is flagged as a jump: the synthetic office and room (the room's
+    100 frames move 3.7 cm and 3.9 deg a frame, speeding up and slowing down; there no collapse either)
+    and the shared 7-Scenes frames' hand-held trajectory (up to 35 mm and 2.3 deg off the
+    constant-velocity prediction; its poses alternate 1 cm and 0.2 mm steps, which the collapse half
+    flags)."""
+    cfg = TrackingConfig()
+    if path == "7scenes":
+        files = sorted((request.getfixturevalue("shared_data") / "7scenes-redkitchen").glob("frame-*.pose.txt"))
+        poses = np.array([np.loadtxt(f) for f in files])
+        assert len(poses) == 500
+    else:
+        scene, n = path.split("/")
+        poses = SequenceRenderer(SyntheticConfig(scene=scene, width=64, height=36, n_frames=int(n))).poses
+    reasons = {i: motion_inconsistency(poses[i - 2], poses[i - 1], poses[i], cfg) for i in range(2, len(poses))}
+    jumps = [i for i, why in reasons.items() if why.startswith("motion check: the pose jumped")]
+    assert jumps == [], [reasons[i] for i in jumps[:3]]
+    if path != "7scenes":
+        assert not any(reasons.values())
+
+
 @pytest.mark.parametrize(
     "mode, check",
     # the negative controls take the slow tier (9 s each on the CPU)

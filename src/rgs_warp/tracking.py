@@ -50,7 +50,8 @@ class TrackingResult:
     last render (tracking resolution), for the keyframe selector, valid until the tracker's renderer
     renders again; motion_inconsistent: lost by
     the motion check (``tracking.motion_check``, ``motion_inconsistency``): the translation collapsed
-    while the rotation went on as predicted, so the pose is not to be mapped; settled_iters: the steps
+    while the rotation went on as predicted, or the pose jumped away from the prediction (then ``T_WC``
+    is the prediction), so the pose is not to be mapped; settled_iters: the steps
     after which the pose stayed put (``settled_iters``), what an early stop could save.
     """
 
@@ -84,6 +85,8 @@ MAX_CORRECTION_DEG = 45.0
 # this fraction of the constant-velocity prediction's (a camera that stops turns far less; the office's
 # collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
 STILL_TURNING = 0.5
+# how ``motion_inconsistency``'s reason for a pose that ran away from the prediction begins
+JUMPED = "motion check: the pose jumped"
 SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, tracking.colour_per_opacity
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
@@ -524,6 +527,9 @@ class Tracker:
             reason = f"photometric residual {residual:.3f} > {cfg.max_residual}"
         elif self.motion_check and len(self._poses) == 2 and (why := motion_inconsistency(*self._poses, T_WC, cfg)):
             reason, motion_inconsistent = why, True
+            if why.startswith(JUMPED):  # the prediction is the better guess than a pose that ran away
+                T_WC = np.array(T_init_WC, dtype=np.float64)
+                reason += "; the frame keeps the prediction"
         else:
             lost = False
             converged = consistency < CONVERGED_CONSISTENCY
@@ -584,15 +590,30 @@ def motion_inconsistency(T_prev_WC: np.ndarray, T_last_WC: np.ndarray, T_WC: np.
     (camera-to-world), or "" where it does not or the motion is too small to tell.
 
     The prediction repeats the last step ``T_prev^-1 T_last`` from ``T_last``; the tracked step is
-    ``T_last^-1 T_WC``.  Inconsistent: the tracked step's translation is below
-    ``cfg.motion_min_ratio`` x the predicted step's while the camera still turns (its rotation at least
-    ``STILL_TURNING`` x the predicted one's): the image moves on but the pose hardly travels, the monocular collapse of
-    issue 22 (scale is defined only by the map there).  A camera that stops stops turning too, and
-    passes.  Only steps of at least ``cfg.motion_min_step_m`` and ``cfg.motion_min_rotation_deg`` are
-    judged."""
+    ``T_last^-1 T_WC``.  Inconsistent:
+
+    * a jump: ``T_WC`` lies more than ``cfg.motion_max_ratio`` x the predicted step plus
+      ``cfg.motion_max_jump_m`` from the prediction, or turned more than ``cfg.motion_max_ratio`` x the
+      predicted turn plus ``cfg.motion_max_jump_deg`` away from it (monocular tracking running away
+      where the map lacks the surface in view);
+    * a collapse: the tracked step's translation is below ``cfg.motion_min_ratio`` x the predicted
+      step's while the camera still turns (its rotation at least ``STILL_TURNING`` x the predicted one's):
+      the image moves on but the pose hardly travels, the monocular collapse of issue 22 (scale is
+      defined only by the map there).  A camera that stops stops turning too, and passes.  Only steps
+      of at least ``cfg.motion_min_step_m`` and ``cfg.motion_min_rotation_deg`` are judged."""
     predicted, step = invert_pose(T_prev_WC) @ T_last_WC, invert_pose(T_last_WC) @ T_WC
     predicted_m, step_m = float(np.linalg.norm(predicted[:3, 3])), float(np.linalg.norm(step[:3, 3]))
     predicted_deg, step_deg = rotation_angle_deg(predicted[:3, :3]), rotation_angle_deg(step[:3, :3])
+    jump_m, jump_deg = pose_error(T_WC, T_last_WC @ predicted)
+    max_m = cfg.motion_max_ratio * predicted_m + cfg.motion_max_jump_m
+    max_deg = cfg.motion_max_ratio * predicted_deg + cfg.motion_max_jump_deg
+    if jump_m > max_m or jump_deg > max_deg:
+        return (
+            f"{JUMPED} {1e3 * jump_m:.1f} mm and {jump_deg:.2f} deg from the constant-velocity "
+            f"prediction (at most {1e3 * max_m:.1f} mm and {max_deg:.2f} deg: {cfg.motion_max_ratio:g} x the "
+            f"predicted step of {1e3 * predicted_m:.1f} mm and {predicted_deg:.2f} deg, plus "
+            f"{1e3 * cfg.motion_max_jump_m:g} mm and {cfg.motion_max_jump_deg:g} deg)"
+        )
     if predicted_m < cfg.motion_min_step_m or predicted_deg < cfg.motion_min_rotation_deg:
         return ""
     ratio = step_m / predicted_m
