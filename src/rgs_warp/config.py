@@ -161,12 +161,6 @@ class TrackingConfig:
     motion_max_ratio: float = 4.0
     motion_max_jump_m: float = 0.02
     motion_max_jump_deg: float = 3.0
-    # Monocular: a frame whose predecessor's tracking covered less than this fraction of its pixels
-    # (valid_ratio) is tracked in rotation only, its translation the constant-velocity prediction's:
-    # where the view turns onto surface the map lacks, the little that is covered does not pin a
-    # translation (the office's tracked steps ran to 5-60x the truth's there: experiments/results/mono.md);
-    # 0 = off (RGB-D never)
-    rotation_only_below: float = 0.0
     # Relocalisation (issue 22): a lost frame is tracked again from the last good pose and from the
     # poses of the (up to three) keyframes nearest it, and the best try that is not lost (lowest loss) is its pose;
     # the motion model then restarts there (zero velocity).  auto: on in mode=mono, off in rgbd (where a
@@ -607,7 +601,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "tracking.motion_min_ratio": FRACTION,
     "tracking.motion_min_step_m": NON_NEGATIVE,
     "tracking.motion_max_ratio": NON_NEGATIVE,
-    "tracking.rotation_only_below": FRACTION,
     "tracking.motion_max_jump_m": POSITIVE,
     "tracking.motion_max_jump_deg": POSITIVE,
     "tracking.motion_min_rotation_deg": NON_NEGATIVE,

@@ -52,8 +52,7 @@ class TrackingResult:
     the motion check (``tracking.motion_check``, ``motion_inconsistency``): the translation collapsed
     while the rotation went on as predicted, or the pose jumped away from the prediction (then ``T_WC``
     is the prediction), so the pose is not to be mapped; settled_iters: the steps
-    after which the pose stayed put (``settled_iters``), what an early stop could save; rotation_only:
-    the steps rotated only, the translation the prediction's (``tracking.rotation_only_below``).
+    after which the pose stayed put (``settled_iters``), what an early stop could save.
     """
 
     T_WC: np.ndarray
@@ -72,7 +71,6 @@ class TrackingResult:
     diverged: bool = False
     motion_inconsistent: bool = False
     settled_iters: int = 0
-    rotation_only: bool = False
 
 
 # Converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps its
@@ -168,10 +166,6 @@ class Tracker:
         self._T_WC = wp.zeros(1, dtype=wp.mat44, device=dev)
         self._T_CW_host = wp.zeros(1, dtype=wp.mat44d, device="cpu", pinned=pinned)
         self._T_WC_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=pinned)
-        # 1: this frame's steps rotate only (``tracking.rotation_only_below``), its translation predicted
-        self._rotation_only = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._rotation_only_host = wp.zeros(1, dtype=wp.int32, device="cpu", pinned=pinned)
-        self._last_valid_ratio = 1.0  # the last tracked frame's coverage (valid_ratio)
         self._poses: list[np.ndarray] = []
         self._last_render = None
         self._frame: tuple | None = None
@@ -193,14 +187,10 @@ class Tracker:
     def state_dict(self) -> dict[str, np.ndarray]:
         """The motion model's poses (the last two tracked, or a lost frame's start pose in its place),
         which ``reset`` alone cannot tell; ``load_state_dict`` restores them."""
-        return {
-            "motion_poses": np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4),
-            "last_valid_ratio": np.array(self._last_valid_ratio),
-        }
+        return {"motion_poses": np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4)}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self._poses = [np.array(T, dtype=np.float64) for T in state["motion_poses"]]
-        self._last_valid_ratio = float(state.get("last_valid_ratio", 1.0))
 
     @property
     def alpha(self) -> wp.array:
@@ -259,17 +249,9 @@ class Tracker:
         if T_init is None:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
         self.load_frame(rgb, depth)
-        # too little of the last frame was covered for the map to pin a translation: rotate only
-        rotation_only = (
-            T_init_WC is None and len(self._poses) == 2 and self._last_valid_ratio < cfg_rotation_only(self.cfg, self.mode)
-        )
-        self._rotation_only_host.numpy()[0] = int(rotation_only)
-        wp.copy(self._rotation_only, self._rotation_only_host)
         self._begin(T_init)
         self._steps(gmap, use_depth, T_init)
-        result = self._finish(T_init)
-        result.rotation_only = rotation_only
-        return result
+        return self._finish(T_init)
 
     def relocalize(
         self, rgb, depth, gmap: GaussianMap, candidates: list[np.ndarray], state_before: dict
@@ -498,7 +480,7 @@ class Tracker:
             tk.adam_pose_step,
             dim=1,
             inputs=[pose_grad, k, cfg.iters, cfg.lr, cfg.adam_beta1, cfg.adam_beta2, cfg.adam_eps, counter]
-            + [self._rotation_only, self._history],
+            + [self._history],
             outputs=[self._adam_m, self._adam_v, self._T_CW, self._T_WC, self._pose_history],
             device=dev,
         )
@@ -559,7 +541,6 @@ class Tracker:
         if diverged:
             T_WC = np.array(T_init_WC, dtype=np.float64)
         self._poses = (self._poses + [T_init_WC.copy() if lost else T_WC])[-2:]
-        self._last_valid_ratio = valid_ratio
         return TrackingResult(
             T_WC=T_WC,
             loss=float(last[tk.H_LOSS]),
@@ -602,12 +583,6 @@ def settled_iters(poses_CW: np.ndarray) -> int:
         if moved_m > SETTLED_M or moved_deg > SETTLED_DEG:
             return k + 1
     return 0
-
-
-def cfg_rotation_only(cfg: TrackingConfig, mode: str) -> float:
-    """The coverage below which a frame's steps rotate only (``tracking.rotation_only_below``; monocular
-    only: RGB-D's depth pins the translation wherever the map covers anything)."""
-    return cfg.rotation_only_below if mode == "mono" else 0.0
 
 
 def motion_inconsistency(T_prev_WC: np.ndarray, T_last_WC: np.ndarray, T_WC: np.ndarray, cfg: TrackingConfig) -> str:

@@ -334,8 +334,6 @@ def adam_pose_step(
     beta2: float,
     eps: float,
     counter: wp.array(dtype=wp.int32),  # the step is row + counter[0] (see advance_step)
-    # 1: rotate about the camera centre only (translation gradient dropped, no pivot)
-    rotation_only: wp.array(dtype=wp.int32),
     # in/out: reads H_DEPTH, H_ALPHA, writes H_CONSISTENCY of history row `row`
     history: wp.array2d(dtype=wp.float64),
     # in/out: Adam moments (6 each) of the twist about the pivot, camera-from-world pose
@@ -360,11 +358,9 @@ def adam_pose_step(
     # in which Adam's per-coordinate steps zig-zag; about the scene's centre they separate.
     # Gradient: g_rho' = g_rho, g_phi' = g_phi + g_rho x p.
     p = wp.vec3(0.0)
-    g_rho = wp.vec3(grad[0], grad[1], grad[2])
-    if rotation_only[0] != 0:
-        g_rho = wp.vec3(0.0)
-    elif history[row, H_ALPHA] > wp.float64(0.0):
+    if history[row, H_ALPHA] > wp.float64(0.0):
         p = wp.vec3(0.0, 0.0, float(history[row, H_DEPTH] / history[row, H_ALPHA]))
+    g_rho = wp.vec3(grad[0], grad[1], grad[2])
     g_phi = wp.vec3(grad[3], grad[4], grad[5]) + wp.cross(g_rho, p)
     g = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
     step = vec6()
