@@ -46,7 +46,9 @@ def test_small_run_end_to_end(finished_run):
     assert len(poses) == metrics["frames"] == 20
     assert len(load_ply(run_dir / "map.ply")) == metrics["gaussians"] > 1000
     assert json.loads((run_dir / "metrics.json").read_text())["frames"] == 20
-    assert len((run_dir / "log.jsonl").read_text().splitlines()) == 20
+    log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert len(log) == 20
+    assert all(0.0 <= e["valid_ratio"] <= 1.0 for e in log[1:])  # each tracked frame's coverage
     # the frame loop's waits and the final save (written in a thread while the run was evaluated)
     times = metrics["time_s"]
     assert times["save_s"] > 0 and min(times[k] for k in ("input_wait_s", "checkpoints_s", "checkpoint_writes_s")) >= 0

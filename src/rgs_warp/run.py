@@ -496,6 +496,7 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     if tracking is not None:
         entry.update(loss=tracking.loss, lost=tracking.lost, gain=tracking.gain, bias=tracking.bias)
         entry["settled_iters"] = tracking.settled_iters
+        entry["valid_ratio"] = round(tracking.valid_ratio, 4)  # the map's coverage of the frame
         state.frame_losses.append(tracking.loss)
         state.settled_iters.append(tracking.settled_iters)
     state.exposures.append(None if tracking is None else [tracking.gain, tracking.bias])
