@@ -117,6 +117,29 @@ def test_translated_pair_matches_known_disparity(device, use_depth):
     assert outside.any() and np.all(conf[outside] < 0.5)
 
 
+def test_a_second_buffer_keeps_its_own_descriptors(device):
+    """Matching in another buffer (a delayed monocular seeding's pair) leaves the keyframe buffer's
+    descriptors in place, and matches as the keyframe buffer does with the same images."""
+    images, poses = _scene([6, 3, 9])
+    buf = _buffer(images, poses, device, depth=False)
+    pair = _buffer(images[:2], poses[:2], device, depth=False)
+    matcher = DenseMatcher(MatchingConfig(n_neighbours=3), CAM, device)
+    m = matcher.match(0, buf, neighbours=[2, 3], use_depth=False, thin=False)
+    want = m.match_uv.numpy()[:, 0].copy()
+    kept = list(buf.descriptors)
+    assert kept[1] is None and all(kept[s] is not None for s in (0, 2, 3))
+    held = [None if d is None else d.numpy().copy() for d in kept]
+    m = matcher.match(0, pair, neighbours=[1], use_depth=False, thin=False)
+    np.testing.assert_array_equal(pair.descriptors[0].numpy(), held[0])
+    assert all(a is b for a, b in zip(buf.descriptors, kept, strict=True))
+    for s in (0, 2, 3):
+        np.testing.assert_array_equal(buf.descriptors[s].numpy(), held[s])
+    got = m.match_uv.numpy()[:, 0].copy()
+    m = matcher.match(0, buf, neighbours=[1], use_depth=False, thin=False)
+    np.testing.assert_array_equal(got, m.match_uv.numpy()[:, 0])
+    assert not np.array_equal(got, want)  # neighbour 1 is not neighbour 2: the pair's own image was matched
+
+
 def test_rendered_pair_with_ground_truth(device):
     """A SyntheticDataset-style pair (office0, 8 cm apart): confident matches land on the true
     correspondence computed from the ground-truth depth and poses."""

@@ -11,13 +11,13 @@ from scipy.spatial import cKDTree
 from rgs_warp.config import SeedingConfig, TriangulationConfig
 from rgs_warp.datasets.synthetic import SyntheticDataset
 from rgs_warp.eval.photometric import psnr
-from rgs_warp.geometry import invert_pose, quat_to_matrix, se3_exp
+from rgs_warp.geometry import invert_pose, parallax_rad, quat_to_matrix, se3_exp
 from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.render import Renderer
 from rgs_warp.sampling import CONFIDENCE_LEVELS, compact_mask, poisson_disk_subsample, thin_blue_noise
-from rgs_warp.seeding import PointSeeder, Seeder
+from rgs_warp.seeding import DelayedSeeding, PointSeeder, Seeder
 from rgs_warp.triangulation import TriangulatedPoints, Triangulator, projection_matrices
 from rgs_warp.types import Camera, GaussianMap
 
@@ -533,7 +533,8 @@ def test_depth_points_backprojects_the_cell_centres(device):
     assert np.all(residual == np.float32(0.7)) and np.all(parallax == 90.0) and np.all(support == 1)
 
 
-def test_mask_covered_points(device):
+@pytest.mark.parametrize("tol", [0.05, float("inf")])  # inf: Seeder.seed_matches(uncovered_only=True)
+def test_mask_covered_points(device, tol):
     rng = np.random.default_rng(18)
     H, W, n = 12, 16, 300
     fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
@@ -551,7 +552,7 @@ def test_mask_covered_points(device):
     near = rng.uniform(size=n) < 0.5
     d_map[pv[near], pu[near]] = z[near] * (1 + rng.uniform(-0.03, 0.03, near.sum()))  # the map agrees
     rendered_depth = (alpha * d_map).astype(np.float32)
-    max_alpha, tol = 0.6, 0.05
+    max_alpha = 0.6
     valid = wp.array(valid0, dtype=wp.int32, device=device)
     wp.launch(
         ks.mask_covered_points,
@@ -815,3 +816,45 @@ def test_dropped_points_park_behind_the_camera_spread_over_the_hash_grid(device)
     assert z.max() < -0.5  # behind the camera
     _, per_cell = np.unique(np.floor(P / 0.01).astype(np.int64) % 128, axis=0, return_counts=True)
     assert per_cell.max() <= 4
+
+
+# ---- delayed seeding of monocular keyframes ----------------------------------------------------------
+def _sideways(b_m):
+    T = np.eye(4)
+    T[0, 3] = b_m
+    return T
+
+
+def test_delayed_seeding_takes_a_frame_at_each_parallax_step(device):
+    """A baseline b sideways of a keyframe subtends atan(b / d) at depth d on its axis; a frame is
+    taken at 1x, 2x ... the parallax step, at most mono_delayed_max times per keyframe; ``hold`` pairs
+    it with the keyframe as the buffer has it now, and refuses once the buffer evicted it."""
+    d = 2.5
+    for b in (0.01, 0.3, 1.0):
+        assert parallax_rad(np.eye(4), _sideways(b), d) == pytest.approx(np.arctan(b / d), rel=1e-7)  # arccos near 1
+    cfg = SeedingConfig(mono_delayed_max=2, mono_delayed_parallax_deg=2.0)
+    keyframes = KeyframeBuffer(2, CAM.width, CAM.height, device)
+    rgb = np.random.default_rng(0).random((CAM.height, CAM.width, 3)).astype(np.float32)
+    slot = keyframes.add(7, np.eye(4), rgb, exposure=(1.2, 0.1))
+    delayed = DelayedSeeding(cfg, CAM, device)
+
+    def at(deg):
+        return _sideways(d * np.tan(np.radians(deg)))
+
+    assert not delayed.take(at(30.0))  # no keyframe held yet
+    delayed.start(keyframes, slot, d)
+    taken = [delayed.take(at(a)) for a in (1.9, 2.1, 2.1, 3.9, 4.1, 6.1, 30.0)]
+    assert taken == [False, True, False, False, True, False, False]
+    keyframes.poses[slot] = _sideways(0.01)  # mapping refined it
+    frame = np.zeros_like(rgb)
+    assert delayed.hold(keyframes, 9, frame, at(4.1), (0.9, 0.0))
+    pair = delayed.pair
+    assert pair.slots() == [0, 1] and list(pair.frame_ids) == [7, 9]
+    np.testing.assert_array_equal(pair.poses[0], keyframes.poses[slot])
+    np.testing.assert_array_equal(pair.poses[1], at(4.1))
+    np.testing.assert_array_equal(pair.exposure, [[1.2, 0.1], [0.9, 0.0]])
+    np.testing.assert_array_equal(pair.rgb.numpy()[0], rgb)
+    np.testing.assert_array_equal(pair.rgb.numpy()[1], frame)
+    keyframes.add(8, np.eye(4), rgb)
+    keyframes.add(10, np.eye(4), rgb)  # keyframe 7 leaves the buffer
+    assert not delayed.hold(keyframes, 11, frame, at(4.1), (1.0, 0.0))

@@ -284,6 +284,15 @@ class SeedingConfig:
     # between keyframes; seen by no keyframe it would stay a hole); negative = off
     frame_fill_min_uncovered: float = 0.002
     depth_max_rel_jump: float = 0.05  # skip depth seeds on discontinuities (second difference / depth)
+    # monocular: delayed seeding.  A monocular keyframe gets seeds only where its matches with earlier
+    # keyframes triangulate, so the surface it is the first to see stays uncovered.  The tracked frames
+    # after it see that surface again with growing parallax: once a frame's baseline to the newest
+    # keyframe subtends mono_delayed_parallax_deg at the keyframe's median map depth, the keyframe is
+    # matched against that frame, triangulated with the tracked poses and seeded where the map does not
+    # cover it (alpha below covered_alpha); again at 2x, 3x ... that parallax, mono_delayed_max times
+    # per keyframe at most.  0 = off.  RGB-D never does this (its depth fill covers new surface)
+    mono_delayed_max: int = 0
+    mono_delayed_parallax_deg: float = 3.0
 
 
 @dataclass
@@ -637,6 +646,8 @@ CONSTRAINTS: dict[str, Bound] = {
     "seeding.detail_stride": NON_NEGATIVE,
     "seeding.detail_min_gradient": NON_NEGATIVE,
     "seeding.depth_max_rel_jump": NON_NEGATIVE,
+    "seeding.mono_delayed_max": NON_NEGATIVE,
+    "seeding.mono_delayed_parallax_deg": POSITIVE,
     "mapping.iters": NON_NEGATIVE,
     "mapping.frame_iters": NON_NEGATIVE,
     "mapping.final_iters": NON_NEGATIVE,

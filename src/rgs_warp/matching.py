@@ -15,6 +15,7 @@ back), so ``DenseMatcher -> Triangulator -> Seeder`` can run as one pass or one 
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ import warp as wp
 
 from rgs_warp.config import MatchingConfig
 from rgs_warp.features import feature_centres, make_backbone
-from rgs_warp.geometry import invert_pose, rotation_angle_deg
+from rgs_warp.geometry import invert_pose, parallax_rad, rotation_angle_deg
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.kernels.matching import (
     aggregate_confidence,
@@ -98,8 +99,10 @@ class DenseMatcher:
         self._kept_count = wp.zeros(1, dtype=wp.int32, **kw)
         self._P = wp.zeros(m + 1, dtype=mat34d, **kw)
         self._zero_depth = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)  # monocular search
-        self._desc: wp.array | None = None
-        self._query = None  # (N, D) backward-search queries, allocated with the descriptors
+        # (capacity, Hf, Wf, D) descriptor slots of each buffer matched so far (the keyframe buffer, and
+        # e.g. the pair of a delayed monocular seeding): a buffer's entry lives as long as the buffer
+        self._desc: weakref.WeakKeyDictionary[KeyframeBuffer, wp.array] = weakref.WeakKeyDictionary()
+        self._query = wp.zeros((n, self.backbone.dim), dtype=wp.float32, **kw)  # backward-search queries
 
     # ------------------------------------------------------------------ neighbours
     def select_neighbours(self, ref_slot: int, buffer: KeyframeBuffer, scene_depth_m: float | None = None) -> list[int]:
@@ -125,9 +128,7 @@ class DenseMatcher:
             axis_angle = np.degrees(np.arccos(np.clip(T_r[:3, 2] @ T_n[:3, 2], -1.0, 1.0)))
             if axis_angle > self.cfg.max_view_angle_deg:
                 continue
-            point = T_r[:3, 3] + depth * T_r[:3, 2]
-            a, b = T_r[:3, 3] - point, T_n[:3, 3] - point
-            parallax = np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12), -1.0, 1.0))
+            parallax = parallax_rad(T_r, T_n, depth)
             too_small = parallax < 0.1 * target
             ranked.append((too_small, abs(np.log(max(parallax, 1e-9) / target)), slot))
         ranked.sort()
@@ -136,13 +137,14 @@ class DenseMatcher:
     # ------------------------------------------------------------------ descriptors
     def describe(self, slot: int, buffer: KeyframeBuffer) -> wp.array:
         """(Hf, Wf, D) descriptors of a buffer slot, computed on first use."""
-        if self._desc is None or self._desc.shape[0] != buffer.capacity:
+        store = self._desc.get(buffer)
+        if store is None or store.shape[0] != buffer.capacity:
             hf, wf = self.grid
-            self._desc = wp.zeros((buffer.capacity, hf, wf, self.backbone.dim), dtype=wp.float32, device=self.device)
-            self._query = wp.zeros((hf * wf, self.backbone.dim), dtype=wp.float32, device=self.device)
+            store = wp.zeros((buffer.capacity, hf, wf, self.backbone.dim), dtype=wp.float32, device=self.device)
+            self._desc[buffer] = store
             buffer.descriptors = [None] * buffer.capacity
         if buffer.descriptors[slot] is None:
-            buffer.descriptors[slot] = self.backbone.describe(buffer.rgb[slot], out=self._desc[slot])
+            buffer.descriptors[slot] = self.backbone.describe(buffer.rgb[slot], out=store[slot])
         return buffer.descriptors[slot]
 
     # ------------------------------------------------------------------ matching

@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.config import SeedingConfig
-from rgs_warp.geometry import invert_pose
+from rgs_warp.geometry import invert_pose, parallax_rad
 from rgs_warp.graph_cache import GraphCache, launch_key
 from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.math import camera_params
@@ -340,10 +340,14 @@ class Seeder:
         slot: int,
         matches: Matches,
         points: TriangulatedPoints,
+        uncovered_only: bool = False,
     ) -> int:
         """Gaussians from keyframe ``slot``'s triangulated ``matches`` where the map does not explain
-        the keyframe yet (see the class); returns how many."""
+        the keyframe yet (see the class); ``uncovered_only``: only where the map does not cover it
+        (a covered pixel keeps the map's depth, whatever the point's; a delayed monocular seeding, whose
+        two-view points are noisier than the map's surface); returns how many."""
         cfg, dev = self.cfg, self.device
+        depth_tol = float("inf") if uncovered_only else cfg.covered_depth_tol
         T_CW = wp.mat44d(invert_pose(keyframes.poses[slot]))
         n = points.X.shape[0]
         if self.mode == "rgbd" and cfg.depth_consistency_tol > 0.0:
@@ -359,8 +363,7 @@ class Seeder:
             wp.launch(
                 ks.mask_covered_points,
                 dim=n,
-                inputs=[matches.ref_uv, res.alpha, res.depth, points.X, T_CW, cfg.covered_alpha]
-                + [cfg.covered_depth_tol],
+                inputs=[matches.ref_uv, res.alpha, res.depth, points.X, T_CW, cfg.covered_alpha, depth_tol],
                 outputs=[points.valid],
                 device=dev,
             )
@@ -511,3 +514,53 @@ class Seeder:
             )
             added += self._from_detail.seed(p, self._detail_confidence, frames, [slot], target)
         return self._within_cap(target, row0, added, limit)
+
+
+class DelayedSeeding:
+    """When the newest monocular keyframe is matched again, against a later tracked frame
+    (``seeding.mono_delayed_max``, ``mono_delayed_parallax_deg``): the surface a keyframe is the first
+    to see has no earlier keyframe to triangulate with, and the frames after it see it with growing
+    parallax.  ``start`` holds a keyframe (after its mapping) with its median map depth; ``take`` says
+    whether a tracked frame's pose has the next step of parallax (counting it); ``hold`` puts that
+    frame beside the keyframe in ``pair`` (slot 0 the keyframe, slot 1 the frame), which the
+    ``DenseMatcher``, ``Triangulator`` and ``Seeder.seed_matches(..., uncovered_only=True)`` then
+    take as a keyframe and its one neighbour (SLAM chains them)."""
+
+    def __init__(self, cfg: SeedingConfig, camera: Camera, device=None):
+        self.max_seedings, self.step_rad = cfg.mono_delayed_max, np.radians(cfg.mono_delayed_parallax_deg)
+        self.pair = KeyframeBuffer(2, camera.width, camera.height, wp.get_device(device))
+        self.frame_id = -1  # the keyframe's frame index (-1: none held)
+        self.depth_m = 0.0
+        self.taken = 0  # frames taken for it so far
+
+    def start(self, keyframes: KeyframeBuffer, slot: int, depth_m: float) -> None:
+        """Keyframe ``slot`` of ``keyframes``, whose map depth (median) is ``depth_m``, is the one to
+        seed later."""
+        for s in self.pair.slots():
+            self.pair.remove(s)
+        self.frame_id, self.depth_m, self.taken = int(keyframes.frame_ids[slot]), float(depth_m), 0
+        self.pair.add(self.frame_id, keyframes.poses[slot], keyframes.rgb[slot], None, keyframes.exposure[slot], slot=0)
+
+    def take(self, T_WC: np.ndarray) -> bool:
+        """Whether a tracked frame at ``T_WC`` gets matched with the keyframe: its parallax at the
+        keyframe's depth is the next step (``taken + 1`` times ``mono_delayed_parallax_deg``) and the
+        keyframe has not had ``mono_delayed_max`` frames yet.  Counts it when it does."""
+        if self.frame_id < 0 or self.taken >= self.max_seedings:
+            return False
+        if parallax_rad(self.pair.poses[0], T_WC, self.depth_m) < (self.taken + 1) * self.step_rad:
+            return False
+        self.taken += 1
+        return True
+
+    def hold(self, keyframes: KeyframeBuffer, frame_id: int, rgb, T_WC: np.ndarray, exposure) -> bool:
+        """Frame ``frame_id`` (``rgb`` on the device, tracked at ``T_WC`` with ``exposure``) into slot 1
+        of ``pair``, and the keyframe's pose and exposure as ``keyframes`` hold them now (mapping refines
+        them).  False, and nothing held, if ``keyframes`` no longer has the keyframe."""
+        slots = [s for s in keyframes.slots() if int(keyframes.frame_ids[s]) == self.frame_id]
+        if not slots:
+            return False
+        self.pair.poses[0], self.pair.exposure[0] = keyframes.poses[slots[0]], keyframes.exposure[slots[0]]
+        if 1 in self.pair.slots():
+            self.pair.remove(1)
+        self.pair.add(frame_id, T_WC, rgb, None, exposure, slot=1)
+        return True

@@ -35,7 +35,7 @@ from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.pose_prior import PosePrior
 from rgs_warp.render import Renderer, RenderResult
-from rgs_warp.seeding import Seeder
+from rgs_warp.seeding import DelayedSeeding, Seeder
 from rgs_warp.slam.storage import SlamSnapshot, load_slam, snapshot_slam
 from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher
 from rgs_warp.tracking import Tracker, TrackingResult
@@ -56,7 +56,9 @@ class FrameResult:
     tracking: TrackingResult | None  # None for the first frame and for given poses
     keyframe: bool
     keyframe_reason: str
-    seeded: int = 0  # Gaussians added by seeding (a keyframe's, or a frame fill's: seeding.frame_fill_min_uncovered)
+    # Gaussians added by seeding: a keyframe's, a frame fill's (seeding.frame_fill_min_uncovered) or a
+    # delayed monocular seeding's with this frame (seeding.mono_delayed_max)
+    seeded: int = 0
     pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0
     mapping: MappingResult | None = None
@@ -127,6 +129,10 @@ class SLAM:
             renderer=self.renderer,
             max_gaussians=cfg.mapping.max_gaussians,
         )
+        # monocular: the newest keyframe matched again against a later tracked frame (seeding.mono_delayed_*)
+        self.delayed = None
+        if self.mode == "mono" and cfg.seeding.mono_delayed_max > 0 and cfg.method == "rgs":
+            self.delayed = DelayedSeeding(cfg.seeding, camera, dev)
         baseline = cfg.method == "baseline"
         self.mapper = Mapper(
             cfg.mapping, camera, self.map, dev, self.mode, self.renderer, cfg.seed, cfg.densify if baseline else None
@@ -274,6 +280,8 @@ class SLAM:
                     alpha = None
                 fill_args = (i, self._own(rgb_t), self._own(depth_t), T, exposure, result, alpha)
                 self._run("fill", self._fill_frame, *fill_args)
+            if pose_ok and self.delayed is not None and self.delayed.take(T):
+                self._run("delayed", self._seed_delayed, i, self._own(rgb), T, exposure, result)
             # refinement between keyframes: one job waiting at most (it only uses the worker's idle time)
             if self.cfg.mapping.frame_iters > 0 and self.keyframe_indices:
                 if self.worker is None or self.worker.queued("refine") == 0:
@@ -408,9 +416,32 @@ class SLAM:
             self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
         )
         self._add_landmarks(slot)
+        self._start_delayed(slot)
         if self.publisher is not None:
             self._publish()
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
+
+    def _start_delayed(self, slot: int) -> None:
+        """Keyframe ``slot`` (mapped) becomes the one that delayed seeding matches again, with the median
+        depth the map renders where it covers it (``matching.scene_depth_m`` where it covers nothing)."""
+        if self.delayed is None:
+            return
+        res = self.renderer.forward(self.map, self.camera, self.keyframes.poses[slot])
+        alpha, depth = res.alpha.numpy(), res.depth.numpy()
+        covered = alpha > self.cfg.seeding.covered_alpha
+        depth_m = float(np.median(depth[covered] / alpha[covered])) if covered.any() else self.cfg.matching.scene_depth_m
+        self.delayed.start(self.keyframes, slot, depth_m)
+
+    def _seed_delayed(self, i: int, rgb, T: np.ndarray, exposure, result: FrameResult) -> None:
+        """Delayed seeding (``seeding.mono_delayed_*``): the delayed keyframe matched against frame ``i``
+        (tracked at ``T``), triangulated, and seeded where the map does not cover the keyframe."""
+        t0 = time.perf_counter()
+        if self.delayed.hold(self.keyframes, i, rgb, T, exposure):
+            pair = self.delayed.pair
+            m = self.matcher.match(0, pair, [1], use_depth=False)
+            points = self.triangulator.triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
+            result.seeded = self.seeder.seed_matches(self.map, pair, 0, m, points, uncovered_only=True)
+        self.stats["seeding_s"] += time.perf_counter() - t0
 
     def _prior_pose(self, rgb) -> tuple[np.ndarray | None, int]:
         """Where tracking starts this frame by the keypoint prior: (its pose, its inliers), or (None, 0)
@@ -519,6 +550,7 @@ class SLAM:
         self.convergence += self.mapper.convergence(self.keyframes, window, result.mapping, i, "init")
         for slot in window:
             self._add_landmarks(slot)
+        self._start_delayed(window[-1])
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
         for j in retrack:
             if frames[j][0] is None:  # its input was unusable: the last good pose
