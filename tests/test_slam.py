@@ -520,6 +520,70 @@ def test_keypoint_prior_in_a_mono_run(device):
     assert not any(r.lost for r in after), [r.lost_reason for r in after]
 
 
+def _seen_by(frame, others, camera) -> np.ndarray:
+    """(H, W) whether the true surface at each pixel of ``frame`` is seen by any of ``others`` (inside
+    its image, its true depth there within 5 %)."""
+    h, w = frame.depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    z = frame.depth.astype(np.float64)
+    x = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], -1)
+    X = x @ frame.pose_gt[:3, :3].T + frame.pose_gt[:3, 3]
+    seen = np.zeros((h, w), bool)
+    for o in others:
+        y = (X - o.pose_gt[:3, 3]) @ o.pose_gt[:3, :3]
+        pu = np.round(camera.fx * y[..., 0] / y[..., 2] + camera.cx).astype(int)
+        pv = np.round(camera.fy * y[..., 1] / y[..., 2] + camera.cy).astype(int)
+        inside = (y[..., 2] > 0) & (pu >= 0) & (pu < w) & (pv >= 0) & (pv < h)
+        d = o.depth[np.clip(pv, 0, h - 1), np.clip(pu, 0, w - 1)]
+        seen |= inside & (np.abs(d - y[..., 2]) < 0.05 * y[..., 2])
+    return seen & (z > 0)
+
+
+@pytest.mark.slow
+def test_mono_delayed_seeds_cover_what_a_keyframe_saw_first(device):
+    """seeding.mono_delayed_*: the part of a monocular keyframe that no earlier keyframe sees (ground
+    truth) has no seeds of its own after its mapping; the delayed seeding with a later tracked frame
+    covers it, puts its seeds only where the map did not cover the keyframe, and at the true depth (in
+    the map's scale)."""
+    n = 30
+    delayed = ["seeding.mono_delayed_max=1", "seeding.mono_delayed_parallax_deg=2.0"]
+    cfg = load_config([*MONO, f"dataset.max_frames={n}", *delayed, f"device={device}"])
+    camera, frames = _frames(cfg, n)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    covered_alpha = cfg.seeding.covered_alpha
+    for f in frames:
+        k, T_k = slam.delayed.frame_id, slam.delayed.pair.poses[0].copy()
+        before = slam.render(T_k) if k >= 0 else None
+        alpha0, depth0 = (before.alpha.numpy().copy(), before.depth.numpy().copy()) if k >= 0 else (None, None)
+        rows = len(slam.map)
+        r = slam.process(f.rgb, None, f.timestamp)
+        if not r.keyframe and r.seeded > 0:
+            break
+    else:
+        pytest.fail("no delayed seeding in %d frames" % n)
+    assert r.index > k and len(slam.map) == rows + r.seeded
+    earlier = [frames[j] for j in slam.keyframe_indices if j < k]
+    new = ~_seen_by(frames[k], earlier, camera) & (frames[k].depth > 0)
+    after = slam.render(T_k).alpha.numpy()
+    cov0, cov1 = (alpha0[new] > covered_alpha).mean(), (after[new] > covered_alpha).mean()
+    print(f"keyframe {k}, frame {r.index}: {r.seeded} seeds; first seen by it {new.mean():.1%} of its pixels, "
+          f"covered {cov0:.1%} -> {cov1:.1%}; whole keyframe {(alpha0 > covered_alpha).mean():.1%} -> "
+          f"{(after > covered_alpha).mean():.1%}")
+    assert new.mean() > 0.05 and cov0 < 0.3 and cov1 > cov0 + 0.3
+    # the seeds: where the keyframe was uncovered, at the true depth in the map's scale
+    means = slam.map.to_numpy()["means"][rows:].astype(np.float64)
+    y = (means - T_k[:3, 3]) @ T_k[:3, :3]
+    pu = np.clip(np.round(camera.fx * y[:, 0] / y[:, 2] + camera.cx).astype(int), 0, camera.width - 1)
+    pv = np.clip(np.round(camera.fy * y[:, 1] / y[:, 2] + camera.cy).astype(int), 0, camera.height - 1)
+    assert np.mean(alpha0[pv, pu] < covered_alpha) > 0.95
+    covered = alpha0 > covered_alpha
+    scale = np.median(frames[k].depth[covered] / (depth0[covered] / alpha0[covered]))
+    true = frames[k].depth[pv, pu]
+    error = np.abs(scale * y[:, 2] - true) / true
+    print(f"seeds' depth error: median {np.median(error):.1%}, p90 {np.percentile(error, 90):.1%}, scale {scale:.3f}")
+    assert np.median(error) < 0.05
+
+
 @pytest.mark.slow
 def test_mono_bootstrap_falls_back_to_a_plane(device):
     cfg = load_config([*MONO, "dataset.max_frames=3", "bootstrap.max_wait_frames=2", f"device={device}"])

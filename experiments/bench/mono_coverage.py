@@ -4,9 +4,9 @@
         [--fit 48] [--out results.json] [override ...]
 
 Runs the monocular SLAM (``mode=mono``, synchronous, on the CPU unless ``device=`` says otherwise)
-frame by frame over the synthetic office (the path of ``dataset=synthetic/office0_replica_size``
-sampled with ``--path-frames`` frames, rendered at ``--size``; only the first ``--frames`` are
-rendered, cached as ``.npz`` under ``$RGS_CACHE/bench_frames``).  At each keyframe, right after its
+frame by frame over the first ``--frames`` frames of the synthetic office
+(``dataset=synthetic/office0_replica_size``, its path sampled with ``--path-frames`` frames, generated
+at ``--size`` into ``$RGS_CACHE`` on first use).  At each keyframe, right after its
 mapping, the map is rendered at the keyframe's estimated pose: coverage = the share of pixels with
 accumulated opacity above 0.5; depth error = |s d / alpha - d_true| / d_true over those pixels,
 with one scale s fitted at the bootstrap keyframe (the median ratio of true to rendered depth).
@@ -21,33 +21,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import shutil
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from rgs_warp.config import load_config
-from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
+from rgs_warp.config import load_config, save_config
+from rgs_warp.datasets import open_dataset
 from rgs_warp.eval.ate import ate, umeyama_alignment
 from rgs_warp.render import Renderer
 from rgs_warp.slam import SLAM
-
-
-def office_frames(w: int, h: int, path_frames: int, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, object]:
-    """(rgb (N, H, W, 3), depth (N, H, W), poses (N, 4, 4), camera) of the first ``frames`` frames."""
-    cfg = SyntheticConfig("office0", w, h, path_frames)
-    root = Path(os.environ.get("RGS_CACHE", "~/.cache/rgs_warp")).expanduser() / "bench_frames"
-    path = root / f"office0_{w}x{h}_{path_frames}_{frames}.npz"
-    if not path.exists():
-        seq = SequenceRenderer(cfg, "cpu")
-        pairs = [seq.render(i) for i in range(frames)]
-        root.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, rgb=np.stack([p[0] for p in pairs]), depth=np.stack([p[1] for p in pairs]), poses=seq.poses[:frames])
-        tmp.rename(path)
-    data = np.load(path)
-    return data["rgb"], data["depth"], data["poses"], cfg.camera
 
 
 def main(argv=None) -> None:
@@ -57,16 +42,38 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=90)
     ap.add_argument("--fit", type=int, default=48, help="last frame of the Sim(3) fit of the position errors")
     ap.add_argument("--out", default=None)
+    ap.add_argument(
+        "--snapshot",
+        default=None,
+        help="folder of the SLAM saved (with its state) right after the bootstrap: written by the first run, "
+        "resumed from by the next ones with their own overrides (the bootstrap does not depend on them)",
+    )
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
-    rgb, depth, gt, camera = office_frames(w, h, args.path_frames, args.frames)
-    cfg = load_config(["mode=mono", "device=cpu", *args.overrides])
-    slam = SLAM(cfg, camera, T_first_WC=gt[0])
-    renderer = Renderer(slam.device)  # the bench's own: the SLAM's renderers keep their buffers
+    office = ["dataset=synthetic/office0_replica_size", f"dataset.width={w}", f"dataset.height={h}"]
+    office += [f"dataset.n_frames={args.path_frames}", f"dataset.max_frames={args.frames}"]
+    cfg = load_config([*office, "mode=mono", "device=cpu", *args.overrides])
+    ds = open_dataset(cfg, device="cpu")
+    camera, frames_in = ds.camera, [ds[i] for i in range(args.frames)]
+    rgb, depth = [f.rgb for f in frames_in], [f.depth for f in frames_in]
+    gt = np.array([f.pose_gt for f in frames_in])
+    snapshot = Path(args.snapshot) if args.snapshot else None
     keyframes, lost, scale, frames, t_slam = [], [], None, [], 0.0
+    if snapshot is not None and (snapshot / "state.npz").is_file():
+        folder = Path(tempfile.mkdtemp(prefix="mono_coverage_"))
+        shutil.copytree(snapshot, folder, dirs_exist_ok=True)
+        save_config(cfg, folder / "config.yaml")  # this run's overrides
+        slam = SLAM.load(folder)
+        shutil.rmtree(folder)
+        before = json.loads((snapshot / "bench.json").read_text())
+        keyframes, lost, scale, frames, t_slam = (before[k] for k in ("keyframes", "lost", "scale", "frames", "t_slam"))
+        print(f"resumed from {snapshot} at frame {len(slam.poses)}", flush=True)
+    else:
+        slam = SLAM(cfg, camera, T_first_WC=gt[0])
+    renderer = Renderer(slam.device)  # the bench's own: the SLAM's renderers keep their buffers
     t_run = time.perf_counter()
-    for i in range(args.frames):
+    for i in range(len(slam.poses), args.frames):
         t0 = time.perf_counter()
         r = slam.process(rgb[i])
         t_slam += time.perf_counter() - t0
@@ -95,6 +102,10 @@ def main(argv=None) -> None:
             "reason": r.keyframe_reason,
         }
         keyframes.append(row)
+        if snapshot is not None and not (snapshot / "state.npz").is_file() and slam.bootstrap is None:
+            slam.save(snapshot, state=True)
+            state = {"keyframes": keyframes, "lost": lost, "scale": scale, "frames": frames, "t_slam": t_slam}
+            (snapshot / "bench.json").write_text(json.dumps(state) + "\n")
         print(
             f"keyframe {i}: covered {100 * row['coverage']:.1f} %, depth err median "
             f"{100 * (row['depth_err_median'] or 0):.1f} % p90 {100 * (row['depth_err_p90'] or 0):.1f} %, "

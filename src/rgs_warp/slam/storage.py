@@ -228,6 +228,7 @@ def load_slam(cls, directory: str | Path, device=None):
         slam.bootstrap, slam._init_window_end = None, 0
     if (directory / "state.npz").is_file():
         _load_state(slam, directory / "state.npz")
+        _start_delayed(slam)
         return slam
     if slam.poses:
         slam.tracker.reset(slam.poses[-1], slam.poses[-2] if len(slam.poses) > 1 else None)
@@ -235,7 +236,15 @@ def load_slam(cls, directory: str | Path, device=None):
         T_kf = slam.keyframes.poses[slam.keyframes.slots()[-1]]
         slam._select_at(slam.map, T_kf)
         slam.selector.accept(T_kf)
+    _start_delayed(slam)
     return slam
+
+
+def _start_delayed(slam) -> None:
+    """Delayed monocular seeding (``seeding.mono_delayed_max``) goes on from the newest keyframe, as if it
+    had just been mapped (how many frames it had taken before the save is not kept)."""
+    if slam.delayed is not None and len(slam.keyframes):
+        slam._start_delayed(slam.keyframes.slots()[-1])
 
 
 class LoadError(ValueError):
