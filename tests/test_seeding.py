@@ -826,35 +826,49 @@ def _sideways(b_m):
 
 
 def test_delayed_seeding_takes_a_frame_at_each_parallax_step(device):
-    """A baseline b sideways of a keyframe subtends atan(b / d) at depth d on its axis; a frame is
-    taken at 1x, 2x ... the parallax step, at most mono_delayed_max times per keyframe; ``hold`` pairs
-    it with the keyframe as the buffer has it now, and refuses once the buffer evicted it."""
+    """A baseline b sideways of a view subtends atan(b / d) at depth d on its axis.  Without the chain a
+    frame is taken at 1x, 2x ... the parallax step from the keyframe, with it at each step from the
+    last frame taken; at most mono_delayed_max per keyframe.  ``hold`` pairs the frame with the
+    reference (a keyframe as the buffer has it now) and refuses once the buffer evicted the keyframe."""
     d = 2.5
     for b in (0.01, 0.3, 1.0):
         assert parallax_rad(np.eye(4), _sideways(b), d) == pytest.approx(np.arctan(b / d), rel=1e-7)  # arccos near 1
-    cfg = SeedingConfig(mono_delayed_max=2, mono_delayed_parallax_deg=2.0)
-    keyframes = KeyframeBuffer(2, CAM.width, CAM.height, device)
-    rgb = np.random.default_rng(0).random((CAM.height, CAM.width, 3)).astype(np.float32)
-    slot = keyframes.add(7, np.eye(4), rgb, exposure=(1.2, 0.1))
-    delayed = DelayedSeeding(cfg, CAM, device)
 
     def at(deg):
         return _sideways(d * np.tan(np.radians(deg)))
 
-    assert not delayed.take(at(30.0))  # no keyframe held yet
-    delayed.start(keyframes, slot, d)
-    taken = [delayed.take(at(a)) for a in (1.9, 2.1, 2.1, 3.9, 4.1, 6.1, 30.0)]
-    assert taken == [False, True, False, False, True, False, False]
-    keyframes.poses[slot] = _sideways(0.01)  # mapping refined it
+    rgb = np.random.default_rng(0).random((CAM.height, CAM.width, 3)).astype(np.float32)
     frame = np.zeros_like(rgb)
-    assert delayed.hold(keyframes, 9, frame, at(4.1), (0.9, 0.0))
-    pair = delayed.pair
-    assert pair.slots() == [0, 1] and list(pair.frame_ids) == [7, 9]
-    np.testing.assert_array_equal(pair.poses[0], keyframes.poses[slot])
-    np.testing.assert_array_equal(pair.poses[1], at(4.1))
-    np.testing.assert_array_equal(pair.exposure, [[1.2, 0.1], [0.9, 0.0]])
-    np.testing.assert_array_equal(pair.rgb.numpy()[0], rgb)
-    np.testing.assert_array_equal(pair.rgb.numpy()[1], frame)
+    for chain, want in ((False, [False, True, False, False, True, False]), (True, [False, True, False, True, False])):
+        cfg = SeedingConfig(mono_delayed_max=2, mono_delayed_parallax_deg=2.0, mono_delayed_chain=chain)
+        keyframes = KeyframeBuffer(2, CAM.width, CAM.height, device)
+        slot = keyframes.add(7, np.eye(4), rgb, exposure=(1.2, 0.1))
+        delayed = DelayedSeeding(cfg, CAM, device)
+        assert not delayed.take(at(30.0))  # no keyframe held yet
+        delayed.start(keyframes, slot, d)
+        taken = []
+        angles = (1.9, 2.1, 2.1, 3.9, 4.5, 30.0) if not chain else (1.9, 2.1, 3.9, 4.2, 30.0)
+        for a in angles:
+            taken.append(delayed.take(at(a)))
+            if taken[-1]:
+                if delayed.taken == 1:
+                    keyframes.poses[slot] = _sideways(0.01)  # mapping refined the keyframe
+                assert delayed.hold(keyframes, 10 + delayed.taken, frame, at(a), (0.9, 0.0))
+                pair, ref, new = delayed.pair, delayed.reference, delayed.frame
+                assert sorted(pair.slots()) == [0, 1] and pair.frame_ids[new] == 10 + delayed.taken
+                np.testing.assert_array_equal(pair.poses[new], at(a))
+                np.testing.assert_array_equal(pair.exposure[new], [0.9, 0.0])
+                np.testing.assert_array_equal(pair.rgb.numpy()[new], frame)
+                if pair.frame_ids[ref] == 7:
+                    np.testing.assert_array_equal(pair.poses[ref], keyframes.poses[slot])
+                    np.testing.assert_array_equal(pair.exposure[ref], [1.2, 0.1])
+                    np.testing.assert_array_equal(pair.rgb.numpy()[ref], rgb)
+                else:  # the chain's second step: the frame of the first is the reference
+                    assert chain and pair.frame_ids[ref] == 11
+                    np.testing.assert_array_equal(pair.poses[ref], at(2.1))
+                delayed.advance()
+        assert taken == want, (chain, taken)
+    delayed.start(keyframes, slot, d)
     keyframes.add(8, np.eye(4), rgb)
     keyframes.add(10, np.eye(4), rgb)  # keyframe 7 leaves the buffer
-    assert not delayed.hold(keyframes, 11, frame, at(4.1), (1.0, 0.0))
+    assert delayed.take(at(2.5)) and not delayed.hold(keyframes, 11, frame, at(2.5), (1.0, 0.0))

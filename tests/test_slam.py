@@ -552,7 +552,7 @@ def test_mono_delayed_seeds_cover_what_a_keyframe_saw_first(device):
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
     covered_alpha = cfg.seeding.covered_alpha
     for f in frames:
-        k, T_k = slam.delayed.frame_id, slam.delayed.pair.poses[0].copy()
+        k, T_k = slam.delayed.keyframe_id, slam.delayed.pair.poses[0].copy()
         before = slam.render(T_k) if k >= 0 else None
         alpha0, depth0 = (before.alpha.numpy().copy(), before.depth.numpy().copy()) if k >= 0 else (None, None)
         rows = len(slam.map)

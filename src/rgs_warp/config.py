@@ -289,10 +289,13 @@ class SeedingConfig:
     # after it see that surface again with growing parallax: once a frame's baseline to the newest
     # keyframe subtends mono_delayed_parallax_deg at the keyframe's median map depth, the keyframe is
     # matched against that frame, triangulated with the tracked poses and seeded where the map does not
-    # cover it (alpha below covered_alpha); again at 2x, 3x ... that parallax, mono_delayed_max times
-    # per keyframe at most.  0 = off.  RGB-D never does this (its depth fill covers new surface)
+    # cover it (alpha below covered_alpha), mono_delayed_max times per keyframe at most (0 = off).
+    # mono_delayed_chain: each step's frame is the next step's reference (surface that comes into view
+    # after the keyframe is first seen by such a frame); without it every step matches the keyframe, at
+    # 2x, 3x ... the parallax.  RGB-D never does this (its depth fill covers new surface)
     mono_delayed_max: int = 0
     mono_delayed_parallax_deg: float = 3.0
+    mono_delayed_chain: bool = True
 
 
 @dataclass

@@ -517,50 +517,69 @@ class Seeder:
 
 
 class DelayedSeeding:
-    """When the newest monocular keyframe is matched again, against a later tracked frame
-    (``seeding.mono_delayed_max``, ``mono_delayed_parallax_deg``): the surface a keyframe is the first
-    to see has no earlier keyframe to triangulate with, and the frames after it see it with growing
-    parallax.  ``start`` holds a keyframe (after its mapping) with its median map depth; ``take`` says
-    whether a tracked frame's pose has the next step of parallax (counting it); ``hold`` puts that
-    frame beside the keyframe in ``pair`` (slot 0 the keyframe, slot 1 the frame), which the
-    ``DenseMatcher``, ``Triangulator`` and ``Seeder.seed_matches(..., uncovered_only=True)`` then
-    take as a keyframe and its one neighbour (SLAM chains them)."""
+    """When a monocular view is matched again, against a later tracked frame (``seeding.mono_delayed_*``):
+    the surface a keyframe is the first to see has no earlier keyframe to triangulate with, and the
+    frames after it see it with growing parallax.  ``start`` makes a keyframe (after its mapping) the
+    reference, with its median map depth; ``take`` says whether a tracked frame's pose has enough
+    parallax against the reference at that depth (counting it, ``mono_delayed_max`` per keyframe);
+    ``hold`` puts that frame beside the reference in ``pair``, which the ``DenseMatcher``,
+    ``Triangulator`` and ``Seeder.seed_matches(..., uncovered_only=True)`` take as a keyframe
+    (``reference``) and its one neighbour (``frame``); SLAM chains them.
+
+    With ``mono_delayed_chain`` the frame then becomes the reference of the next step: the surface that
+    comes into view after the keyframe is first seen by a frame that is no keyframe, and gets its seeds
+    from that frame and a later one.  Without it, every step matches the keyframe, at 1x, 2x ... the
+    parallax."""
 
     def __init__(self, cfg: SeedingConfig, camera: Camera, device=None):
         self.max_seedings, self.step_rad = cfg.mono_delayed_max, np.radians(cfg.mono_delayed_parallax_deg)
+        self.chain = cfg.mono_delayed_chain
         self.pair = KeyframeBuffer(2, camera.width, camera.height, wp.get_device(device))
-        self.frame_id = -1  # the keyframe's frame index (-1: none held)
+        self.keyframe_id = -1  # the keyframe's frame index (-1: none held)
+        self.reference, self.frame = 0, 1  # slots of pair
         self.depth_m = 0.0
-        self.taken = 0  # frames taken for it so far
+        self.taken = 0  # frames taken since the keyframe
 
     def start(self, keyframes: KeyframeBuffer, slot: int, depth_m: float) -> None:
         """Keyframe ``slot`` of ``keyframes``, whose map depth (median) is ``depth_m``, is the one to
         seed later."""
         for s in self.pair.slots():
             self.pair.remove(s)
-        self.frame_id, self.depth_m, self.taken = int(keyframes.frame_ids[slot]), float(depth_m), 0
-        self.pair.add(self.frame_id, keyframes.poses[slot], keyframes.rgb[slot], None, keyframes.exposure[slot], slot=0)
+        self.keyframe_id, self.depth_m, self.taken = int(keyframes.frame_ids[slot]), float(depth_m), 0
+        self.reference, self.frame = 0, 1
+        self.pair.add(self.keyframe_id, keyframes.poses[slot], keyframes.rgb[slot], None, keyframes.exposure[slot], slot=0)
 
     def take(self, T_WC: np.ndarray) -> bool:
-        """Whether a tracked frame at ``T_WC`` gets matched with the keyframe: its parallax at the
-        keyframe's depth is the next step (``taken + 1`` times ``mono_delayed_parallax_deg``) and the
-        keyframe has not had ``mono_delayed_max`` frames yet.  Counts it when it does."""
-        if self.frame_id < 0 or self.taken >= self.max_seedings:
+        """Whether a tracked frame at ``T_WC`` gets matched with the reference: the keyframe has had fewer
+        than ``mono_delayed_max`` frames, and the frame's parallax against the reference at the
+        keyframe's depth is ``mono_delayed_parallax_deg`` (chain) or ``taken + 1`` times it.  Counts it
+        when it does."""
+        if self.keyframe_id < 0 or self.taken >= self.max_seedings:
             return False
-        if parallax_rad(self.pair.poses[0], T_WC, self.depth_m) < (self.taken + 1) * self.step_rad:
+        steps = 1 if self.chain else self.taken + 1
+        if parallax_rad(self.pair.poses[self.reference], T_WC, self.depth_m) < steps * self.step_rad:
             return False
         self.taken += 1
         return True
 
     def hold(self, keyframes: KeyframeBuffer, frame_id: int, rgb, T_WC: np.ndarray, exposure) -> bool:
-        """Frame ``frame_id`` (``rgb`` on the device, tracked at ``T_WC`` with ``exposure``) into slot 1
-        of ``pair``, and the keyframe's pose and exposure as ``keyframes`` hold them now (mapping refines
-        them).  False, and nothing held, if ``keyframes`` no longer has the keyframe."""
-        slots = [s for s in keyframes.slots() if int(keyframes.frame_ids[s]) == self.frame_id]
-        if not slots:
-            return False
-        self.pair.poses[0], self.pair.exposure[0] = keyframes.poses[slots[0]], keyframes.exposure[slots[0]]
-        if 1 in self.pair.slots():
-            self.pair.remove(1)
-        self.pair.add(frame_id, T_WC, rgb, None, exposure, slot=1)
+        """Frame ``frame_id`` (``rgb`` on the device, tracked at ``T_WC`` with ``exposure``) into ``pair``
+        beside the reference (slot ``frame``); a keyframe reference takes its pose and exposure as
+        ``keyframes`` hold them now (mapping refines them).  False, and nothing held, if the reference
+        is a keyframe that ``keyframes`` no longer has.  With ``chain`` the next step's reference is this
+        frame."""
+        ref = self.reference
+        if int(self.pair.frame_ids[ref]) == self.keyframe_id:
+            slots = [s for s in keyframes.slots() if int(keyframes.frame_ids[s]) == self.keyframe_id]
+            if not slots:
+                return False
+            self.pair.poses[ref], self.pair.exposure[ref] = keyframes.poses[slots[0]], keyframes.exposure[slots[0]]
+        if self.frame in self.pair.slots():
+            self.pair.remove(self.frame)
+        self.pair.add(frame_id, T_WC, rgb, None, exposure, slot=self.frame)
         return True
+
+    def advance(self) -> None:
+        """After a step's seeding: with ``chain``, the frame becomes the reference of the next step."""
+        if self.chain:
+            self.reference, self.frame = self.frame, self.reference

@@ -433,14 +433,16 @@ class SLAM:
         self.delayed.start(self.keyframes, slot, depth_m)
 
     def _seed_delayed(self, i: int, rgb, T: np.ndarray, exposure, result: FrameResult) -> None:
-        """Delayed seeding (``seeding.mono_delayed_*``): the delayed keyframe matched against frame ``i``
-        (tracked at ``T``), triangulated, and seeded where the map does not cover the keyframe."""
+        """Delayed seeding (``seeding.mono_delayed_*``): its reference (the newest keyframe, or the frame of
+        its last step) matched against frame ``i`` (tracked at ``T``), triangulated, and seeded where the
+        map does not cover the reference."""
         t0 = time.perf_counter()
-        if self.delayed.hold(self.keyframes, i, rgb, T, exposure):
-            pair = self.delayed.pair
-            m = self.matcher.match(0, pair, [1], use_depth=False)
+        d = self.delayed
+        if d.hold(self.keyframes, i, rgb, T, exposure):
+            m = self.matcher.match(d.reference, d.pair, [d.frame], use_depth=False)
             points = self.triangulator.triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
-            result.seeded = self.seeder.seed_matches(self.map, pair, 0, m, points, uncovered_only=True)
+            result.seeded = self.seeder.seed_matches(self.map, d.pair, d.reference, m, points, uncovered_only=True)
+            d.advance()
         self.stats["seeding_s"] += time.perf_counter() - t0
 
     def _prior_pose(self, rgb) -> tuple[np.ndarray | None, int]:
