@@ -11,13 +11,13 @@ from scipy.spatial import cKDTree
 from rgs_warp.config import SeedingConfig, TriangulationConfig
 from rgs_warp.datasets.synthetic import SyntheticDataset
 from rgs_warp.eval.photometric import psnr
-from rgs_warp.geometry import invert_pose, parallax_rad, quat_to_matrix, se3_exp
+from rgs_warp.geometry import invert_pose, quat_to_matrix, se3_exp
 from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.render import Renderer
 from rgs_warp.sampling import CONFIDENCE_LEVELS, compact_mask, poisson_disk_subsample, thin_blue_noise
-from rgs_warp.seeding import DelayedSeeding, PointSeeder, Seeder
+from rgs_warp.seeding import DelayedSeeding, PointSeeder, Seeder, baseline_angle_rad
 from rgs_warp.triangulation import TriangulatedPoints, Triangulator, projection_matrices
 from rgs_warp.types import Camera, GaussianMap
 
@@ -826,13 +826,15 @@ def _sideways(b_m):
 
 
 def test_delayed_seeding_takes_a_frame_at_each_parallax_step(device):
-    """A baseline b sideways of a view subtends atan(b / d) at depth d on its axis.  Without the chain a
+    """A baseline b counts as atan(b / d) at depth d, whichever way it goes.  Without the chain a
     frame is taken at 1x, 2x ... the parallax step from the keyframe, with it at each step from the
     last frame taken; at most mono_delayed_max per keyframe.  ``hold`` pairs the frame with the
     reference (a keyframe as the buffer has it now) and refuses once the buffer evicted the keyframe."""
     d = 2.5
-    for b in (0.01, 0.3, 1.0):
-        assert parallax_rad(np.eye(4), _sideways(b), d) == pytest.approx(np.arctan(b / d), rel=1e-7)  # arccos near 1
+    forward = np.eye(4)
+    forward[:3, 3] = [0.0, 0.0, 0.3]
+    assert baseline_angle_rad(np.eye(4), forward, d) == pytest.approx(np.arctan(0.3 / d), rel=1e-12)
+    assert baseline_angle_rad(_sideways(0.5), _sideways(0.2), d) == pytest.approx(np.arctan(0.3 / d), rel=1e-12)
 
     def at(deg):
         return _sideways(d * np.tan(np.radians(deg)))

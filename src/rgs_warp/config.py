@@ -287,7 +287,8 @@ class SeedingConfig:
     # monocular: delayed seeding.  A monocular keyframe gets seeds only where its matches with earlier
     # keyframes triangulate, so the surface it is the first to see stays uncovered.  The tracked frames
     # after it see that surface again with growing parallax: once a frame's baseline to the newest
-    # keyframe subtends mono_delayed_parallax_deg at the keyframe's median map depth, the keyframe is
+    # keyframe is long enough (atan(baseline / the keyframe's median map depth) above
+    # mono_delayed_parallax_deg: the most parallax a point at that depth gets), the keyframe is
     # matched against that frame, triangulated with the tracked poses and seeded where the map does not
     # cover it (alpha below covered_alpha), mono_delayed_max times per keyframe at most (0 = off).
     # mono_delayed_chain: each step's frame is the next step's reference (surface that comes into view

@@ -92,14 +92,6 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def parallax_rad(T_r: np.ndarray, T_n: np.ndarray, depth_m: float) -> float:
-    """The angle (radians) that the baseline between camera-to-world poses ``T_r`` and ``T_n``
-    subtends at the point ``depth_m`` in front of ``T_r`` on its optical axis."""
-    point = T_r[:3, 3] + depth_m * T_r[:3, 2]
-    a, b = T_r[:3, 3] - point, T_n[:3, 3] - point
-    return float(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12), -1.0, 1.0)))
-
-
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees."""
     c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)

@@ -23,7 +23,7 @@ import warp as wp
 
 from rgs_warp.config import MatchingConfig
 from rgs_warp.features import feature_centres, make_backbone
-from rgs_warp.geometry import invert_pose, parallax_rad, rotation_angle_deg
+from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.kernels.matching import (
     aggregate_confidence,
@@ -128,7 +128,9 @@ class DenseMatcher:
             axis_angle = np.degrees(np.arccos(np.clip(T_r[:3, 2] @ T_n[:3, 2], -1.0, 1.0)))
             if axis_angle > self.cfg.max_view_angle_deg:
                 continue
-            parallax = parallax_rad(T_r, T_n, depth)
+            point = T_r[:3, 3] + depth * T_r[:3, 2]
+            a, b = T_r[:3, 3] - point, T_n[:3, 3] - point
+            parallax = np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12), -1.0, 1.0))
             too_small = parallax < 0.1 * target
             ranked.append((too_small, abs(np.log(max(parallax, 1e-9) / target)), slot))
         ranked.sort()

@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from rgs_warp.config import SeedingConfig
-from rgs_warp.geometry import invert_pose, parallax_rad
+from rgs_warp.geometry import invert_pose
 from rgs_warp.graph_cache import GraphCache, launch_key
 from rgs_warp.kernels import seeding as ks
 from rgs_warp.kernels.math import camera_params
@@ -516,12 +516,20 @@ class Seeder:
         return self._within_cap(target, row0, added, limit)
 
 
+def baseline_angle_rad(T_a: np.ndarray, T_b: np.ndarray, depth_m: float) -> float:
+    """atan(baseline / depth) of camera-to-world poses ``T_a``, ``T_b``: the parallax of a point at
+    ``depth_m`` seen square to the baseline, the most a point at that depth gets (the parallax at the
+    optical axis would be 0 for a camera moving forward, whose image edges do see new surface with
+    parallax)."""
+    return float(np.arctan(np.linalg.norm(T_b[:3, 3] - T_a[:3, 3]) / depth_m))
+
+
 class DelayedSeeding:
     """When a monocular view is matched again, against a later tracked frame (``seeding.mono_delayed_*``):
     the surface a keyframe is the first to see has no earlier keyframe to triangulate with, and the
     frames after it see it with growing parallax.  ``start`` makes a keyframe (after its mapping) the
-    reference, with its median map depth; ``take`` says whether a tracked frame's pose has enough
-    parallax against the reference at that depth (counting it, ``mono_delayed_max`` per keyframe);
+    reference, with its median map depth; ``take`` says whether a tracked frame's baseline to the
+    reference is long enough at that depth (counting it, ``mono_delayed_max`` per keyframe);
     ``hold`` puts that frame beside the reference in ``pair``, which the ``DenseMatcher``,
     ``Triangulator`` and ``Seeder.seed_matches(..., uncovered_only=True)`` take as a keyframe
     (``reference``) and its one neighbour (``frame``); SLAM chains them.
@@ -551,13 +559,14 @@ class DelayedSeeding:
 
     def take(self, T_WC: np.ndarray) -> bool:
         """Whether a tracked frame at ``T_WC`` gets matched with the reference: the keyframe has had fewer
-        than ``mono_delayed_max`` frames, and the frame's parallax against the reference at the
-        keyframe's depth is ``mono_delayed_parallax_deg`` (chain) or ``taken + 1`` times it.  Counts it
+        than ``mono_delayed_max`` frames, and the frame's baseline to the reference subtends
+        ``mono_delayed_parallax_deg`` at the keyframe's depth (``baseline_angle_rad``; chain) or ``taken +
+        1`` times it.  Counts it
         when it does."""
         if self.keyframe_id < 0 or self.taken >= self.max_seedings:
             return False
         steps = 1 if self.chain else self.taken + 1
-        if parallax_rad(self.pair.poses[self.reference], T_WC, self.depth_m) < steps * self.step_rad:
+        if baseline_angle_rad(self.pair.poses[self.reference], T_WC, self.depth_m) < steps * self.step_rad:
             return False
         self.taken += 1
         return True
