@@ -6,10 +6,10 @@ NumPy, and end to end on a synthetic scene (depth error, PSNR of the seeded map)
 import numpy as np
 import pytest
 import warp as wp
-from helpers_maps import map_from_rgbd
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from helpers_maps import map_from_rgbd
 from rgs_warp.config import MatchingConfig, SeedingConfig, TriangulationConfig
 from rgs_warp.datasets.synthetic import SyntheticDataset
 from rgs_warp.eval.photometric import psnr

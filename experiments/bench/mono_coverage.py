@@ -136,7 +136,8 @@ def main(argv=None) -> None:
         "slam_seconds": t_slam,
         "stats": {k: float(v) for k, v in slam.stats.items()},
     }
-    print("position error (cm, fit on 0..%d):" % args.fit, {k: round(v, 2) for k, v in summary["position_err_cm"].items()})
+    errors = {k: round(v, 2) for k, v in summary["position_err_cm"].items()}
+    print(f"position error (cm, fit on 0..{args.fit}):", errors)
     print(
         f"SUMMARY sim3 ATE {sim3['rmse_cm']:.2f} cm (scale {sim3['align_scale']:.3f}), lost {len(lost)} {lost}, "
         f"{len(keyframes)} keyframes, {seconds:.0f} s ({t_slam:.0f} s in process), stats {summary['stats']}",

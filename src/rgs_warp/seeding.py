@@ -555,14 +555,15 @@ class DelayedSeeding:
             self.pair.remove(s)
         self.keyframe_id, self.depth_m, self.taken = int(keyframes.frame_ids[slot]), float(depth_m), 0
         self.reference, self.frame = 0, 1
-        self.pair.add(self.keyframe_id, keyframes.poses[slot], keyframes.rgb[slot], None, keyframes.exposure[slot], slot=0)
+        self.pair.add(
+            self.keyframe_id, keyframes.poses[slot], keyframes.rgb[slot], None, keyframes.exposure[slot], slot=0
+        )
 
     def take(self, T_WC: np.ndarray) -> bool:
         """Whether a tracked frame at ``T_WC`` gets matched with the reference: the keyframe has had fewer
         than ``mono_delayed_max`` frames, and the frame's baseline to the reference subtends
-        ``mono_delayed_parallax_deg`` at the keyframe's depth (``baseline_angle_rad``; chain) or ``taken +
-        1`` times it.  Counts it
-        when it does."""
+        ``mono_delayed_parallax_deg`` at the keyframe's depth (``baseline_angle_rad``; chain) or
+        ``taken + 1`` times it.  Counts it when it does."""
         if self.keyframe_id < 0 or self.taken >= self.max_seedings:
             return False
         steps = 1 if self.chain else self.taken + 1

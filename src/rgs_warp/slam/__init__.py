@@ -429,7 +429,9 @@ class SLAM:
         res = self.renderer.forward(self.map, self.camera, self.keyframes.poses[slot])
         alpha, depth = res.alpha.numpy(), res.depth.numpy()
         covered = alpha > self.cfg.seeding.covered_alpha
-        depth_m = float(np.median(depth[covered] / alpha[covered])) if covered.any() else self.cfg.matching.scene_depth_m
+        depth_m = (
+            float(np.median(depth[covered] / alpha[covered])) if covered.any() else self.cfg.matching.scene_depth_m
+        )
         self.delayed.start(self.keyframes, slot, depth_m)
 
     def _seed_delayed(self, i: int, rgb, T: np.ndarray, exposure, result: FrameResult) -> None:
