@@ -14,7 +14,8 @@ with one scale s fitted at the bootstrap keyframe (the median ratio of true to r
 After the run: the position error at every tenth frame with the trajectory Sim(3)-fitted to the
 ground truth on frames 0..``--fit`` (how far the later frames drift from a start that was right),
 the Sim(3) ATE of all frames (``rgs_warp.eval.ate``), lost frames and the run time.  Prints a line
-per keyframe and a summary; ``--out`` writes it all as JSON.  Results: experiments/results/mono.md.
+per keyframe and a summary; ``--out`` writes it all as JSON.  The override ``mode=rgbd`` gives the
+RGB-D reference on the same frames (with their depth).  Results: experiments/results/mono.md.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def main(argv=None) -> None:
     t_run = time.perf_counter()
     for i in range(len(slam.poses), args.frames):
         t0 = time.perf_counter()
-        r = slam.process(rgb[i])
+        r = slam.process(rgb[i], depth[i] if cfg.mode == "rgbd" else None)
         t_slam += time.perf_counter() - t0
         if r.lost:
             lost.append(i)
