@@ -14,7 +14,7 @@ from rgs_warp.datasets.base import downscale_depth, downscale_rgb
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 from rgs_warp.datasets.synthetic.textures import linear_to_srgb
 from rgs_warp.eval import ate
-from rgs_warp.geometry import invert_pose, se3_exp
+from rgs_warp.geometry import invert_pose, rotation_angle_deg, se3_exp
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.render import Renderer
 from rgs_warp.tracking import SETTLED_DEG, SETTLED_M, Tracker, motion_inconsistency, pose_error, settled_iters
@@ -614,9 +614,31 @@ def test_a_frame_that_jumped_is_lost_and_keeps_the_prediction(device, scene):
     np.testing.assert_array_equal(result.T_WC, T_pred)
 
 
+def test_motion_check_flags_a_speed_up_against_the_last_steps():
+    """A run-away at a steady speed matches its own constant-velocity prediction; against the median of
+    the last steps (motion_max_ratio x it plus the floors) it does not.  Fewer than three steps: not
+    judged."""
+    cfg = TrackingConfig()
+    usual = [(0.007, 1.3)] * 6 + [(0.009, 1.5)] * 4  # median 7 mm, 1.3 deg
+    fast = se3_exp(np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]))  # 5 cm a frame, as the last one
+    T_prev = se3_exp(np.array([0.5, 1.0, -0.2, 0.1, 0.2, 0.3]))
+    T_last = T_prev @ fast
+    bound_m = cfg.motion_max_ratio * 0.007 + cfg.motion_max_jump_m  # 4.8 cm
+    reason = motion_inconsistency(T_prev, T_last, T_last @ fast, cfg, usual)
+    assert reason.startswith("motion check: the camera sped up to 50.0 mm"), reason
+    assert motion_inconsistency(T_prev, T_last, T_last @ fast, cfg, usual[:2]) == ""  # too few steps
+    assert motion_inconsistency(T_prev, T_last, T_last @ fast, cfg) == ""  # on its own prediction
+    ok = se3_exp(np.array([0.98 * bound_m, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    assert motion_inconsistency(T_prev, T_prev @ ok, T_prev @ ok @ ok, cfg, usual) == ""
+    turn = se3_exp(np.array([0.007, 0, 0, 0, np.radians(4 * 1.3 + 3 + 0.1), 0]))  # the turn alone
+    assert motion_inconsistency(T_prev, T_prev @ turn, T_prev @ turn @ turn, cfg, usual).startswith(
+        "motion check: the camera sped up"
+    )
+
+
 @pytest.mark.parametrize("path", ["office0/300", "room0/100", "7scenes"])
 def test_motion_check_passes_true_paths(request, path):
-    """No frame of a ground-truth path is flagged as a jump: the synthetic office and room (the room's
+    """No frame of a ground-truth path is flagged as a jump or a speed-up: the synthetic office and room (the room's
     100 frames move 3.7 cm and 3.9 deg a frame, speeding up and slowing down; there no collapse either)
     and the shared 7-Scenes frames' hand-held trajectory (up to 35 mm and 2.3 deg off the
     constant-velocity prediction; its poses alternate 1 cm and 0.2 mm steps, which the collapse half
@@ -629,8 +651,13 @@ def test_motion_check_passes_true_paths(request, path):
     else:
         scene, n = path.split("/")
         poses = SequenceRenderer(SyntheticConfig(scene=scene, width=64, height=36, n_frames=int(n))).poses
-    reasons = {i: motion_inconsistency(poses[i - 2], poses[i - 1], poses[i], cfg) for i in range(2, len(poses))}
-    jumps = [i for i, why in reasons.items() if why.startswith("motion check: the pose jumped")]
+    reasons, steps = {}, []
+    for i in range(2, len(poses)):  # the last 10 steps' history, as the tracker keeps it
+        reasons[i] = motion_inconsistency(poses[i - 2], poses[i - 1], poses[i], cfg, steps[-10:])
+        step = invert_pose(poses[i - 1]) @ poses[i]
+        steps.append((np.linalg.norm(step[:3, 3]), rotation_angle_deg(step[:3, :3])))
+    runaway = ("motion check: the pose jumped", "motion check: the camera sped up")
+    jumps = [i for i, why in reasons.items() if why.startswith(runaway)]
     assert jumps == [], [reasons[i] for i in jumps[:3]]
     if path != "7scenes":
         assert not any(reasons.values())

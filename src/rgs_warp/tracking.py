@@ -16,6 +16,7 @@ intersection capacity reserved beforehand, ``Renderer.reserve_intersections``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,6 +88,11 @@ MAX_CORRECTION_DEG = 45.0
 STILL_TURNING = 0.5
 # how ``motion_inconsistency``'s reason for a pose that ran away from the prediction begins
 JUMPED = "motion check: the pose jumped"
+SPED_UP = "motion check: the camera sped up to"
+# the tracked steps (length, turn) the motion check's speed bound takes its median of; it waits for
+# MOTION_HISTORY_MIN of them (after a start, a reset or a relocalisation)
+MOTION_HISTORY = 10
+MOTION_HISTORY_MIN = 3
 SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, tracking.colour_per_opacity
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
@@ -167,6 +173,7 @@ class Tracker:
         self._T_CW_host = wp.zeros(1, dtype=wp.mat44d, device="cpu", pinned=pinned)
         self._T_WC_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=pinned)
         self._poses: list[np.ndarray] = []
+        self._motion_steps: list[tuple[float, float]] = []  # the last tracked steps (metres, degrees), oldest first
         self._last_render = None
         self._frame: tuple | None = None
         # the frame's steps as captured graphs (``_steps``): by what they were captured against
@@ -183,14 +190,20 @@ class Tracker:
         with ``T_prev_WC`` also the one before (the motion model resumes, e.g. after loading)."""
         poses = [T_prev_WC, T_WC] if T_prev_WC is not None and T_WC is not None else [T_WC]
         self._poses = [np.array(T, dtype=np.float64) for T in poses if T is not None]
+        self._motion_steps = []
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The motion model's poses (the last two tracked, or a lost frame's start pose in its place),
         which ``reset`` alone cannot tell; ``load_state_dict`` restores them."""
-        return {"motion_poses": np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4)}
+        return {
+            "motion_poses": np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4),
+            "motion_steps": np.array(self._motion_steps, dtype=np.float64).reshape(-1, 2),
+        }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self._poses = [np.array(T, dtype=np.float64) for T in state["motion_poses"]]
+        # states saved before the steps were kept: the check waits for new ones
+        self._motion_steps = [(float(m), float(d)) for m, d in state.get("motion_steps", np.zeros((0, 2)))]
 
     @property
     def alpha(self) -> wp.array:
@@ -525,9 +538,13 @@ class Tracker:
             reason = f"map covers {valid_ratio:.1%} of the view (< {cfg.min_valid_ratio:.0%})"
         elif residual > cfg.max_residual:
             reason = f"photometric residual {residual:.3f} > {cfg.max_residual}"
-        elif self.motion_check and len(self._poses) == 2 and (why := motion_inconsistency(*self._poses, T_WC, cfg)):
+        elif (
+            self.motion_check
+            and len(self._poses) == 2
+            and (why := motion_inconsistency(*self._poses, T_WC, cfg, self._motion_steps))
+        ):
             reason, motion_inconsistent = why, True
-            if why.startswith(JUMPED):  # the prediction is the better guess than a pose that ran away
+            if why.startswith((JUMPED, SPED_UP)):  # the prediction is the better guess than a pose that ran away
                 T_WC = np.array(T_init_WC, dtype=np.float64)
                 reason += "; the frame keeps the prediction"
         else:
@@ -540,6 +557,13 @@ class Tracker:
             )
         if diverged:
             T_WC = np.array(T_init_WC, dtype=np.float64)
+        if not lost and self._poses:  # the step the motion check's speed bound keeps (MOTION_HISTORY)
+            step = invert_pose(self._poses[-1]) @ T_WC
+            self._motion_steps = [
+                *self._motion_steps,
+                (float(np.linalg.norm(step[:3, 3])), rotation_angle_deg(step[:3, :3])),
+            ]
+            self._motion_steps = self._motion_steps[-MOTION_HISTORY:]
         self._poses = (self._poses + [T_init_WC.copy() if lost else T_WC])[-2:]
         return TrackingResult(
             T_WC=T_WC,
@@ -585,7 +609,13 @@ def settled_iters(poses_CW: np.ndarray) -> int:
     return 0
 
 
-def motion_inconsistency(T_prev_WC: np.ndarray, T_last_WC: np.ndarray, T_WC: np.ndarray, cfg: TrackingConfig) -> str:
+def motion_inconsistency(
+    T_prev_WC: np.ndarray,
+    T_last_WC: np.ndarray,
+    T_WC: np.ndarray,
+    cfg: TrackingConfig,
+    steps: Sequence[tuple[float, float]] = (),
+) -> str:
     """Why the tracked pose ``T_WC`` breaks the constant-velocity motion of the two poses before it
     (camera-to-world), or "" where it does not or the motion is too small to tell.
 
@@ -596,6 +626,10 @@ def motion_inconsistency(T_prev_WC: np.ndarray, T_last_WC: np.ndarray, T_WC: np.
       ``cfg.motion_max_jump_m`` from the prediction, or turned more than ``cfg.motion_max_ratio`` x the
       predicted turn plus ``cfg.motion_max_jump_deg`` away from it (monocular tracking running away
       where the map lacks the surface in view);
+    * a speed-up: with ``steps`` (the last tracked steps' lengths and turns, at least
+      ``MOTION_HISTORY_MIN``), the tracked step is longer than ``cfg.motion_max_ratio`` x their median
+      plus ``cfg.motion_max_jump_m``, or turns more than ``cfg.motion_max_ratio`` x their median plus
+      ``cfg.motion_max_jump_deg`` (a run-away at a steady speed matches its own prediction);
     * a collapse: the tracked step's translation is below ``cfg.motion_min_ratio`` x the predicted
       step's while the camera still turns (its rotation at least ``STILL_TURNING`` x the predicted one's):
       the image moves on but the pose hardly travels, the monocular collapse of issue 22 (scale is
@@ -614,6 +648,17 @@ def motion_inconsistency(T_prev_WC: np.ndarray, T_last_WC: np.ndarray, T_WC: np.
             f"predicted step of {1e3 * predicted_m:.1f} mm and {predicted_deg:.2f} deg, plus "
             f"{1e3 * cfg.motion_max_jump_m:g} mm and {cfg.motion_max_jump_deg:g} deg)"
         )
+    if len(steps) >= MOTION_HISTORY_MIN:
+        usual_m, usual_deg = (float(v) for v in np.median(np.asarray(steps, dtype=np.float64), axis=0))
+        fast_m = cfg.motion_max_ratio * usual_m + cfg.motion_max_jump_m
+        fast_deg = cfg.motion_max_ratio * usual_deg + cfg.motion_max_jump_deg
+        if step_m > fast_m or step_deg > fast_deg:
+            return (
+                f"{SPED_UP} {1e3 * step_m:.1f} mm and {step_deg:.2f} deg (at most {1e3 * fast_m:.1f} mm and "
+                f"{fast_deg:.2f} deg: {cfg.motion_max_ratio:g} x the median of the last {len(steps)} steps, "
+                f"{1e3 * usual_m:.1f} mm and {usual_deg:.2f} deg, plus {1e3 * cfg.motion_max_jump_m:g} mm and "
+                f"{cfg.motion_max_jump_deg:g} deg)"
+            )
     if predicted_m < cfg.motion_min_step_m or predicted_deg < cfg.motion_min_rotation_deg:
         return ""
     ratio = step_m / predicted_m
