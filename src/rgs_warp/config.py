@@ -151,13 +151,15 @@ class TrackingConfig:
     # motion_min_rotation_deg: below them tracking noise (~1 mm, 0.05 deg) is a large part of the ratio
     motion_min_step_m: float = 0.005
     motion_min_rotation_deg: float = 0.2
-    # The check's other half: a frame is lost when its pose leaves the constant-velocity prediction by
-    # more than motion_max_ratio x the predicted step plus motion_max_jump_m, or turns away from it by
-    # more than motion_max_ratio x the predicted turn plus motion_max_jump_deg.  A monocular office run
-    # that turns onto surface its map lacks jumps 30-40 mm, then 140-480 mm and 5-25 deg a frame against
-    # the truth's 5-8 mm and 3 deg, with no frame lost (experiments/results/mono.md).  These bounds flag
-    # no frame of the synthetic paths (office, room; 100-2,000 frames) nor of the shared 7-Scenes frames'
-    # ground truth (500 frames, hand-held: up to 35 mm and 2.3 deg off the prediction)
+    # The check's run-away half: a frame is lost when its pose leaves the constant-velocity prediction by
+    # more than motion_max_ratio x the predicted step plus motion_max_jump_m (or turns away from it by
+    # more than motion_max_ratio x the predicted turn plus motion_max_jump_deg), or when its step is
+    # longer (turns more) than motion_max_ratio x the median of the last 10 steps plus the same floors.
+    # A monocular office run that turns onto surface its map lacks jumps 30-40 mm, then 140-480 mm and
+    # 5-25 deg a frame against the truth's 5-8 mm and 3 deg, with no frame lost (experiments/results/
+    # mono.md).  These bounds flag no frame of the synthetic paths (office, room; 100-2,000 frames) nor
+    # of the shared 7-Scenes frames' ground truth (500 frames, hand-held: up to 35 mm and 2.3 deg off
+    # the prediction)
     motion_max_ratio: float = 4.0
     motion_max_jump_m: float = 0.02
     motion_max_jump_deg: float = 3.0
