@@ -557,13 +557,8 @@ class Tracker:
             )
         if diverged:
             T_WC = np.array(T_init_WC, dtype=np.float64)
-        if not lost and self._poses:  # the step the motion check's speed bound keeps (MOTION_HISTORY)
-            step = invert_pose(self._poses[-1]) @ T_WC
-            self._motion_steps = [
-                *self._motion_steps,
-                (float(np.linalg.norm(step[:3, 3])), rotation_angle_deg(step[:3, :3])),
-            ]
-            self._motion_steps = self._motion_steps[-MOTION_HISTORY:]
+        if self.motion_check and not lost and self._poses:  # the steps the speed bound takes its median of
+            self._motion_steps = [*self._motion_steps, _step_size(self._poses[-1], T_WC)][-MOTION_HISTORY:]
         self._poses = (self._poses + [T_init_WC.copy() if lost else T_WC])[-2:]
         return TrackingResult(
             T_WC=T_WC,
@@ -635,30 +630,15 @@ def motion_inconsistency(
       the image moves on but the pose hardly travels, the monocular collapse of issue 22 (scale is
       defined only by the map there).  A camera that stops stops turning too, and passes.  Only steps
       of at least ``cfg.motion_min_step_m`` and ``cfg.motion_min_rotation_deg`` are judged."""
-    predicted, step = invert_pose(T_prev_WC) @ T_last_WC, invert_pose(T_last_WC) @ T_WC
-    predicted_m, step_m = float(np.linalg.norm(predicted[:3, 3])), float(np.linalg.norm(step[:3, 3]))
-    predicted_deg, step_deg = rotation_angle_deg(predicted[:3, :3]), rotation_angle_deg(step[:3, :3])
-    jump_m, jump_deg = pose_error(T_WC, T_last_WC @ predicted)
-    max_m = cfg.motion_max_ratio * predicted_m + cfg.motion_max_jump_m
-    max_deg = cfg.motion_max_ratio * predicted_deg + cfg.motion_max_jump_deg
-    if jump_m > max_m or jump_deg > max_deg:
-        return (
-            f"{JUMPED} {1e3 * jump_m:.1f} mm and {jump_deg:.2f} deg from the constant-velocity "
-            f"prediction (at most {1e3 * max_m:.1f} mm and {max_deg:.2f} deg: {cfg.motion_max_ratio:g} x the "
-            f"predicted step of {1e3 * predicted_m:.1f} mm and {predicted_deg:.2f} deg, plus "
-            f"{1e3 * cfg.motion_max_jump_m:g} mm and {cfg.motion_max_jump_deg:g} deg)"
-        )
+    predicted_m, predicted_deg = _step_size(T_prev_WC, T_last_WC)
+    step_m, step_deg = _step_size(T_last_WC, T_WC)
+    jump = pose_error(T_WC, T_last_WC @ invert_pose(T_prev_WC) @ T_last_WC)
+    if why := _beyond(jump, (predicted_m, predicted_deg), cfg):
+        return f"{JUMPED} {why[0]} from the constant-velocity prediction ({why[1]} the predicted step of {why[2]})"
     if len(steps) >= MOTION_HISTORY_MIN:
-        usual_m, usual_deg = (float(v) for v in np.median(np.asarray(steps, dtype=np.float64), axis=0))
-        fast_m = cfg.motion_max_ratio * usual_m + cfg.motion_max_jump_m
-        fast_deg = cfg.motion_max_ratio * usual_deg + cfg.motion_max_jump_deg
-        if step_m > fast_m or step_deg > fast_deg:
-            return (
-                f"{SPED_UP} {1e3 * step_m:.1f} mm and {step_deg:.2f} deg (at most {1e3 * fast_m:.1f} mm and "
-                f"{fast_deg:.2f} deg: {cfg.motion_max_ratio:g} x the median of the last {len(steps)} steps, "
-                f"{1e3 * usual_m:.1f} mm and {usual_deg:.2f} deg, plus {1e3 * cfg.motion_max_jump_m:g} mm and "
-                f"{cfg.motion_max_jump_deg:g} deg)"
-            )
+        usual = tuple(float(v) for v in np.median(np.asarray(steps, dtype=np.float64), axis=0))
+        if why := _beyond((step_m, step_deg), usual, cfg):
+            return f"{SPED_UP} {why[0]} ({why[1]} the median of the last {len(steps)} steps, {why[2]})"
     if predicted_m < cfg.motion_min_step_m or predicted_deg < cfg.motion_min_rotation_deg:
         return ""
     ratio = step_m / predicted_m
@@ -668,6 +648,27 @@ def motion_inconsistency(
         f"motion check: the translation collapsed to {ratio:.2f} x the constant-velocity prediction "
         f"({1e3 * step_m:.1f} of {1e3 * predicted_m:.1f} mm; < {cfg.motion_min_ratio:g}) while the camera "
         f"still turns ({step_deg:.2f} deg against {predicted_deg:.2f} deg predicted)"
+    )
+
+
+def _step_size(T_from_WC: np.ndarray, T_to_WC: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) of the step between two camera-to-world poses."""
+    step = invert_pose(T_from_WC) @ T_to_WC
+    return float(np.linalg.norm(step[:3, 3])), rotation_angle_deg(step[:3, :3])
+
+
+def _beyond(moved: tuple[float, float], reference: tuple[float, float], cfg: TrackingConfig) -> tuple[str, ...]:
+    """The motion check's run-away bound: where ``moved`` (metres, degrees) exceeds
+    ``cfg.motion_max_ratio`` x ``reference`` plus (``motion_max_jump_m``, ``motion_max_jump_deg``) in either,
+    the reason's parts (what moved, the bound and its factor, the reference); () within it."""
+    ratio, floor_m, floor_deg = cfg.motion_max_ratio, cfg.motion_max_jump_m, cfg.motion_max_jump_deg
+    bound_m, bound_deg = ratio * reference[0] + floor_m, ratio * reference[1] + floor_deg
+    if moved[0] <= bound_m and moved[1] <= bound_deg:
+        return ()
+    return (
+        f"{1e3 * moved[0]:.1f} mm and {moved[1]:.2f} deg",
+        f"at most {1e3 * bound_m:.1f} mm and {bound_deg:.2f} deg: {ratio:g} x",
+        f"{1e3 * reference[0]:.1f} mm and {reference[1]:.2f} deg, plus {1e3 * floor_m:g} mm and {floor_deg:g} deg",
     )
 
 
