@@ -129,3 +129,12 @@ def test_topview_plot(gt_poses, tmp_path):
         _perturbed(gt_poses, 0.5, 5), gt_poses, tmp_path / "aligned.png", align="sim3", up=(0.0, -1.0, 0.0)
     )
     assert _colour_pixels(aligned, (1, 0, 0)) > 100 and _colour_pixels(aligned, (0, 0.5, 0)) > 100
+
+
+def test_keyframes_fewer_than_three(gt_poses):
+    """A monocular start that falls back to one keyframe and loses every frame after it still gets
+    its all-frames ATE and a reason for the keyframes' (it raised, and the run ended without metrics)."""
+    est = _perturbed(gt_poses, 1.0, 4)
+    both = ate_keyframes_and_all(est, gt_poses, [0], align="sim3")
+    assert both["keyframes"] is None and "1 keyframe" in both["keyframes_na_reason"]
+    assert both["all_frames"]["rmse_cm"] == ate(est, gt_poses, "sim3")["rmse_cm"]

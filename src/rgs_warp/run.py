@@ -843,7 +843,8 @@ def evaluate_run(
         align = "sim3" if cfg.mode == "mono" else "se3"
         metrics["ate"] = ate_keyframes_and_all(est, gt, np.array(slam.keyframe_indices), align=align)
         for section in metrics["ate"].values():
-            section.pop("align_T", None)
+            if isinstance(section, dict):
+                section.pop("align_T", None)
         plot_trajectory_topview(est, gt, run_dir / "trajectory_topview.png", title=metrics["dataset"], align=align)
     else:
         metrics["ate"] = None

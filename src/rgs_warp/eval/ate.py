@@ -87,10 +87,12 @@ def ate_keyframes_and_all(
 ) -> dict:
     """ATE on the keyframes (the paper's number, §3) and on all frames, each aligned on its own poses.
 
-    ``est``/``gt`` hold every frame; ``keyframe_indices`` index into them.
+    ``est``/``gt`` hold every frame; ``keyframe_indices`` index into them.  With fewer than 3
+    keyframes (a monocular start that fell back to one keyframe and lost the rest) ``keyframes`` is
+    None and ``keyframes_na_reason`` says why: the run's other metrics still count.
     """
     keyframe_indices = np.asarray(keyframe_indices, dtype=np.int64)
-    return {
-        "keyframes": ate(np.asarray(est)[keyframe_indices], np.asarray(gt)[keyframe_indices], align),
-        "all_frames": ate(est, gt, align),
-    }
+    out = {"all_frames": ate(est, gt, align)}
+    if len(keyframe_indices) < 3:
+        return {"keyframes": None, "keyframes_na_reason": f"{len(keyframe_indices)} keyframe(s): ATE needs 3"} | out
+    return {"keyframes": ate(np.asarray(est)[keyframe_indices], np.asarray(gt)[keyframe_indices], align)} | out
