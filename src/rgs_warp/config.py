@@ -453,8 +453,12 @@ class BootstrapConfig:
     max_reproj_px: float = 1.0
     min_point_parallax_deg: float = 0.5
     # Waiting: the SLAM tries frames 1, 2, ... against frame 0 and gives up after this many, falling
-    # back to a plane at matching.scene_depth_m (the gauge: median depth of the first points)
-    max_wait_frames: int = 30
+    # back to a plane at matching.scene_depth_m (the gauge: median depth of the first points).  7-Scenes
+    # redkitchen starts slowly (33 mm in 24 frames): frame 0 against 24 / 28 / 32 / 36 has a median
+    # parallax of 0.7 / 1.0 / 1.3 / 1.6 deg, frame 40 passes (2.7 deg); with 30 the H100 run fell back to
+    # the plane and lost 470 of its 500 frames, with 60 it lost 6-26 (experiments/results/mono.md).  The
+    # synthetic office passes at frame 6
+    max_wait_frames: int = 60
 
 
 @dataclass
