@@ -167,29 +167,6 @@ def test_selector_tracking_loss_trigger(device, ratio):
     assert sel.should_add(same, T0, loss=0.46).is_keyframe == (ratio > 0)
 
 
-@pytest.mark.parametrize("ratio", [0.0, 0.8])
-def test_selector_coverage_trigger(device, ratio):
-    """``min_coverage_ratio``: a frame the map covers less than that fraction of what it covered of the
-    first frame after the last keyframe is a keyframe (once it moved), though its IoU stays high."""
-    cfg = KeyframeConfig(
-        iou_threshold=0.3, min_translation_m=0.05, min_rotation_deg=5.0, min_coverage_ratio=ratio, covisibility="pixels"
-    )
-    sel = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
-    T0, T_far = np.eye(4), se3_exp(np.array([0.1, 0, 0, 0, 0, 0]))
-    sel.should_add(_alpha(40, 10, 0, 20, device), T0)
-    sel.accept(T0)
-    assert not sel.should_add(_alpha(40, 10, 0, 20, device), T0).is_keyframe  # the reference: 50 %
-    assert not sel.should_add(_alpha(40, 10, 0, 18, device), T_far).is_keyframe  # 45 %: above 0.8 x 50 %
-    assert not sel.should_add(_alpha(40, 10, 0, 14, device), T0).is_keyframe  # 35 %, but has not moved
-    d = sel.should_add(_alpha(40, 10, 0, 14, device), T_far)
-    assert d.iou == pytest.approx(0.7) and d.coverage == pytest.approx(0.35)
-    assert d.is_keyframe == (ratio > 0) and (ratio == 0 or d.reason == "coverage 0.350 < 0.8 x 0.500"), d.reason
-    state = sel.state_dict()  # the reference goes with a checkpoint
-    again = KeyframeSelector(cfg, Camera(20.0, 20.0, 19.5, 4.5, 40, 10), device)
-    again.load_state_dict(state)
-    assert again.should_add(_alpha(40, 10, 0, 14, device), T_far).is_keyframe == (ratio > 0)
-
-
 def test_buffer_fifo(device):
     buf = KeyframeBuffer(3, 4, 2, device)
     for k in range(5):

@@ -200,14 +200,6 @@ class KeyframeConfig:
     # 7-Scenes config (1.3; off: 3 of 3 runs fail at 42 cm, 1.3: 4.1-4.6 cm in 5 of 5, 1.2: 4.4-4.9);
     # off by default (office at 1.3: 0.47-0.51 cm, 32.9-33.2 dB against 0.42, 33.4; results/slam.md)
     max_loss_ratio: float = 0.0
-    # not in the paper: also a keyframe when the map covers less than this fraction of what it covered
-    # of the first frame tracked after the last keyframe (motion bounds still apply); 0 = off.  A
-    # monocular keyframe is covered only where its matches triangulate: on the H100 office keyframe 46
-    # was covered 55 % and the frames after it fell to 40 % as "overlap high", the visible masks the IoU
-    # compares shrinking together.  At 0.85 one monocular office run ended at 5.6 cm Sim(3) ATE against
-    # the default's 13.9 in the same batch, the turn's frames flagged lost: off until more runs confirm it
-    # (experiments/results/mono.md, session 20)
-    min_coverage_ratio: float = 0.0
     # what the IoU compares (keyframes.KeyframeSelector): "pixels", the two visibility masks pixel by
     # pixel (Eq. 9 as written), or "reprojected", the surface both views see (each visible pixel lifted
     # with its rendered depth into the last keyframe, shared where that keyframe's depth agrees within
@@ -624,7 +616,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "keyframes.min_rotation_deg": NON_NEGATIVE,
     "keyframes.buffer_size": Bound(lo=2),  # triangulation needs pairs
     "keyframes.max_loss_ratio": NON_NEGATIVE,
-    "keyframes.min_coverage_ratio": FRACTION,
     "keyframes.depth_tol": NON_NEGATIVE,
     "matching.classic_stride": AT_LEAST_1,
     "matching.n_neighbours": AT_LEAST_1,

@@ -50,7 +50,6 @@ class KeyframeSelector:
         self._depth = wp.zeros(shape, dtype=wp.float32, device=device)
         self._counts = wp.zeros(3, dtype=wp.int32, device=device)
         self._loss_ref: float | None = None  # tracking loss of the first frame after the last keyframe
-        self._coverage_ref: float | None = None  # coverage of the first frame after the last keyframe
         self._last_pose: np.ndarray | None = None
 
     def _iou(self, alpha: wp.array2d, depth: wp.array2d | None, T_ref_cur: np.ndarray) -> tuple[float, float]:
@@ -88,13 +87,6 @@ class KeyframeSelector:
         moved = dt > self.cfg.min_translation_m or drot > self.cfg.min_rotation_deg
         if iou < self.cfg.iou_threshold and moved:
             return KeyframeDecision(True, iou, dt, drot, f"IoU {iou:.3f} < {self.cfg.iou_threshold}", coverage)
-        drop = self.cfg.min_coverage_ratio
-        if drop > 0.0:
-            if self._coverage_ref is None:
-                self._coverage_ref = coverage
-            elif moved and coverage < drop * self._coverage_ref:
-                reason = f"coverage {coverage:.3f} < {drop} x {self._coverage_ref:.3f}"
-                return KeyframeDecision(True, iou, dt, drot, reason, coverage)
         ratio = self.cfg.max_loss_ratio
         if ratio > 0.0 and loss is not None and np.isfinite(loss):
             if self._loss_ref is None:
@@ -110,7 +102,7 @@ class KeyframeSelector:
         wp.copy(self._last_mask, self._mask)
         wp.copy(self._last_depth, self._depth)
         self._last_pose = np.array(T_WC, dtype=np.float64)
-        self._loss_ref = self._coverage_ref = None
+        self._loss_ref = None
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """What the selector carries from frame to frame: the reference keyframe's visibility mask,
@@ -118,9 +110,7 @@ class KeyframeSelector:
         restores it."""
         pose = np.zeros((0, 4, 4)) if self._last_pose is None else self._last_pose[None]
         loss_ref = np.nan if self._loss_ref is None else self._loss_ref
-        coverage_ref = np.nan if self._coverage_ref is None else self._coverage_ref
         return {
-            "coverage_ref": np.array(coverage_ref),
             "last_mask": self._last_mask.numpy().copy(),
             "last_depth": self._last_depth.numpy().copy(),
             "last_pose": pose,
@@ -134,8 +124,6 @@ class KeyframeSelector:
         self._last_pose = np.array(state["last_pose"][0], dtype=np.float64) if len(state["last_pose"]) else None
         loss_ref = float(state["loss_ref"])
         self._loss_ref = None if np.isnan(loss_ref) else loss_ref
-        coverage_ref = float(state.get("coverage_ref", np.nan))  # states saved before it was kept: none
-        self._coverage_ref = None if np.isnan(coverage_ref) else coverage_ref
 
 
 class KeyframeBuffer:
