@@ -815,3 +815,85 @@ def test_dropped_points_park_behind_the_camera_spread_over_the_hash_grid(device)
     assert z.max() < -0.5  # behind the camera
     _, per_cell = np.unique(np.floor(P / 0.01).astype(np.int64) % 128, axis=0, return_counts=True)
     assert per_cell.max() <= 4
+
+
+def _points_at(uv, z, T_WC, fx, fy, cx, cy):
+    P = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
+    return P @ T_WC[:3, :3].T + T_WC[:3, 3]
+
+
+def test_map_depth_ratio_and_scale_points(device):
+    rng = np.random.default_rng(21)
+    H, W, n = 12, 16, 300
+    fx, fy, cx, cy = 15.0, 15.0, 7.5, 5.5
+    T_WC = se3_exp(np.array([0.2, -0.1, 0.3, 0.1, -0.2, 0.1]))
+    uv = np.stack([rng.uniform(-2, W + 1, n), rng.uniform(-2, H + 1, n)], axis=1)
+    z = rng.uniform(1.0, 3.0, n)
+    X = _points_at(uv, z, T_WC, fx, fy, cx, cy)
+    alpha = rng.uniform(0.2, 1.0, (H, W)).astype(np.float32)
+    d_map = rng.uniform(1.0, 3.0, (H, W))
+    rendered_depth = (alpha * d_map).astype(np.float32)
+    valid0 = (rng.uniform(size=n) < 0.8).astype(np.int32)
+    ratio = wp.zeros(n, dtype=wp.float32, device=device)
+    X_d = wp.array(X, dtype=wp.vec3d, device=device)
+    wp.launch(
+        ks.map_depth_ratio,
+        dim=n,
+        inputs=[wp.array(uv, dtype=wp.vec2d, device=device), wp.array(alpha, device=device)]
+        + [wp.array(rendered_depth, device=device), X_d, wp.array(valid0, dtype=wp.int32, device=device)]
+        + [wp.mat44d(invert_pose(T_WC)), 0.5],
+        outputs=[ratio],
+        device=device,
+    )
+    pu = np.clip(np.round(uv[:, 0]).astype(int), 0, W - 1)
+    pv = np.clip(np.round(uv[:, 1]).astype(int), 0, H - 1)
+    a = alpha[pv, pu].astype(np.float64)
+    ref = np.where((valid0 == 1) & (a >= 0.5), rendered_depth[pv, pu] / a / z, 0.0)
+    assert (ref > 0).sum() > 50 and (ref == 0).sum() > 50
+    np.testing.assert_allclose(ratio.numpy(), ref, rtol=1e-5)
+    centre = T_WC[:3, 3]
+    wp.launch(ks.scale_points_about, dim=n, inputs=[wp.vec3d(*centre), wp.float64(1.3)], outputs=[X_d], device=device)
+    np.testing.assert_allclose(X_d.numpy(), _points_at(uv, 1.3 * z, T_WC, fx, fy, cx, cy), atol=1e-9)
+
+
+@pytest.mark.parametrize("truth", [1.25, 0.4])
+def test_monocular_seeds_scaled_to_the_map(device, truth):
+    """``seeding.mono_scale_to_map``: triangulated points at 1/truth of the map's depth where the map covers
+    them (a keyframe whose baselines were tracked truth times too short) are moved along their rays by the
+    median ratio, the uncovered ones too; beyond ``scale_max_factor`` or with too few covered points they
+    stay, and the factor is None."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(22)
+    H, W, n = 24, 32, 400
+    cam = Camera(30.0, 30.0, 15.5, 11.5, W, H)
+    T_WC = se3_exp(np.array([0.1, 0.2, -0.1, 0.05, 0.1, -0.05]))
+    d_map = rng.uniform(1.5, 2.5, (H, W))
+    alpha = np.where(np.arange(W)[None, :] < W // 2, 0.95, 0.0).repeat(H, 0).astype(np.float32)  # left half
+    uv = np.stack([rng.uniform(0, W - 1, n), rng.uniform(0, H - 1, n)], axis=1)
+    pu, pv = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+    z_true = d_map[pv, pu] * (1 + rng.normal(0, 0.02, n))  # the surface, two-view noise
+    X = _points_at(uv, z_true / truth, T_WC, cam.fx, cam.fy, cam.cx, cam.cy)
+    points = TriangulatedPoints.zeros(n, device)
+    points.X.assign(X)
+    points.valid.fill_(1)
+    res = SimpleNamespace(
+        alpha=wp.array(alpha, device=device), depth=wp.array(alpha * d_map, dtype=wp.float32, device=device)
+    )
+    matches = SimpleNamespace(ref_uv=wp.array(uv, dtype=wp.vec2d, device=device))
+    cfg = SeedingConfig(mono_scale_to_map=True)
+    seeder = Seeder(cfg, cam, device, mode="mono")
+    factor = seeder._scale_to_map(matches, points, res, wp.mat44d(invert_pose(T_WC)), T_WC)
+    if truth > 1.0 / cfg.scale_max_factor:
+        assert factor == pytest.approx(truth, rel=0.02)
+        z_new = (points.X.numpy() - T_WC[:3, 3]) @ T_WC[:3, :3][:, 2]
+        np.testing.assert_allclose(z_new, z_true / truth * factor, rtol=1e-9)
+        assert np.median(np.abs(z_new / z_true - 1)) < 0.03  # the uncovered half too
+    else:  # 2.5x: beyond the bound, left as it was
+        assert factor is None
+        np.testing.assert_allclose(points.X.numpy(), X, atol=1e-12)
+    few = SeedingConfig(mono_scale_to_map=True, scale_min_points=n)  # only about half are covered
+    assert (
+        Seeder(few, cam, device, mode="mono")._scale_to_map(matches, points, res, wp.mat44d(invert_pose(T_WC)), T_WC)
+        is None
+    )
