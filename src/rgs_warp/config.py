@@ -268,15 +268,6 @@ class SeedingConfig:
     # whose map depth is off the seed's by more than covered_depth_tol (relative)
     covered_alpha: float = 0.5
     covered_depth_tol: float = 0.05
-    # Monocular: a keyframe's triangulated points are moved along their rays from its camera by the
-    # median of (the map's depth / the point's) over the points whose pixel the map covers (at least
-    # scale_min_points of them, the factor within [1 / scale_max_factor, scale_max_factor]), so that
-    # seeds of new surface come at the map's scale rather than at the one the keyframe poses' baselines
-    # give (7-Scenes monocular: the path per metre of truth drifts 1.5 -> 3.2 -> 0.7 over 250 frames,
-    # experiments/results/mono.md)
-    mono_scale_to_map: bool = False
-    scale_min_points: int = 50
-    scale_max_factor: float = 2.0
     # RGB-D: triangulated seeds whose reference-view depth is off the measured depth by more than this
     # (relative) are dropped (wrong matches, low parallax); the depth fill covers them; 0 = off
     depth_consistency_tol: float = 0.05
@@ -659,8 +650,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "seeding.covered_alpha": FRACTION,
     "seeding.covered_depth_tol": NON_NEGATIVE,
     "seeding.depth_consistency_tol": NON_NEGATIVE,
-    "seeding.scale_min_points": AT_LEAST_1,
-    "seeding.scale_max_factor": Bound(lo=1.0),
     "seeding.far_layer_m": NON_NEGATIVE,
     "seeding.depth_stride": AT_LEAST_1,
     "seeding.depth_extrapolate_px": NON_NEGATIVE,

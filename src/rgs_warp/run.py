@@ -511,8 +511,6 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
             entry[key] = getattr(result, key)
     if result.keyframe:
         entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
-        if result.seed_scale is not None:
-            entry["seed_scale"] = round(result.seed_scale, 4)
         if result.mapping is not None and result.mapping.iters:
             entry["mapping_l1"] = result.mapping.final_l1
         if cfg.method == "baseline" and result.mapping is not None:

@@ -299,8 +299,6 @@ class Seeder:
             self._extrapolated = tuple(wp.zeros(shape, dtype=wp.float32, device=dev) for _ in range(2))
         self._graphs = GraphCache(dev, size=16)  # the extrapolation of each source image (keyframe slots, fills)
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
-        self._ratio = wp.zeros(0, dtype=wp.float32, device=dev)  # mono_scale_to_map: per point
-        self.last_scale = None  # the factor of the last seed_matches (mono_scale_to_map), None if none
 
     def _point_seeders(self) -> list[tuple[str, PointSeeder]]:
         seeders = [("matches.", self._from_matches), ("depth.", self._from_depth)]
@@ -356,11 +354,8 @@ class Seeder:
                 outputs=[points.valid],
                 device=dev,
             )
-        self.last_scale = None
         if len(gmap):
             res = self.renderer.forward(gmap, self.camera, keyframes.poses[slot])
-            if self.mode == "mono" and cfg.mono_scale_to_map:
-                self.last_scale = self._scale_to_map(matches, points, res, T_CW, keyframes.poses[slot])
             wp.launch(
                 ks.mask_covered_points,
                 dim=n,
@@ -370,34 +365,6 @@ class Seeder:
                 device=dev,
             )
         return self.seed_points(gmap, keyframes, [slot, *matches.neighbours], points, matches.aggregated)
-
-    def _scale_to_map(self, matches: Matches, points: TriangulatedPoints, res, T_CW, T_WC: np.ndarray) -> float | None:
-        """Monocular (``seeding.mono_scale_to_map``): ``points`` moved along their rays from the reference
-        camera by the median of the map's depth over theirs where the map covers their pixel (``res``:
-        the map's render at the reference).  Returns the factor, or None where fewer than
-        ``scale_min_points`` points are covered or the factor is beyond ``scale_max_factor`` (the points
-        then stay as they are)."""
-        cfg, dev, n = self.cfg, self.device, points.X.shape[0]
-        if self._ratio.shape[0] < n:
-            self._ratio = wp.zeros(n, dtype=wp.float32, device=dev)
-        ratio = self._ratio[:n]
-        wp.launch(
-            ks.map_depth_ratio,
-            dim=n,
-            inputs=[matches.ref_uv, res.alpha, res.depth, points.X, points.valid, T_CW, cfg.covered_alpha],
-            outputs=[ratio],
-            device=dev,
-        )
-        r = ratio.numpy()
-        r = r[r > 0.0]
-        if len(r) < cfg.scale_min_points:
-            return None
-        factor = float(np.median(r))
-        if not 1.0 / cfg.scale_max_factor <= factor <= cfg.scale_max_factor:
-            return None
-        centre = wp.vec3d(*np.asarray(T_WC, dtype=np.float64)[:3, 3])
-        wp.launch(ks.scale_points_about, dim=n, inputs=[centre, wp.float64(factor)], outputs=[points.X], device=dev)
-        return factor
 
     def seed_depth(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
         """Measured-depth seeds where the map does not cover keyframe ``slot`` (RGB-D with

@@ -448,45 +448,6 @@ def mask_covered_points(
 
 
 @wp.kernel
-def map_depth_ratio(
-    # in: reference-view pixels of the triangulated points and the map's render at the reference
-    ref_uv: wp.array(dtype=wp.vec2d),
-    alpha: wp.array2d(dtype=wp.float32),
-    rendered_depth: wp.array2d(dtype=wp.float32),
-    X: wp.array(dtype=wp.vec3d),
-    valid: wp.array(dtype=wp.int32),
-    T_CW: wp.mat44d,
-    min_alpha: float,
-    # out: the map's depth over the point's at its pixel, 0 where the map covers it less than min_alpha
-    ratio: wp.array(dtype=wp.float32),
-):
-    # Monocular: triangulated depth scales with the baseline of the keyframe poses, so where the map
-    # covers the reference view the median of this ratio is the new keyframe's scale against the map's.
-    i = wp.tid()
-    ratio[i] = 0.0
-    if valid[i] == 0:
-        return
-    u = reference_pixel(ref_uv[i][0], alpha.shape[1])
-    v = reference_pixel(ref_uv[i][1], alpha.shape[0])
-    a = alpha[v, u]
-    z = camera_depth(X[i], T_CW)
-    if a < min_alpha or z <= 0.0:
-        return
-    ratio[i] = rendered_depth[v, u] / a / z
-
-
-@wp.kernel
-def scale_points_about(
-    centre: wp.vec3d,
-    factor: wp.float64,
-    # in/out: the points, moved along their rays from centre (a camera centre) by factor
-    X: wp.array(dtype=wp.vec3d),
-):
-    i = wp.tid()
-    X[i] = centre + factor * (X[i] - centre)
-
-
-@wp.kernel
 def reject_depth_inconsistent_points(
     # in: reference-view pixels of the triangulated points and the reference keyframe's measured depth
     ref_uv: wp.array(dtype=wp.vec2d),

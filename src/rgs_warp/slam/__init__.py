@@ -74,9 +74,6 @@ class FrameResult:
     # the keypoint pose prior (tracking.keypoint_prior): its RANSAC inliers where tracking started from
     # its pose, 0 where it found none (tracking then started from the prediction), None when off
     prior_inliers: int | None = None
-    # monocular with seeding.mono_scale_to_map: the factor that moved the keyframe's triangulated seeds
-    # to the map's scale, None where none did
-    seed_scale: float | None = None
 
 
 class SLAM:
@@ -388,9 +385,7 @@ class SLAM:
         self.seeder.join_pending(self.map)
         # baseline: the one dense start is the first keyframe's; later the densifier grows the map
         first = int(kf.frame_ids[slot]) == self.keyframe_indices[0]
-        self.seeder.last_scale = None
         result.seeded = self._seed(slot, matches=cfg.method == "rgs" or first)
-        result.seed_scale = self.seeder.last_scale
         self.stats["seeding_s"] += time.perf_counter() - t0
         self._pause()
         t0 = time.perf_counter()
