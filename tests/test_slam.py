@@ -529,8 +529,23 @@ def test_mono_bootstrap_falls_back_to_a_plane(device):
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
     results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
     assert "gave up after 2 frames" in results[2].keyframe_reason
+    assert "no frame with enough parallax" in slam.bootstrap_fallback and "max_wait_frames" in slam.bootstrap_fallback
     assert slam.keyframe_indices == [0] and len(slam.map) > 100 and results[2].tracking is not None
     assert len(slam.trajectory()[1]) == 3
+
+
+@pytest.mark.slow
+def test_cli_warns_when_the_mono_bootstrap_falls_back(tmp_path, capsys, device):
+    """A monocular start without parallax in the wait: the command says so when it happens (not only
+    after the run), and the run still ends with its metrics: one keyframe gives no keyframe ATE, and
+    that is said instead of stopping the evaluation (7-Scenes with the old 30-frame wait did)."""
+    argv = [*MONO, "dataset.max_frames=4", "bootstrap.max_wait_frames=2", "mapping.init_iters=8"]
+    assert main([*argv, f"device={device}", f"output_dir={tmp_path}", "run_name=plane"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the monocular bootstrap found no frame with enough parallax against frame 0 in 2 frames" in err
+    ate = json.loads((tmp_path / "plane" / "metrics.json").read_text())["ate"]
+    assert ate["keyframes"] is None and "1 keyframe(s): ATE needs 3" in ate["keyframes_na_reason"]
+    assert ate["all_frames"]["n_poses"] == 4
 
 
 WINDOW_RGB = np.array([0.95, 0.95, 0.9], np.float32)

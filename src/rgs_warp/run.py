@@ -384,6 +384,7 @@ def _run_frames(
             state.input_wait_s += time.perf_counter() - t_wait
             if frame is None:
                 break
+            waiting = slam.bootstrap is not None  # monocular: the bootstrap has not built the map yet
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
             state.gt_poses.append(frame.pose_gt)
             state.next_frame = result.index + 1
@@ -391,6 +392,8 @@ def _run_frames(
             if kept is not None and scored_later:
                 kept.keep(result.index, frame)
             entry = _log_entry(cfg, slam, result, state)
+            if waiting and slam.bootstrap is None and slam.bootstrap_fallback:  # said at once, not after the run
+                bar.write(f"warning: {slam.bootstrap_fallback}", file=sys.stderr)
             if viewer is not None:
                 t_view = time.perf_counter()
                 viewer.update(slam, result, frame.rgb, state.gt_poses, len(state.lost))

@@ -137,6 +137,7 @@ class SLAM:
         if self.mode == "mono" and cfg.bootstrap.enabled:
             self.bootstrap = MonoBootstrap(cfg.bootstrap, camera, dev, self.matcher.backbone, cfg.matching)
         self._boot_frames: list[tuple[np.ndarray, float]] = []  # (rgb, timestamp) while it waits
+        self.bootstrap_fallback = ""  # why the bootstrap fell back to a plane, if it did (mono)
         self._init_window_end = cfg.mapping.init_window  # frames below are keyframes of the initial window
         self.T_first = np.eye(4) if T_first_WC is None else checked_pose(T_first_WC, "T_first_WC")
         self.poses: list[np.ndarray] = []  # camera-to-world of every processed frame
@@ -490,6 +491,7 @@ class SLAM:
                 result.keyframe_reason = f"monocular bootstrap: {self.bootstrap.last_rejection}"
         if i == 0 or (boot is None and i < cfg.bootstrap.max_wait_frames):
             return self._record(result, self._boot_frames[-1][1], t0)  # provisional pose: frame 0's
+        last_rejection = self.bootstrap.last_rejection
         frames, self._boot_frames, self.bootstrap = self._boot_frames, [], None
         self._init_window_end = 0
         tb = time.perf_counter()
@@ -511,6 +513,12 @@ class SLAM:
             result.seeded = self._seed(slot0)  # the first keyframe's plane at matching.scene_depth_m
             window, retrack = [slot0], range(1, i + 1)
             result.keyframe_reason = f"monocular bootstrap gave up after {i} frames: plane at frame 0"
+            self.bootstrap_fallback = (
+                f"the monocular bootstrap found no frame with enough parallax against frame 0 in {i} frames "
+                f"(bootstrap.max_wait_frames; the last: {last_rejection}); the map starts from a plane at "
+                f"matching.scene_depth_m = {cfg.matching.scene_depth_m} m, on which tracking usually fails. A start "
+                "that moves sideways, or a longer wait, gives the bootstrap its parallax"
+            )
         self.stats["seeding_s"] += time.perf_counter() - tb
         tm = time.perf_counter()
         psnr_every = cfg.eval.convergence_every
