@@ -129,6 +129,13 @@ class TrackingConfig:
     # office 28.8 against 37.2 ms, 7-Scenes 14.7 against 17.7 ms, the same ATE (office 0.39-0.40 against
     # 0.40-0.42 cm over 3 seeds) and PSNR; 3 gains little more (experiments/results/perf.md)
     tile_stride: int = 0
+    # Direct alignment before the Adam steps (kernels/direct.py): Gauss-Newton of the frame against one
+    # render of the map at the start pose, on an image pyramid of direct_levels levels (coarse to fine,
+    # the finest at the tracking resolution), direct_iters steps a level, for the twist and the affine
+    # brightness; the Adam steps start from its pose.  One render and a few reductions instead of a
+    # rasterizer backward a step; 0 = off
+    direct_levels: int = 0
+    direct_iters: int = 4
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
     depth_edge_spread: float = 0.05  # downscaling: block depth invalid above this relative spread
@@ -601,6 +608,8 @@ CONSTRAINTS: dict[str, Bound] = {
     "tracking.brightness_min_alpha": FRACTION,
     "tracking.downscale": AT_LEAST_1,
     "tracking.tile_stride": NON_NEGATIVE,
+    "tracking.direct_levels": NON_NEGATIVE,
+    "tracking.direct_iters": AT_LEAST_1,
     "tracking.min_valid_ratio": NON_NEGATIVE,
     "tracking.max_residual": POSITIVE,
     "tracking.depth_edge_spread": NON_NEGATIVE,

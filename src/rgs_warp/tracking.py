@@ -25,6 +25,7 @@ import warp as wp
 from rgs_warp.config import TrackingConfig
 from rgs_warp.frame_check import as_float_image
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
+from rgs_warp.kernels import direct as dk
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.kernels.math import REDUCE_BLOCK, reduce_blocks
 from rgs_warp.render import GRAPH_HEADROOM, Renderer
@@ -93,6 +94,9 @@ SPED_UP = "motion check: the camera sped up to"
 # MOTION_HISTORY_MIN of them (after a start, a reset or a relocalisation)
 MOTION_HISTORY = 10
 MOTION_HISTORY_MIN = 3
+# the direct alignment's coarsest level must keep this many pixels a side (its sampler reads one pixel
+# either side of the warped point)
+DIRECT_MIN_PX = 8
 SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, tracking.colour_per_opacity
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
@@ -172,6 +176,10 @@ class Tracker:
         self._T_WC = wp.zeros(1, dtype=wp.mat44, device=dev)
         self._T_CW_host = wp.zeros(1, dtype=wp.mat44d, device="cpu", pinned=pinned)
         self._T_WC_host = wp.zeros(1, dtype=wp.mat44, device="cpu", pinned=pinned)
+        # the pose the Adam steps start from (the start pose, or the direct alignment's)
+        self._T_CW_start = wp.zeros(1, dtype=wp.mat44d, device=dev)
+        self._T_WC_start = wp.zeros(1, dtype=wp.mat44, device=dev)
+        self._init_direct(shape)
         self._poses: list[np.ndarray] = []
         self._motion_steps: list[tuple[float, float]] = []  # the last tracked steps (metres, degrees), oldest first
         self._last_render = None
@@ -183,6 +191,35 @@ class Tracker:
         self._step = wp.zeros(1, dtype=wp.int32, device=dev)
         self._no_step = wp.zeros(1, dtype=wp.int32, device=dev)
         self.graph_counts = {"eager": 0, "captured": 0, "replayed": 0, "overflowed": 0}
+
+    def _init_direct(self, shape: tuple[int, int]) -> None:
+        """Buffers of the direct alignment (``tracking.direct_levels``): the frame's and the reference's
+        image pyramids (level 0 at the tracking resolution, each level half the one before), its unknowns
+        and sums."""
+        levels, dev = self.cfg.direct_levels, self.device
+        self._levels: list[tuple] = []
+        for level in range(levels):
+            cam = self.track_camera.scaled(2**level)
+            if min(cam.width, cam.height) < DIRECT_MIN_PX:
+                raise ValueError(
+                    f"tracking.direct_levels = {levels}: level {level} of the {shape[1]}x{shape[0]} tracking images "
+                    f"is {cam.width}x{cam.height}, below {DIRECT_MIN_PX} px a side; use fewer levels"
+                )
+            size = (cam.height, cam.width)
+            frame = (self._rgb, self._depth) if level == 0 else _rgbd_images(size, dev)
+            reference = _rgbd_images(size, dev)
+            self._levels.append((cam, frame, reference))
+        if levels:
+            self._T_rel = wp.zeros(1, dtype=wp.mat44d, device=dev)
+            self._T_CW_ref = wp.zeros(1, dtype=wp.mat44d, device=dev)
+            self._affine = wp.zeros(2, dtype=wp.float64, device=dev)
+            self._identity = wp.array([np.eye(4)], dtype=wp.mat44d, device=dev)
+            self._affine_identity = wp.array([1.0, 0.0], dtype=wp.float64, device=dev)
+            self._sums = wp.zeros(dk.N_COLUMNS, dtype=wp.float64, device=dev)
+            self._direct_blocks = [(shape[0] * shape[1] + dk.BLOCK - 1) // dk.BLOCK for shape in self._level_shapes()]
+
+    def _level_shapes(self) -> list[tuple[int, int]]:
+        return [(cam.height, cam.width) for cam, _, _ in self._levels]
 
     # ---- motion model ------------------------------------------------------------------------
     def reset(self, T_WC: np.ndarray | None = None, T_prev_WC: np.ndarray | None = None) -> None:
@@ -263,7 +300,9 @@ class Tracker:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
         self.load_frame(rgb, depth)
         self._begin(T_init)
-        self._steps(gmap, use_depth, T_init)
+        if self._levels and len(gmap) > 0:
+            self._align(gmap, use_depth)
+        self._steps(gmap, use_depth)
         return self._finish(T_init)
 
     def relocalize(
@@ -325,6 +364,19 @@ class Tracker:
             outputs=[self._w_grad],
             device=dev,
         )
+        self._downsample_pyramid(1, depth is not None)
+
+    def _downsample_pyramid(self, which: int, has_depth: bool) -> None:
+        """Levels 1.. of the direct alignment's frame (``which`` 1) or reference (2) pyramid from level 0."""
+        for level in range(1, len(self._levels)):
+            src, dst = self._levels[level - 1][which], self._levels[level][which]
+            wp.launch(
+                tk.downsample_rgbd,
+                dim=dst[0].shape,
+                inputs=[src[0], src[1], 2, int(has_depth), self.cfg.depth_edge_spread],
+                outputs=[dst[0], dst[1]],
+                device=self.device,
+            )
 
     def exposure(self, gmap: GaussianMap, T_WC: np.ndarray) -> tuple[float, float]:
         """Eq. 3-4 brightness (gain, bias) of the frame last loaded (``load_frame``) against the map
@@ -365,13 +417,60 @@ class Tracker:
         T_CW = invert_pose(T_init_WC)
         self._T_CW_host.numpy()[0] = T_CW
         self._T_WC_host.numpy()[0] = T_init_WC.astype(np.float32)
-        wp.copy(self._T_CW, self._T_CW_host)
-        wp.copy(self._T_WC, self._T_WC_host)
+        wp.copy(self._T_CW_start, self._T_CW_host)
+        wp.copy(self._T_WC_start, self._T_WC_host)
+        self._restart()
+
+    def _restart(self) -> None:
+        """Pose, Adam moments and history as before the frame's first Adam step."""
+        wp.copy(self._T_CW, self._T_CW_start)
+        wp.copy(self._T_WC, self._T_WC_start)
         self._adam_m.zero_()
         self._adam_v.zero_()
         self._history.zero_()
 
-    def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> None:
+    def _align(self, gmap: GaussianMap, use_depth: bool) -> None:
+        """The direct alignment (``tracking.direct_levels``, kernels/direct.py): the map rendered once at
+        the start pose is the reference; ``direct_iters`` Gauss-Newton steps a pyramid level, coarse to
+        fine, move the pose on the device, and the Adam steps start where they end."""
+        dev, cfg = self.device, self.cfg
+        res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
+        ref_rgb, ref_depth = self._levels[0][2]
+        wp.launch(
+            dk.reference_image,
+            dim=ref_rgb.shape,
+            inputs=[res.color, res.depth, res.alpha, cfg.tau_alpha],
+            outputs=[ref_rgb, ref_depth],
+            device=dev,
+        )
+        self._downsample_pyramid(2, True)
+        wp.copy(self._T_CW_ref, self._T_CW)
+        wp.copy(self._T_rel, self._identity)
+        wp.copy(self._affine, self._affine_identity)
+        for level in range(len(self._levels) - 1, -1, -1):
+            cam, (rgb, depth), (ref_rgb, ref_depth) = self._levels[level]
+            intrinsics = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
+            for _ in range(cfg.direct_iters):
+                self._sums.zero_()
+                wp.launch_tiled(
+                    dk.normal_equations,
+                    dim=[self._direct_blocks[level]],
+                    inputs=[ref_rgb, ref_depth, rgb, depth, int(use_depth), intrinsics, self._T_rel, self._affine],
+                    outputs=[self._sums],
+                    block_dim=dk.BLOCK,
+                    device=dev,
+                )
+                wp.launch(
+                    dk.solve_step,
+                    dim=1,
+                    inputs=[self._sums, self._T_CW_ref],
+                    outputs=[self._T_rel, self._affine, self._T_CW, self._T_WC],
+                    device=dev,
+                )
+        wp.copy(self._T_CW_start, self._T_CW)
+        wp.copy(self._T_WC_start, self._T_WC)
+
+    def _steps(self, gmap: GaussianMap, use_depth: bool) -> None:
         """The frame's ``iters`` Adam steps, launched one by one, or replayed from captured graphs: one
         of a step on part of the tiles, replayed ``iters - 1`` times, and one of the last step, each
         reading its step from a device counter (``tk.advance_step``), so a capture records about 15
@@ -395,7 +494,7 @@ class Tracker:
         if entry is None:
             renderer = self.renderer
             self._iteration(gmap, 0, use_depth, tile_stride=1)  # sizes the buffers (may reallocate them)
-            self._begin(T_init_WC)
+            self._restart()
             renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
             key = self._graph_key(gmap, use_depth)
             # one step on part of the tiles and the last step on all, each reading its row from the
@@ -419,7 +518,7 @@ class Tracker:
         if self.renderer.intersection_count() > entry[1]:
             self.graph_counts["overflowed"] += 1
             self._graphs.pop(key, None)
-            self._begin(T_init_WC)
+            self._restart()
             self._eager_steps(gmap, use_depth)
 
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
@@ -670,6 +769,10 @@ def _beyond(moved: tuple[float, float], reference: tuple[float, float], cfg: Tra
         f"at most {1e3 * bound_m:.1f} mm and {bound_deg:.2f} deg: {ratio:g} x",
         f"{1e3 * reference[0]:.1f} mm and {reference[1]:.2f} deg, plus {1e3 * floor_m:g} mm and {floor_deg:g} deg",
     )
+
+
+def _rgbd_images(shape: tuple[int, int], device) -> tuple[wp.array, wp.array]:
+    return wp.zeros(shape, dtype=wp.vec3, device=device), wp.zeros(shape, dtype=wp.float32, device=device)
 
 
 def _nearest_rigid(T: np.ndarray) -> np.ndarray:
