@@ -300,9 +300,7 @@ class Tracker:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
         self.load_frame(rgb, depth)
         self._begin(T_init)
-        if self._levels and len(gmap) > 0:
-            self._align(gmap, use_depth)
-        self._steps(gmap, use_depth)
+        self._steps(gmap, use_depth, T_init)
         return self._finish(T_init)
 
     def relocalize(
@@ -470,8 +468,9 @@ class Tracker:
         wp.copy(self._T_CW_start, self._T_CW)
         wp.copy(self._T_WC_start, self._T_WC)
 
-    def _steps(self, gmap: GaussianMap, use_depth: bool) -> None:
-        """The frame's ``iters`` Adam steps, launched one by one, or replayed from captured graphs: one
+    def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> None:
+        """The frame's direct alignment (``_align``, with ``tracking.direct_levels``) and ``iters`` Adam
+        steps, launched one by one, or replayed from captured graphs: the alignment's, one
         of a step on part of the tiles, replayed ``iters - 1`` times, and one of the last step, each
         reading its step from a device counter (``tk.advance_step``), so a capture records about 15
         launches, not ``iters`` x 15 (a capture of every step made the frame after each new map size the
@@ -499,29 +498,38 @@ class Tracker:
             key = self._graph_key(gmap, use_depth)
             # one step on part of the tiles and the last step on all, each reading its row from the
             # device counter: two captures of about 15 launches, not one of iters x 15
+            align = None
+            if self._levels:
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._align(gmap, use_depth)
+                align = capture.graph
             graphs = []
             for stride in ((self.tile_stride,) if self.cfg.iters > 1 else ()) + (1,):
                 with wp.ScopedCapture(device=self.device) as capture:
                     self._iteration(gmap, 0, use_depth, tile_stride=stride, step=self._step)
                 graphs.append(capture.graph)
-            entry = (graphs, renderer.intersection_capacity)
+            entry = (align, graphs, renderer.intersection_capacity)
             while len(self._graphs) >= GRAPHS_KEPT:
                 self._graphs.pop(next(iter(self._graphs)))
             self._graphs[key] = entry
             self.graph_counts["captured"] += 1
+        align, (*steps, last), capacity = entry
         self._step.zero_()
-        *steps, last = entry[0]
+        if align is not None:
+            wp.capture_launch(align)
         for _ in range(self.cfg.iters - 1):
             wp.capture_launch(steps[0])
         wp.capture_launch(last)
         self.graph_counts["replayed"] += 1
-        if self.renderer.intersection_count() > entry[1]:
+        if self.renderer.intersection_count() > capacity:
             self.graph_counts["overflowed"] += 1
             self._graphs.pop(key, None)
-            self._restart()
+            self._begin(T_init_WC)
             self._eager_steps(gmap, use_depth)
 
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
+        if self._levels and len(gmap) > 0:
+            self._align(gmap, use_depth)
         for k in range(self.cfg.iters):
             self._iteration(gmap, k, use_depth)
         self.graph_counts["eager"] += 1
