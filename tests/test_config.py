@@ -82,7 +82,7 @@ def test_errors(args, message):
 def test_groups_and_help():
     assert {"replica/office0", "tum/fr1_desk", "synthetic/room0", "7scenes/redkitchen"} <= set(group_options("dataset"))
     text = help_text()
-    assert "dataset: " in text and "tracking.iters = 30" in text and "mapping.lambda_dssim = 0.2" in text
+    assert "dataset: " in text and "tracking.iters = 10" in text and "mapping.lambda_dssim = 0.2" in text
 
 
 def test_data_root(monkeypatch, tmp_path):
@@ -144,7 +144,7 @@ def test_cpu_sized_run_only_on_the_cpu_without_sizes():
     assert extra == [f"{k}={v}" for k, v in CPU_SIZED.items()]
     assert "cpu_sized=false" in message and "120x68" in message and "25 of 100" in message
     cfg = load_config(extra)
-    assert (cfg.dataset.width, cfg.dataset.height, cfg.dataset.max_frames, cfg.tracking.iters) == (120, 68, 25, 20)
+    assert (cfg.dataset.width, cfg.dataset.height, cfg.dataset.max_frames, cfg.mapping.window) == (120, 68, 25, 3)
     office = ["dataset=synthetic/office0", "seed=3"]  # neither is a size
     assert cpu_sized_overrides(load_config(office), office, "cpu")[0] == extra
     for overrides in (

@@ -84,8 +84,11 @@ class RenderConfig:
 
 @dataclass
 class TrackingConfig:
-    iters: int = 30  # §4.2: 30-60 Adam steps a frame
-    lr: float = 5e-3  # §4.2: mean of the cosine schedule lr_k = lr (1 + cos(pi k / iters)), 2 lr down to ~0
+    # §4.2 has 30-60 Adam steps a frame at 5e-3; after the direct alignment (direct_levels) 10 steps at 1e-3
+    # track as well (H100, office 1200x680 and 7-Scenes: ATE 0.41 / 4.4-4.5 cm against 0.40 / 4.2-4.4 cm) in
+    # half the time (experiments/results/perf.md, session 22)
+    iters: int = 10
+    lr: float = 1e-3  # mean of the cosine schedule lr_k = lr (1 + cos(pi k / iters)), 2 lr down to ~0
     adam_beta1: float = 0.7  # Table 1 has 0.9 (mapping); 30 tracking steps converge with 0.7 (measured)
     adam_beta2: float = 0.999  # Table 1
     adam_eps: float = 1e-8  # PyTorch's default; far below the twist gradients (~1e-5 .. 1e-2)
@@ -133,8 +136,8 @@ class TrackingConfig:
     # render of the map at the start pose, on an image pyramid of direct_levels levels (coarse to fine,
     # the finest at the tracking resolution), direct_iters steps a level, for the twist and the affine
     # brightness; the Adam steps start from its pose.  One render and a few reductions instead of a
-    # rasterizer backward a step; 0 = off
-    direct_levels: int = 0
+    # rasterizer backward a step; 0 = off (then iters=30 lr=5e-3, the supplement's)
+    direct_levels: int = 3
     direct_iters: int = 4
     min_valid_ratio: float = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: float = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel
@@ -1031,7 +1034,6 @@ CPU_SIZED = {
     "dataset.width": 120,
     "dataset.height": 68,
     "dataset.max_frames": 25,
-    "tracking.iters": 20,
     "mapping.init_iters": 100,
     "mapping.iters": 15,
     "mapping.views_per_iter": 0,
@@ -1066,8 +1068,8 @@ def cpu_sized_overrides(cfg: Config, overrides, device: str) -> tuple[list[str],
     d, m, q = cfg.dataset, cfg.mapping, CPU_SIZED
     message = (
         f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}: {q['dataset.width']}x{q['dataset.height']} "
-        f"pixels, the first {q['dataset.max_frames']} of {d.n_frames} frames, {q['tracking.iters']} tracking "
-        f"iterations, {q['mapping.init_iters']} initial and {q['mapping.iters']} per-keyframe mapping iterations "
+        f"pixels, the first {q['dataset.max_frames']} of {d.n_frames} frames, "
+        f"{q['mapping.init_iters']} initial and {q['mapping.iters']} per-keyframe mapping iterations "
         f"over {q['mapping.window']} keyframes (under 3 minutes on 2 cores).\n"
         f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} mapping iterations; "
         f"over half an hour on 2 cores): add cpu_sized=false, or set any size yourself, e.g. "

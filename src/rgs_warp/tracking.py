@@ -1,7 +1,8 @@
 """Camera tracking against a fixed Gaussian map (supplement §4.2, §4.6).
 
-Per frame: start from a constant-velocity prediction (or a given pose), then ``iters`` Adam steps on
-the twist xi = (rho, phi) with ``T_CW <- Exp(xi) T_CW``.  Each step renders the map, solves the
+Per frame: start from a constant-velocity prediction (or a given pose), align the frame to one render
+of the map there by Gauss-Newton on an image pyramid (``direct_levels``, kernels/direct.py), then
+``iters`` Adam steps on the twist xi = (rho, phi) with ``T_CW <- Exp(xi) T_CW``.  Each step renders the map, solves the
 affine brightness (g, b) of Eq. 3-4 in closed form, evaluates the weighted L1 loss of Eq. 5-8 (plus,
 for RGB-D, a depth L1 term) and takes the twist gradient from the renderer's pose-only backward.
 The map is only read.  Adam works on the twist taken about a pivot on the optical axis at the mean
@@ -479,7 +480,8 @@ class Tracker:
         A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
         is kept by those (``_graph_key``).  At a new key one step runs eagerly on every tile (its render
         sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` (render.py) x
-        the intersections that render needed are reserved, and the two steps are captured and replayed:
+        the intersections that render needed are reserved, and the alignment and the two steps are
+        captured and replayed:
         the frame after a keyframe costs one eager step and two captures more than a replayed frame
         (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
         p99: experiments/results/perf.md).  A replay whose renders needed more intersections than the

@@ -16,7 +16,12 @@ import warp as wp
 
 from rgs_warp.kernels.math import bilerp, bilinear_corner, block_sum, grey_level, rigid_inverse_f32, se3_exp
 
-wp.set_module_options({"enable_backward": False})
+# threads a block of ``normal_equations`` (launch_tiled): 46 float32 sums a thread stay within shared memory.
+# The module's default too, so that its kernels compile once, for this block size, where every module is
+# compiled ahead of a run (rgs_warp.compile; otherwise the first tracked frame compiled it again: 3.8 s)
+BLOCK = 128
+
+wp.set_module_options({"enable_backward": False, "block_dim": BLOCK})
 
 # Unknowns: twist (rho, phi) of T_rel, then gain g and bias b.  Sums: the upper triangle of J^T W J (36),
 # J^T W r (8), the robust cost, the pixels used.
@@ -43,9 +48,6 @@ DAMPING = 1.0e-4
 # must not run away on a bad linearisation)
 MAX_STEP_M = 0.05
 MAX_STEP_RAD = 0.05
-
-# threads a block of ``normal_equations`` (launch_tiled): 46 float32 sums each stay within shared memory
-BLOCK = 128
 
 vec46 = wp.types.vector(length=N_COLUMNS, dtype=wp.float32)
 vec8 = wp.types.vector(length=N_PARAMS, dtype=wp.float32)
