@@ -49,9 +49,10 @@ def _workers(workers: int | None) -> int:
 
 def preload(device: str, workers: int | None = None) -> None:
     """Load every kernel module on CUDA ``device``, compiling those not in the kernel cache, ``workers``
-    at a time (default: one per CPU core).  Every launch of rgs_warp uses the modules' default block
-    size (256 threads, ``REDUCE_BLOCK``, ``PROJECT_BLOCK`` and 16x16 tiles alike), the one variant this
-    loads.  No-op on the CPU, whose tiled kernels need a second variant of their modules."""
+    at a time (default: one per CPU core).  Every launch of rgs_warp uses its module's default block
+    size (256 threads, ``REDUCE_BLOCK``, ``PROJECT_BLOCK`` and 16x16 tiles alike; 128 in
+    ``kernels.direct``, set as that module's default), the one variant this loads.  No-op on the CPU,
+    whose tiled kernels need a second variant of their modules."""
     device = wp.get_device(device)
     if not device.is_cuda:
         return

@@ -440,6 +440,7 @@ class Tracker:
             dim=ref_rgb.shape,
             inputs=[res.color, res.depth, res.alpha, cfg.tau_alpha],
             outputs=[ref_rgb, ref_depth],
+            block_dim=dk.BLOCK,
             device=dev,
         )
         self._downsample_pyramid(2, True)
@@ -464,6 +465,7 @@ class Tracker:
                     dim=1,
                     inputs=[self._sums, self._T_CW_ref],
                     outputs=[self._T_rel, self._affine, self._T_CW, self._T_WC],
+                    block_dim=dk.BLOCK,
                     device=dev,
                 )
         wp.copy(self._T_CW_start, self._T_CW)

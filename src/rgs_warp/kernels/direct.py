@@ -17,8 +17,9 @@ import warp as wp
 from rgs_warp.kernels.math import bilerp, bilinear_corner, block_sum, grey_level, rigid_inverse_f32, se3_exp
 
 # threads a block of ``normal_equations`` (launch_tiled): 46 float32 sums a thread stay within shared memory.
-# The module's default too, so that its kernels compile once, for this block size, where every module is
-# compiled ahead of a run (rgs_warp.compile; otherwise the first tracked frame compiled it again: 3.8 s)
+# The module's default too, so that the run's preload (rgs_warp.compile) compiles this variant, and every
+# launch of the module's kernels passes it (wp.launch's own default is 256 on CUDA, which compiled the
+# module a second time in the first tracked frame: 3.3 s on an H100)
 BLOCK = 128
 
 wp.set_module_options({"enable_backward": False, "block_dim": BLOCK})
