@@ -2,9 +2,10 @@
 
 Per frame: start from a constant-velocity prediction (or a given pose), align the frame to one render
 of the map there by Gauss-Newton on an image pyramid (``direct_levels``, kernels/direct.py), then
-``iters`` Adam steps on the twist xi = (rho, phi) with ``T_CW <- Exp(xi) T_CW``.  Each step renders the map, solves the
-affine brightness (g, b) of Eq. 3-4 in closed form, evaluates the weighted L1 loss of Eq. 5-8 (plus,
-for RGB-D, a depth L1 term) and takes the twist gradient from the renderer's pose-only backward.
+``iters`` Adam steps on the twist xi = (rho, phi) with ``T_CW <- Exp(xi) T_CW``.  Each step renders the
+map, solves the affine brightness (g, b) of Eq. 3-4 in closed form, evaluates the weighted L1 loss of
+Eq. 5-8 (plus, for RGB-D, a depth L1 term) and takes the twist gradient from the renderer's pose-only
+backward.
 The map is only read.  Adam works on the twist taken about a pivot on the optical axis at the mean
 rendered depth (kernels/tracking.py, ``adam_pose_step``): the same left update, better conditioned.
 
@@ -217,10 +218,7 @@ class Tracker:
             self._identity = wp.array([np.eye(4)], dtype=wp.mat44d, device=dev)
             self._affine_identity = wp.array([1.0, 0.0], dtype=wp.float64, device=dev)
             self._sums = wp.zeros(dk.N_COLUMNS, dtype=wp.float64, device=dev)
-            self._direct_blocks = [(shape[0] * shape[1] + dk.BLOCK - 1) // dk.BLOCK for shape in self._level_shapes()]
-
-    def _level_shapes(self) -> list[tuple[int, int]]:
-        return [(cam.height, cam.width) for cam, _, _ in self._levels]
+            self._direct_blocks = [(cam.width * cam.height + dk.BLOCK - 1) // dk.BLOCK for cam, _, _ in self._levels]
 
     # ---- motion model ------------------------------------------------------------------------
     def reset(self, T_WC: np.ndarray | None = None, T_prev_WC: np.ndarray | None = None) -> None:

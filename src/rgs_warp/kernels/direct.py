@@ -6,8 +6,8 @@ point for every pixel the map covers.  The point goes through the relative pose 
 camera from the render's) into the frame, whose grey level (and measured depth, RGB-D) there is compared
 with the reference's: r_c = I(u') - (g I_ref(u) + b) and r_d = D(u') - z'.  The unknowns are the twist of
 ``T_rel`` (left update, as the Adam steps) and the affine brightness (g, b) of Eq. 3.  Residuals are
-scaled by their noise (``SIGMA_COLOUR``; depth: ``SIGMA_DEPTH`` x the reference's depth) and weighted by Huber's
-function (``HUBER``); pixels whose measured depth is far from the point (``MAX_DEPTH_GAP``) are taken
+scaled by their noise (``SIGMA_COLOUR``; depth: ``SIGMA_DEPTH`` x the reference's depth) and weighted
+by Huber's function (``HUBER``); pixels whose measured depth is far from the point (``MAX_DEPTH_GAP``) are taken
 for occlusions and left out.  The normal equations go to ``N_COLUMNS`` float64 sums (one atomic per block
 and column); one thread solves them and moves the pose on the device, so no step reads back to the host.
 """
@@ -27,8 +27,8 @@ wp.set_module_options({"enable_backward": False, "block_dim": BLOCK})
 # Unknowns: twist (rho, phi) of T_rel, then gain g and bias b.  Sums: the upper triangle of J^T W J (36),
 # J^T W r (8), the robust cost, the pixels used.
 N_PARAMS = 8
-N_UPPER = 36
-S_GRAD = 36
+N_UPPER = N_PARAMS * (N_PARAMS + 1) // 2
+S_GRAD = N_UPPER
 S_COST = 44
 S_COUNT = 45
 N_COLUMNS = 46
