@@ -371,7 +371,10 @@ def test_a_lost_frame_is_relocalised_from_the_keyframes(device, relocalize):
     for f in frames[:8]:
         r = slam.process(f.rgb, f.depth, f.timestamp)
         assert not r.lost
-    accuracy = pose_error(r.T_WC, frames[7].pose_gt)[0] + 0.02  # this tiny map's (6.5 cm at frame 7) and 2 cm
+    # this tiny map's accuracy (2.6 cm at frame 7; 6.5 cm before the direct alignment) and 2 cm; measured:
+    # frame 8 relocalised 2.7 cm, frame 9 3.3 cm (5.2 / 5.7 cm while the direct alignment followed a
+    # reference render that dropped intersections after the teleport's empty view)
+    accuracy = pose_error(r.T_WC, frames[7].pose_gt)[0] + 0.02
     teleport = frames[8].pose_gt.copy()
     teleport[:3, 3] += [50.0, 0.0, 0.0]
     r = slam.process(frames[8].rgb, frames[8].depth, frames[8].timestamp, T_init_WC=teleport)
@@ -444,8 +447,10 @@ def test_given_poses_and_tracking_start(device, tmp_path):
     last, prev = frames[-1].pose_gt, frames[-2].pose_gt
     np.testing.assert_allclose(slam.tracker.predict(), last @ invert_pose(prev) @ last, atol=1e-9)
     nxt = _frames(load_config([*base, "dataset.max_frames=8"]), 8)[1][7]
-    # a start 0.3 m off with one small tracking step stays near that start, not the prediction
-    one = SLAM(load_config([*base, "tracking.iters=1", "tracking.lr=1e-5"]), camera, device=device)
+    # a start 0.3 m off with one small tracking step (no direct alignment) stays near that start, not the
+    # prediction
+    still = ["tracking.direct_levels=0", "tracking.iters=1", "tracking.lr=1e-5"]
+    one = SLAM(load_config([*base, *still]), camera, device=device)
     for f in frames:
         one.process(f.rgb, f.depth, f.timestamp, T_WC=f.pose_gt)
     start = nxt.pose_gt.copy()

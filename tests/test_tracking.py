@@ -418,7 +418,8 @@ def test_recovers_a_perturbed_pose(device, scene, mode):
         assert dt < 1e-3 and dr < 0.1, (dt, dr, result.reason)
         assert result.converged and not result.lost, result.reason
         assert result.valid_ratio > 0.9 and abs(result.gain - 1) < 0.01 and abs(result.bias) < 0.01
-        assert result.loss_history[-1] < 0.2 * result.loss_history[0]
+        # the steps descend from where the direct alignment left the pose (most of the way already)
+        assert result.loss_history[-1] < result.loss_history[0]
 
 
 def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
@@ -453,7 +454,9 @@ def test_brightness_model_absorbs_an_exposure_change(device, scene, model):
     T0 = _perturbed(T_true, 0.02, 2.0, 2)
     errors = {}
     for used in (model, "off"):
-        tracker = Tracker(TrackingConfig(brightness=used), scene["camera"], device, mode="mono")
+        # the Adam steps' brightness models alone: no direct alignment (which solves its own (g, b))
+        adam = TrackingConfig(brightness=used, direct_levels=0, iters=30, lr=5e-3)
+        tracker = Tracker(adam, scene["camera"], device, mode="mono")
         result = tracker.track(rgb, None, scene["map"], T0)
         errors[used] = pose_error(result.T_WC, T_true)
         if used != "off":
@@ -770,7 +773,9 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
     names = ("means", "rotations", "log_scales", "opacity_logits", "sh")
     gmap = GaussianMap.from_numpy(*(arrays[k] for k in names), device=device)
     smaller = GaussianMap.from_numpy(*(arrays[k][: len(gmap) * 3 // 4] for k in names), device=device)
-    cfg = TrackingConfig(tile_stride=tile_stride, direct_levels=direct_levels)
+    # without the direct alignment, the supplement's 30 steps at 5e-3 (the default 10 at 1e-3 follow it)
+    adam = {} if direct_levels else {"iters": 30, "lr": 5e-3}
+    cfg = TrackingConfig(tile_stride=tile_stride, direct_levels=direct_levels, **adam)
     eager = Tracker(replace(cfg, graph="off"), cam, device)
     graphed = Tracker(replace(cfg, graph="on"), cam, device)
     assert not eager.use_graph and graphed.use_graph
@@ -790,10 +795,39 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
     # close, not equal).  The widened map does not match the frame: both descend about 0.4 m away from
     # the truth along nearly the same path (within 1 cm with every tile, 3.0 cm apart with the
     # checkerboard, whose steps see half the image each and so follow the one dropped render's
-    # difference further; 9.4 cm with the direct alignment, whose Gauss-Newton steps take the
-    # difference of the one dropped render further still)
+    # difference further; 20 cm with the direct alignment and its 10 steps, whose Gauss-Newton steps
+    # take the difference of the one dropped render further still)
     assert graphed.graph_counts == {"eager": 1, "captured": 2, "replayed": 7, "overflowed": 1}
-    assert pose_error(a.T_WC, b.T_WC)[0] < (0.15 if direct_levels else 0.01 if tile_stride == 1 else 0.05)
+    assert pose_error(a.T_WC, b.T_WC)[0] < (0.3 if direct_levels else 0.01 if tile_stride == 1 else 0.05)
+
+
+@pytest.mark.slow
+def test_prepare_captures_the_next_frames_graphs_and_changes_nothing(device, scene):
+    """``Tracker.prepare`` (what the SLAM calls after a keyframe): the graphs for the map are captured
+    there, sized at the given pose against the frame last loaded, and the next ``track`` only replays them,
+    with the pose, loss and gain of a tracker that captured them inside ``track``; a second ``prepare`` for
+    the same map, or one without graphs or before any frame, does nothing."""
+    poses, cam, gmap = scene["poses"], scene["camera"], scene["map"]
+    cfg = TrackingConfig(graph="on")
+    inline, prepared = Tracker(cfg, cam, device), Tracker(cfg, cam, device)
+    prepared.prepare(gmap, poses[1])  # no frame loaded yet
+    assert prepared.graph_counts["captured"] == 0
+    rgb, depth = scene["observe"](1)
+    prepared.load_frame(rgb, depth)
+    prepared.prepare(gmap, poses[1])
+    prepared.prepare(gmap, poses[1])
+    assert prepared.graph_counts == {"eager": 0, "captured": 1, "replayed": 0, "overflowed": 0}
+    rgb, depth = scene["observe"](2)
+    T0 = _perturbed(poses[2], 0.01, 1.0, seed=2)
+    a, b = inline.track(rgb, depth, gmap, T0), prepared.track(rgb, depth, gmap, T0)
+    assert prepared.graph_counts == {"eager": 0, "captured": 1, "replayed": 1, "overflowed": 0}
+    assert inline.graph_counts["captured"] == 1  # captured inside its track
+    assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain
+    assert pose_error(b.T_WC, poses[2])[0] < 1e-3
+    eager = Tracker(TrackingConfig(graph="off"), cam, device)
+    eager.load_frame(rgb, depth)
+    eager.prepare(gmap, poses[2])
+    assert eager.graph_counts["captured"] == 0
 
 
 def test_graph_setting_is_checked(device, scene):

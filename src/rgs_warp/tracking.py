@@ -432,6 +432,12 @@ class Tracker:
         fine, move the pose on the device, and the Adam steps start where they end."""
         dev, cfg = self.device, self.cfg
         res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
+        # the renderer sizes its buffers by the previous render's needs: after a view that saw little of the
+        # map (a lost try, a relocalisation's candidate) this render drops intersections, and the whole
+        # alignment would follow a wrong reference (3.6 cm off in the relocalisation test); once more,
+        # sized by what it needed (eagerly: a captured render has the room reserved before the capture)
+        if not dev.is_capturing and self.renderer.intersections_overflowed():
+            res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
         ref_rgb, ref_depth = self._levels[0][2]
         wp.launch(
             dk.reference_image,
@@ -493,28 +499,7 @@ class Tracker:
         key = self._graph_key(gmap, use_depth)
         entry = self._graphs.get(key)
         if entry is None:
-            renderer = self.renderer
-            self._iteration(gmap, 0, use_depth, tile_stride=1)  # sizes the buffers (may reallocate them)
-            self._restart()
-            renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
-            key = self._graph_key(gmap, use_depth)
-            # one step on part of the tiles and the last step on all, each reading its row from the
-            # device counter: two captures of about 15 launches, not one of iters x 15
-            align = None
-            if self._levels:
-                with wp.ScopedCapture(device=self.device) as capture:
-                    self._align(gmap, use_depth)
-                align = capture.graph
-            graphs = []
-            for stride in ((self.tile_stride,) if self.cfg.iters > 1 else ()) + (1,):
-                with wp.ScopedCapture(device=self.device) as capture:
-                    self._iteration(gmap, 0, use_depth, tile_stride=stride, step=self._step)
-                graphs.append(capture.graph)
-            entry = (align, graphs, renderer.intersection_capacity)
-            while len(self._graphs) >= GRAPHS_KEPT:
-                self._graphs.pop(next(iter(self._graphs)))
-            self._graphs[key] = entry
-            self.graph_counts["captured"] += 1
+            key, entry = self._capture(gmap, use_depth)
         align, (*steps, last), capacity = entry
         self._step.zero_()
         if align is not None:
@@ -528,6 +513,46 @@ class Tracker:
             self._graphs.pop(key, None)
             self._begin(T_init_WC)
             self._eager_steps(gmap, use_depth)
+
+    def _capture(self, gmap: GaussianMap, use_depth: bool) -> tuple[tuple, tuple]:
+        """Size the renderer with one eager step from the start pose (put back after it), then capture
+        the alignment and the two steps for ``gmap``: their key and entry, kept in ``_graphs``."""
+        renderer = self.renderer
+        self._iteration(gmap, 0, use_depth, tile_stride=1)  # sizes the buffers (may reallocate them)
+        self._restart()
+        renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
+        key = self._graph_key(gmap, use_depth)
+        align = None
+        if self._levels:
+            with wp.ScopedCapture(device=self.device) as capture:
+                self._align(gmap, use_depth)
+            align = capture.graph
+        # one step on part of the tiles and the last step on all, each reading its row from the
+        # device counter: two captures of about 15 launches, not one of iters x 15
+        graphs = []
+        for stride in ((self.tile_stride,) if self.cfg.iters > 1 else ()) + (1,):
+            with wp.ScopedCapture(device=self.device) as capture:
+                self._iteration(gmap, 0, use_depth, tile_stride=stride, step=self._step)
+            graphs.append(capture.graph)
+        entry = (align, graphs, renderer.intersection_capacity)
+        while len(self._graphs) >= GRAPHS_KEPT:
+            self._graphs.pop(next(iter(self._graphs)))
+        self._graphs[key] = entry
+        self.graph_counts["captured"] += 1
+        return key, entry
+
+    def prepare(self, gmap: GaussianMap, T_WC: np.ndarray) -> None:
+        """Capture the steps' graphs for ``gmap`` now, sized by its render at ``T_WC`` against the frame
+        last loaded, where the next ``track`` would capture them (a new map size or new arrays: after a
+        keyframe) inside its latency.  Nothing without graphs, a frame or a map, or where they exist.
+        The motion model and the next ``track`` are unchanged by it."""
+        if not self.use_graph or self._frame is None or len(gmap) == 0:
+            return
+        use_depth = self.mode == "rgbd"
+        if self._graph_key(gmap, use_depth) in self._graphs:
+            return
+        self._begin(np.asarray(T_WC, dtype=np.float64))
+        self._capture(gmap, use_depth)
 
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
         if self._levels and len(gmap) > 0:

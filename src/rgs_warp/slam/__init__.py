@@ -266,6 +266,8 @@ class SLAM:
             self.keyframe_indices.append(i)
             rgb_k, depth_k = self._own(rgb), self._own(depth)
             self._run("keyframe", self._add_keyframe, i, T, rgb_k, depth_k, exposure, result, time.perf_counter())
+            if self.worker is None:  # the next frame's tracking graphs, for the grown map: not in its latency
+                self.tracker.prepare(self.map, T)
         else:
             if pose_ok and self.seeder.wants_fill(decision.coverage):
                 rgb_t, depth_t = self.tracker.frame
