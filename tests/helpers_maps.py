@@ -121,3 +121,52 @@ def refine_colours(gmap: GaussianMap, frames, camera: Camera, iters: int = 30, l
         sh[:, 0] -= lr * (m / (1 - 0.9 ** (k + 1))) / (np.sqrt(v / (1 - 0.999 ** (k + 1))) + 1e-8)
         wp.copy(gmap.sh, wp.array(sh, dtype=wp.vec3, device=gmap.device), count=n * sh.shape[1])
     return gmap
+
+
+# The tracking tests' room: room0 at 96x54 (fx = 48), a map of discs on the ground-truth depth of frames
+# MAP_FRAMES (seen 1.5x wider, so that the frames' borders are covered), the frames observed as the map's
+# renders at the true poses: the tests measure the tracker, not how faithfully a 96-pixel map reproduces
+# the ray-traced images (experiments/bench/tracking_gt_map.py does that).
+ROOM_SIZE = (96, 54)
+MAP_FRAMES = (0, 4, 8)
+
+
+def room_scene(device) -> dict:
+    """{"camera", "poses", "map", "observe", "view"}: ``view(T_WC, camera=...)`` is the map's (colour,
+    depth per opacity where the opacity passes 0.5) at a pose, ``observe(i, camera=...)`` at frame i's."""
+    from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
+    from rgs_warp.datasets.synthetic.textures import linear_to_srgb
+    from rgs_warp.render import Renderer
+
+    cfg = SyntheticConfig(scene="room0", width=ROOM_SIZE[0], height=ROOM_SIZE[1], n_frames=100)
+    seq = SequenceRenderer(cfg, device=device)
+    cam = cfg.camera
+    wide = Camera(cam.fx, cam.fy, (1.5 * cam.width - 1) / 2, (1.5 * cam.height - 1) / 2, 144, 81)
+    frames = []
+    for i in MAP_FRAMES:
+        rgb, depth = seq.renderer.render(wide, seq.poses[i : i + 1], seq.poses[i], n_ss=2, seed=i)
+        frames.append((np.clip(linear_to_srgb(rgb), 0, 1).astype(np.float32), depth, seq.poses[i]))
+    gmap = map_from_rgbd(frames, wide, stride=2, sigma_per_spacing=0.5, device=device)
+    renderer = Renderer(device)
+
+    def view(T_WC: np.ndarray, camera=cam):
+        res = renderer.forward(gmap, camera, T_WC)
+        alpha = res.alpha.numpy()
+        depth = np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
+        return res.color.numpy().copy(), depth
+
+    def observe(i: int, camera=cam):
+        return view(seq.poses[i], camera)
+
+    return {"camera": cam, "poses": seq.poses, "map": gmap, "observe": observe, "view": view}
+
+
+def perturbed(T_WC: np.ndarray, t_m: float, r_deg: float, seed: int) -> np.ndarray:
+    """``T_WC`` moved by a twist of ``t_m`` metres and ``r_deg`` degrees in random directions (left, on
+    the world-to-camera pose)."""
+    from rgs_warp.geometry import invert_pose, se3_exp
+
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=3), rng.normal(size=3)
+    xi = np.concatenate([a / np.linalg.norm(a) * t_m, b / np.linalg.norm(b) * np.radians(r_deg)])
+    return invert_pose(se3_exp(xi) @ invert_pose(T_WC))

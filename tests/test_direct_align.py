@@ -7,15 +7,11 @@ import numpy as np
 import pytest
 import warp as wp
 
-from helpers_maps import map_from_rgbd
+from helpers_maps import perturbed, room_scene
 from rgs_warp.config import TrackingConfig
-from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
-from rgs_warp.datasets.synthetic.textures import linear_to_srgb
 from rgs_warp.geometry import invert_pose, rotation_angle_deg, se3_exp
 from rgs_warp.kernels import direct as dk
-from rgs_warp.render import Renderer
 from rgs_warp.tracking import Tracker, pose_error
-from rgs_warp.types import Camera
 
 # ---- NumPy references ---------------------------------------------------------------------------------
 
@@ -511,39 +507,11 @@ def test_gauss_newton_recovers_an_exact_warp_and_its_exposure(device, has_depth)
 
 
 # ---- the tracker's direct stage on a map built from ground truth ------------------------------------
-# test_tracking.py's scene: room0 at 96x54 (fx = 48), a map of discs on the ground-truth depth of frames
-# 0, 4, 8 (seen 1.5x wider), the frames observed as the map's renders at the true poses.
-SIZE = (96, 54)
-MAP_FRAMES = (0, 4, 8)
-
-
+# test_tracking.py's scene (helpers_maps.room_scene): room0 at 96x54 (fx = 48), a map of discs on the
+# ground-truth depth of frames 0, 4, 8, the frames observed as the map's renders at the true poses.
 @pytest.fixture(scope="module")
 def scene(device):
-    cfg = SyntheticConfig(scene="room0", width=SIZE[0], height=SIZE[1], n_frames=100)
-    seq = SequenceRenderer(cfg, device=device)
-    cam = cfg.camera
-    wide = Camera(cam.fx, cam.fy, (1.5 * cam.width - 1) / 2, (1.5 * cam.height - 1) / 2, 144, 81)
-    frames = []
-    for i in MAP_FRAMES:
-        rgb, depth = seq.renderer.render(wide, seq.poses[i : i + 1], seq.poses[i], n_ss=2, seed=i)
-        frames.append((np.clip(linear_to_srgb(rgb), 0, 1).astype(np.float32), depth, seq.poses[i]))
-    gmap = map_from_rgbd(frames, wide, stride=2, sigma_per_spacing=0.5, device=device)
-    renderer = Renderer(device)
-
-    def observe(i: int):
-        res = renderer.forward(gmap, cam, seq.poses[i])
-        alpha = res.alpha.numpy()
-        depth = np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
-        return res.color.numpy().copy(), depth
-
-    return {"camera": cam, "poses": seq.poses, "map": gmap, "observe": observe}
-
-
-def _perturbed(T_WC, t_m, r_deg, seed):
-    rng = np.random.default_rng(seed)
-    a, b = rng.normal(size=3), rng.normal(size=3)
-    xi = np.concatenate([a / np.linalg.norm(a) * t_m, b / np.linalg.norm(b) * np.radians(r_deg)])
-    return invert_pose(se3_exp(xi) @ invert_pose(T_WC))
+    return room_scene(device)
 
 
 def _track(device, scene, cfg, mode, rgb=None, frame=2, seeds=(0, 1)) -> list[np.ndarray]:
@@ -553,7 +521,7 @@ def _track(device, scene, cfg, mode, rgb=None, frame=2, seeds=(0, 1)) -> list[np
     tracker = Tracker(cfg, scene["camera"], device, mode=mode)
     poses = []
     for seed in seeds:
-        T0 = _perturbed(scene["poses"][frame], 0.02, 2.0, seed)
+        T0 = perturbed(scene["poses"][frame], 0.02, 2.0, seed)
         result = tracker.track(rgb, depth if mode == "rgbd" else None, scene["map"], T0)
         assert not result.lost, result.reason
         poses.append(result.T_WC)

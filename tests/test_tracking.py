@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from helpers_maps import map_from_rgbd
+from helpers_maps import perturbed, room_scene
 from rgs_warp.config import TrackingConfig
 from rgs_warp.datasets.base import downscale_depth, downscale_rgb
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
-from rgs_warp.datasets.synthetic.textures import linear_to_srgb
 from rgs_warp.eval import ate
 from rgs_warp.geometry import invert_pose, rotation_angle_deg, se3_exp
 from rgs_warp.kernels import tracking as tk
@@ -359,46 +358,11 @@ def test_adam_step_and_se3_update_match_numpy(device, lr, pivot_z):
 
 
 # ---- the tracker on a map built from ground truth ----------------------------------------------------
-# room0 at 96x54 (fx = 48): 100 frames sample the path at ~3.7 cm / 3.9 deg per frame.  The map holds
-# discs on the ground-truth depth of frames 0, 4, 8, seen with a 1.5x wider field of view so that the
-# frames in between are covered to their borders.  The frames tracked here are the map's own renders at
-# the true poses: the tests measure the tracker (gradient, optimiser, brightness, motion model), not how
-# faithfully a 96-pixel map reproduces the ray-traced images (experiments/bench/tracking_gt_map.py does that).
-SIZE = (96, 54)
-MAP_FRAMES = (0, 4, 8)
-
-
+# room0 at 96x54 (fx = 48): 100 frames sample the path at ~3.7 cm / 3.9 deg per frame; the map and frames of
+# helpers_maps.room_scene.
 @pytest.fixture(scope="module")
 def scene(device):
-
-    cfg = SyntheticConfig(scene="room0", width=SIZE[0], height=SIZE[1], n_frames=100)
-    seq = SequenceRenderer(cfg, device=device)
-    cam = cfg.camera
-    wide = Camera(cam.fx, cam.fy, (1.5 * cam.width - 1) / 2, (1.5 * cam.height - 1) / 2, 144, 81)
-    frames = []
-    for i in MAP_FRAMES:
-        rgb, depth = seq.renderer.render(wide, seq.poses[i : i + 1], seq.poses[i], n_ss=2, seed=i)
-        frames.append((np.clip(linear_to_srgb(rgb), 0, 1).astype(np.float32), depth, seq.poses[i]))
-    gmap = map_from_rgbd(frames, wide, stride=2, sigma_per_spacing=0.5, device=device)
-    renderer = Renderer(device)
-
-    def view(T_WC: np.ndarray, camera=cam):
-        res = renderer.forward(gmap, camera, T_WC)
-        alpha = res.alpha.numpy()
-        depth = np.where(alpha > 0.5, res.depth.numpy() / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
-        return res.color.numpy().copy(), depth
-
-    def observe(i: int, camera=cam):
-        return view(seq.poses[i], camera)
-
-    return {"camera": cam, "poses": seq.poses, "map": gmap, "observe": observe, "view": view}
-
-
-def _perturbed(T_WC, t_m, r_deg, seed):
-    rng = np.random.default_rng(seed)
-    a, b = rng.normal(size=3), rng.normal(size=3)
-    xi = np.concatenate([a / np.linalg.norm(a) * t_m, b / np.linalg.norm(b) * np.radians(r_deg)])
-    return invert_pose(se3_exp(xi) @ invert_pose(T_WC))
+    return room_scene(device)
 
 
 @pytest.mark.parametrize("mode", ["rgbd", pytest.param("mono", marks=pytest.mark.slow)])
@@ -412,7 +376,7 @@ def test_recovers_a_perturbed_pose(device, scene, mode):
         rgb, depth = wp.array(rgb, dtype=wp.vec3, device=device), wp.array(depth, device=device)
     T_true = scene["poses"][2]
     for seed in (0, 1):
-        T0 = _perturbed(T_true, 0.02, 2.0, seed)
+        T0 = perturbed(T_true, 0.02, 2.0, seed)
         result = tracker.track(rgb, depth if mode == "rgbd" else None, scene["map"], T0)
         dt, dr = pose_error(result.T_WC, T_true)
         assert dt < 1e-3 and dr < 0.1, (dt, dr, result.reason)
@@ -434,7 +398,7 @@ def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
     assert Tracker(TrackingConfig(), scene["camera"], device).tile_stride == 2
     assert Tracker(TrackingConfig(), scene["camera"], device, mode="mono").tile_stride == 1
     for seed in (0, 1):
-        T0 = _perturbed(T_true, 0.02, 2.0, seed)
+        T0 = perturbed(T_true, 0.02, 2.0, seed)
         a, b = full.track(rgb, depth, scene["map"], T0), half.track(rgb, depth, scene["map"], T0)
         dt, dr = pose_error(b.T_WC, T_true)
         assert dt < 1e-3 and dr < 0.1 and not b.lost, (dt, dr, b.reason)
@@ -451,7 +415,7 @@ def test_brightness_model_absorbs_an_exposure_change(device, scene, model):
     g_true, b_true = (1.25, -0.04) if model == "affine" else (1.25, 0.0)
     rgb = np.clip(g_true * rgb + b_true, 0, 1)
     T_true = scene["poses"][6]
-    T0 = _perturbed(T_true, 0.02, 2.0, 2)
+    T0 = perturbed(T_true, 0.02, 2.0, 2)
     errors = {}
     for used in (model, "off"):
         # the Adam steps' brightness models alone: no direct alignment (which solves its own (g, b))
@@ -501,7 +465,7 @@ def test_downscaled_tracking_equals_tracking_the_downscaled_frame(device, scene)
     assert full.scaled(2) == cam
     rgb, depth = scene["observe"](2, full)
     depth[::7, ::5] = 0.0  # invalid pixels must not enter the block means
-    T0 = _perturbed(scene["poses"][2], 0.02, 2.0, 3)
+    T0 = perturbed(scene["poses"][2], 0.02, 2.0, 3)
     cfg = TrackingConfig(iters=8)
     downscaled = Tracker(replace(cfg, downscale=2), full, device).track(rgb, depth, scene["map"], T0)
     small = (downscale_rgb(rgb, 2), downscale_depth(depth, 2, cfg.depth_edge_spread))
@@ -611,7 +575,7 @@ def test_a_frame_that_jumped_is_lost_and_keeps_the_prediction(device, scene):
     tracker = Tracker(cfg, scene["camera"], device, mode="mono")
     tracker.reset(poses[1], poses[0])
     T_pred = tracker.predict()
-    rgb, _ = scene["view"](_perturbed(T_pred, 0.01, 0.0, 0))
+    rgb, _ = scene["view"](perturbed(T_pred, 0.01, 0.0, 0))
     result = tracker.track(rgb, None, scene["map"])
     assert result.lost and result.motion_inconsistent and result.reason.startswith("motion check: the pose jumped")
     np.testing.assert_array_equal(result.T_WC, T_pred)
@@ -783,7 +747,7 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
         if i == 7:  # Gaussians 2.5x wider: more tiles each than the graph reserved
             m.log_scales.assign(m.log_scales.numpy() + np.float32(np.log(2.5)))
         rgb, depth = scene["observe"](i)
-        T0 = _perturbed(poses[i], 0.01, 1.0, seed=i)
+        T0 = perturbed(poses[i], 0.01, 1.0, seed=i)
         a, b = eager.track(rgb, depth, m, T0), graphed.track(rgb, depth, m, T0)
         assert not a.lost and not b.lost, (i, a.reason, b.reason)
         if i < 7:
@@ -818,7 +782,7 @@ def test_prepare_captures_the_next_frames_graphs_and_changes_nothing(device, sce
     prepared.prepare(gmap, poses[1])
     assert prepared.graph_counts == {"eager": 0, "captured": 1, "replayed": 0, "overflowed": 0}
     rgb, depth = scene["observe"](2)
-    T0 = _perturbed(poses[2], 0.01, 1.0, seed=2)
+    T0 = perturbed(poses[2], 0.01, 1.0, seed=2)
     a, b = inline.track(rgb, depth, gmap, T0), prepared.track(rgb, depth, gmap, T0)
     assert prepared.graph_counts == {"eager": 0, "captured": 1, "replayed": 1, "overflowed": 0}
     assert inline.graph_counts["captured"] == 1  # captured inside its track
