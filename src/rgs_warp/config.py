@@ -1047,6 +1047,7 @@ CPU_SIZE_KEYS = (
     "dataset.stride",
     "dataset.start",
     "dataset.downscale",
+    "tracking.iters",
     "tracking.downscale",
     "mapping.init_window",
     "mapping.frame_iters",
