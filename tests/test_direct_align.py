@@ -27,15 +27,15 @@ def _bilinear(image: np.ndarray, u: float, v: float):
 
 
 def _depth_sample(depth: np.ndarray, u: float, v: float, margins: list) -> float:
-    """Bilinear depth, 0 unless all four corners are valid and spread at most DEPTH_EDGE_SPREAD; the
-    spread's distance to that threshold goes to ``margins``."""
+    """Bilinear depth, 0 unless all four corners are valid and spread at most DEPTH_EDGE_SPREAD of their
+    mean (of lowest and highest); the spread's distance to that threshold goes to ``margins``."""
     h, w = depth.shape
     x0, y0 = min(int(np.floor(u)), w - 2), min(int(np.floor(v)), h - 2)
     corners = depth[y0 : y0 + 2, x0 : x0 + 2].astype(np.float64)
     lo, hi = corners.min(), corners.max()
     if lo > 0:
-        margins.append(abs((hi - lo) / lo - dk.DEPTH_EDGE_SPREAD))
-    if lo <= 0 or hi - lo > dk.DEPTH_EDGE_SPREAD * lo:
+        margins.append(abs((hi - lo) / (0.5 * (hi + lo)) - dk.DEPTH_EDGE_SPREAD))
+    if lo <= 0 or hi - lo > dk.DEPTH_EDGE_SPREAD * 0.5 * (hi + lo):
         return 0.0
     return float(_bilinear(depth.astype(np.float64), u, v))
 

@@ -14,7 +14,7 @@ and column); one thread solves them and moves the pose on the device, so no step
 
 import warp as wp
 
-from rgs_warp.kernels.math import bilerp, bilinear_corner, block_sum, grey_level, rigid_inverse_f32, se3_exp
+from rgs_warp.kernels.math import block_sum, grey_bilinear, grey_level, rigid_inverse_f32, sample_depth, se3_exp
 
 # threads a block of ``normal_equations`` (launch_tiled): 46 float32 sums a thread stay within shared memory.
 # The module's default too, so that the run's preload (rgs_warp.compile) compiles this variant, and every
@@ -39,7 +39,8 @@ SIGMA_DEPTH = 0.01
 HUBER = 2.0
 # a measured depth further than this fraction from the warped point's: another surface (occlusion) there
 MAX_DEPTH_GAP = 0.1
-# a depth sample whose 2x2 neighbourhood spreads more than this fraction is on an edge: not interpolated
+# a depth sample whose 2x2 neighbourhood spreads more than this fraction of its mean is on an edge: not
+# interpolated (math.sample_depth, as the matcher's)
 DEPTH_EDGE_SPREAD = 0.05
 # fewer pixels than this, or a non-finite system: the step is not taken
 MIN_PIXELS = 64
@@ -75,35 +76,6 @@ def reference_image(
     else:
         rgb_out[y, x] = wp.vec3(0.0)
         depth_out[y, x] = 0.0
-
-
-@wp.func
-def sample_grey(image: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
-    x0, y0, fx, fy = bilinear_corner(u, v, image.shape[1], image.shape[0])
-    return bilerp(
-        grey_level(image[y0, x0]),
-        grey_level(image[y0, x0 + 1]),
-        grey_level(image[y0 + 1, x0]),
-        grey_level(image[y0 + 1, x0 + 1]),
-        fx,
-        fy,
-    )
-
-
-@wp.func
-def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float) -> float:
-    """Bilinear depth at (u, v); 0 where a corner has no depth or the corners straddle an edge."""
-    x0, y0, fx, fy = bilinear_corner(u, v, depth.shape[1], depth.shape[0])
-    d00 = depth[y0, x0]
-    d01 = depth[y0, x0 + 1]
-    d10 = depth[y0 + 1, x0]
-    d11 = depth[y0 + 1, x0 + 1]
-    lo = wp.min(wp.min(d00, d01), wp.min(d10, d11))
-    hi = wp.max(wp.max(d00, d01), wp.max(d10, d11))
-    out = float(0.0)
-    if lo > 0.0 and hi - lo <= DEPTH_EDGE_SPREAD * lo:
-        out = bilerp(d00, d01, d10, d11, fx, fy)
-    return out
 
 
 @wp.func
@@ -184,13 +156,13 @@ def normal_equations(
                     dv = wp.vec3(0.0, fy / z, -fy * q[1] / (z * z))
                     use = int(1)
                     if has_depth != 0:
-                        dz = sample_depth(depth, u, v)
+                        dz = sample_depth(depth, u, v, DEPTH_EDGE_SPREAD)
                         if dz > 0.0 and wp.abs(dz - z) > MAX_DEPTH_GAP * z:
                             use = 0  # another surface in front of (or behind) the point: occluded
-                        right = sample_depth(depth, u + 1.0, v)
-                        left = sample_depth(depth, u - 1.0, v)
-                        down = sample_depth(depth, u, v + 1.0)
-                        up = sample_depth(depth, u, v - 1.0)
+                        right = sample_depth(depth, u + 1.0, v, DEPTH_EDGE_SPREAD)
+                        left = sample_depth(depth, u - 1.0, v, DEPTH_EDGE_SPREAD)
+                        down = sample_depth(depth, u, v + 1.0, DEPTH_EDGE_SPREAD)
+                        up = sample_depth(depth, u, v - 1.0, DEPTH_EDGE_SPREAD)
                         if use != 0 and dz > 0.0 and wp.min(wp.min(right, left), wp.min(down, up)) > 0.0:
                             a = 0.5 * (right - left) * du + 0.5 * (down - up) * dv - wp.vec3(0.0, 0.0, 1.0)
                             b = wp.cross(q, a)
@@ -200,12 +172,12 @@ def normal_equations(
                         g = float(affine[0])
                         bias = float(affine[1])
                         i_ref = grey_level(ref_rgb[y, x])
-                        gx = 0.5 * (sample_grey(rgb, u + 1.0, v) - sample_grey(rgb, u - 1.0, v))
-                        gy = 0.5 * (sample_grey(rgb, u, v + 1.0) - sample_grey(rgb, u, v - 1.0))
+                        gx = 0.5 * (grey_bilinear(rgb, u + 1.0, v) - grey_bilinear(rgb, u - 1.0, v))
+                        gy = 0.5 * (grey_bilinear(rgb, u, v + 1.0) - grey_bilinear(rgb, u, v - 1.0))
                         a = gx * du + gy * dv
                         b = wp.cross(q, a)
                         J = vec8(a[0], a[1], a[2], b[0], b[1], b[2], -i_ref, -1.0)
-                        s = add_residual(s, J, sample_grey(rgb, u, v) - (g * i_ref + bias), SIGMA_COLOUR)
+                        s = add_residual(s, J, grey_bilinear(rgb, u, v) - (g * i_ref + bias), SIGMA_COLOUR)
                         s[S_COUNT] = 1.0
     total = block_sum(s)
     if lane == 0:

@@ -9,7 +9,7 @@ feature grid; positions they return are in image pixels.
 
 import warp as wp
 
-from rgs_warp.kernels.math import bilerp, bilinear_corner, grey_level
+from rgs_warp.kernels.math import bilerp, bilinear_corner, grey_bilinear, sample_depth
 
 wp.set_module_options({"enable_backward": False})
 
@@ -26,26 +26,6 @@ def to_grid(u: float, stride: int) -> float:
 @wp.func
 def to_image(g: float, stride: int) -> float:
     return g * float(stride) + 0.5 * float(stride - 1)
-
-
-@wp.func
-def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float, max_rel_spread: float) -> float:
-    """Bilinear depth at image point (u, v); 0 where any of the 4 pixels is invalid or they spread by
-    more than ``max_rel_spread`` of their mean (a depth edge: interpolating there invents depth)."""
-    H = depth.shape[0]
-    W = depth.shape[1]
-    if u < 0.0 or v < 0.0 or u > float(W - 1) or v > float(H - 1):
-        return 0.0
-    x0, y0, fx, fy = bilinear_corner(u, v, W, H)
-    d00 = depth[y0, x0]
-    d01 = depth[y0, x0 + 1]
-    d10 = depth[y0 + 1, x0]
-    d11 = depth[y0 + 1, x0 + 1]
-    lo = wp.min(wp.min(d00, d01), wp.min(d10, d11))
-    hi = wp.max(wp.max(d00, d01), wp.max(d10, d11))
-    if lo <= 0.0 or hi - lo > max_rel_spread * 0.5 * (hi + lo):
-        return 0.0
-    return bilerp(d00, d01, d10, d11, fx, fy)
 
 
 @wp.func
@@ -66,12 +46,6 @@ def parabola_peak(s_minus: float, s0: float, s_plus: float) -> float:
     if curvature >= 0.0:
         return 0.0
     return wp.clamp(0.5 * (s_minus - s_plus) / curvature, -0.5, 0.5)
-
-
-@wp.func
-def grey_bilinear(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
-    x0, y0, fx, fy = bilinear_corner(u, v, rgb.shape[1], rgb.shape[0])
-    return grey_level(bilerp(rgb[y0, x0], rgb[y0, x0 + 1], rgb[y0 + 1, x0], rgb[y0 + 1, x0 + 1], fx, fy))
 
 
 @wp.func

@@ -168,6 +168,33 @@ def bilerp(p00: Any, p01: Any, p10: Any, p11: Any, fx: float, fy: float):
 
 
 @wp.func
+def grey_bilinear(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
+    """Grey level of the bilinear colour at image point (u, v) (clamped into the image)."""
+    x0, y0, fx, fy = bilinear_corner(u, v, rgb.shape[1], rgb.shape[0])
+    return grey_level(bilerp(rgb[y0, x0], rgb[y0, x0 + 1], rgb[y0 + 1, x0], rgb[y0 + 1, x0 + 1], fx, fy))
+
+
+@wp.func
+def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float, max_rel_spread: float) -> float:
+    """Bilinear depth at image point (u, v); 0 where any of the 4 pixels is invalid or they spread by
+    more than ``max_rel_spread`` of their mean (a depth edge: interpolating there invents depth)."""
+    H = depth.shape[0]
+    W = depth.shape[1]
+    if u < 0.0 or v < 0.0 or u > float(W - 1) or v > float(H - 1):
+        return 0.0
+    x0, y0, fx, fy = bilinear_corner(u, v, W, H)
+    d00 = depth[y0, x0]
+    d01 = depth[y0, x0 + 1]
+    d10 = depth[y0 + 1, x0]
+    d11 = depth[y0 + 1, x0 + 1]
+    lo = wp.min(wp.min(d00, d01), wp.min(d10, d11))
+    hi = wp.max(wp.max(d00, d01), wp.max(d10, d11))
+    if lo <= 0.0 or hi - lo > max_rel_spread * 0.5 * (hi + lo):
+        return 0.0
+    return bilerp(d00, d01, d10, d11, fx, fy)
+
+
+@wp.func
 def projection_jacobian(X: wp.vec3, cam: CameraParams):
     z = X[2]
     u = wp.clamp(X[0] / z, cam.tan_x_min, cam.tan_x_max)
