@@ -153,7 +153,8 @@ def test_intersection_capacity_and_overflow(device):
 def test_overflow_is_counted_and_view_keys_prevent_it(device):
     """A render sized by a previous view that saw little drops intersections; the next forward counts
     it (``overflowed_renders``).  With ``view`` keys each view is also sized by its own last render,
-    so alternating between a sparse and a dense view no longer overflows, and the image is exact."""
+    so alternating between a sparse and a dense view no longer overflows, and the image is exact; so does
+    a render with ``fit``, sized by its own count."""
     scene = random_scene(np.random.default_rng(11), 200, T_WC)
     gmap = to_map(scene, device)
     away = T_WC.copy()
@@ -175,3 +176,9 @@ def test_overflow_is_counted_and_view_keys_prevent_it(device):
     _check_images(result, ref)
     keyed.forward(gmap, CAMERA, away, BACKGROUND, view="away")
     assert keyed.overflowed_renders == 1
+    # fit=True: the dense render after the sparse one is sized by its own count, exact at once
+    fitted = Renderer(device)
+    fitted.forward(gmap, CAMERA, away, BACKGROUND)
+    result = fitted.forward(gmap, CAMERA, T_WC, BACKGROUND, fit=True)
+    assert not result.overflowed and result.intersection_capacity >= result.num_intersections > 2 * few
+    _check_images(result, ref)

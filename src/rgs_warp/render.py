@@ -284,6 +284,7 @@ class Renderer:
         tile_stride: int = 1,
         tile_phase: int = 0,
         tile_step: wp.array | None = None,
+        fit: bool = False,
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -305,6 +306,10 @@ class Renderer:
         shifted by ``tile_phase`` plus ``tile_step[0]`` if given, a device counter:
         ``kernels.projection.skip_tiles``); the others render as nothing (colour = background, depth 0,
         opacity 0), and the backward does no work there.  The tracker's cheaper steps.
+
+        ``fit``: size the intersection buffers by this render's own count (it waits for the projection)
+        rather than by the previous render's, for a view unlike the one before it (after a view that saw
+        little of the map, the previous count would drop intersections); ignored inside a capture.
         """
         dev = self.device
         n = len(gmap)
@@ -326,7 +331,11 @@ class Renderer:
         exact = False
         if not capturing:
             if self._count_key == (n, camera):
-                self._size_intersections(self._settle())
+                previous = self._settle()
+                if fit:
+                    exact = n > 0
+                else:
+                    self._size_intersections(previous)
             else:
                 exact = n > 0
         if n > 0:

@@ -383,12 +383,9 @@ class Tracker:
         self._T_WC_host.numpy()[0] = np.asarray(T_WC, dtype=np.float32)
         wp.copy(self._T_WC, self._T_WC_host)
         self._history.zero_()
-        self._render_and_brightness(gmap, 0)
-        # the renderer sizes its intersection buffers by the previous render's: after a view that saw
-        # little of the map (a lost try, a jump to a given pose) this one can overflow them; once more
-        if self.renderer.intersections_overflowed():
-            self._history.zero_()
-            self._render_and_brightness(gmap, 0)
+        # sized by its own needs, not the previous render's: after a view that saw little of the map (a
+        # lost try, a jump to a given pose) those would drop intersections
+        self._render_and_brightness(gmap, 0, fit=True)
         wp.copy(self._history_host, self._history)
         wp.synchronize_device(self.device)
         row = self._history_host.numpy()[0]
@@ -431,13 +428,11 @@ class Tracker:
         the start pose is the reference; ``direct_iters`` Gauss-Newton steps a pyramid level, coarse to
         fine, move the pose on the device, and the Adam steps start where they end."""
         dev, cfg = self.device, self.cfg
-        res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
-        # the renderer sizes its buffers by the previous render's needs: after a view that saw little of the
-        # map (a lost try, a relocalisation's candidate) this render drops intersections, and the whole
-        # alignment would follow a wrong reference (3.6 cm off in the relocalisation test); once more,
-        # sized by what it needed (eagerly: a captured render has the room reserved before the capture)
-        if not dev.is_capturing and self.renderer.intersections_overflowed():
-            res = self.renderer.forward(gmap, self.track_camera, self._T_WC)
+        # sized by its own needs: sized by the previous render's, after a view that saw little of the map
+        # (a lost try, a relocalisation's candidate) it dropped intersections, and the whole alignment
+        # followed a wrong reference (3.6 cm off in the relocalisation test); a captured render has its
+        # room reserved before the capture
+        res = self.renderer.forward(gmap, self.track_camera, self._T_WC, fit=True)
         ref_rgb, ref_depth = self._levels[0][2]
         wp.launch(
             dk.reference_image,
@@ -567,10 +562,12 @@ class Tracker:
         arrays = (gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh)
         return (len(gmap), tuple(a.ptr for a in arrays), self.renderer.buffers_version, use_depth)
 
-    def _render_and_brightness(self, gmap: GaussianMap, k: int, tile_stride: int = 1, step: wp.array | None = None):
+    def _render_and_brightness(
+        self, gmap: GaussianMap, k: int, tile_stride: int = 1, step: wp.array | None = None, fit: bool = False
+    ):
         """Render the map at the current pose (one tile in ``tile_stride``, shifting with the step) and
         solve Eq. 3-4's (g, b) into history row ``k`` + ``step[0]`` (``step``: the device step counter of a
-        captured step, ``tk.advance_step``; None: a counter at 0)."""
+        captured step, ``tk.advance_step``; None: a counter at 0); ``fit``: ``Renderer.forward``'s."""
         cfg, dev = self.cfg, self.device
         step = self._no_step if step is None else step
         res = self.renderer.forward(
@@ -581,6 +578,7 @@ class Tracker:
             tile_stride=tile_stride,
             tile_phase=k,
             tile_step=step,
+            fit=fit,
         )
         self._last_render = res
         wp.launch_tiled(
