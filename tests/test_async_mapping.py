@@ -2,6 +2,7 @@
 versions that tracking reads are never torn, the device turns give tracking priority, a failing job
 surfaces in the caller's thread, and a whole run in the asynchronous mode is valid (CPU)."""
 
+import json
 import threading
 import time
 
@@ -159,9 +160,16 @@ def test_back_pressure_waits_for_the_worker():
 @pytest.mark.slow
 def test_asynchronous_run_is_valid(tmp_path, device):
     """The run of ``test_slam.test_small_run_end_to_end`` with the keyframe work and 2 iterations per
-    frame in the worker: a full run folder, every frame tracked, a map, metrics within the bounds of
-    the synchronous run's test (its CPU numbers: 4.4 cm, 16.8 dB), and keyframe-to-map latencies."""
-    argv = [*OVERRIDES, "mapping.asynchronous=true", "mapping.frame_iters=2", f"device={device}"]
+    frame in the worker, played at 1000 frames/s (``dataset.playback_fps``): a full run folder, every
+    frame tracked, a map, metrics within the bounds of the synchronous run's test (its CPU numbers:
+    4.4 cm, 16.8 dB), keyframe-to-map latencies and every frame's lag behind the playback."""
+    argv = [
+        *OVERRIDES,
+        "mapping.asynchronous=true",
+        "mapping.frame_iters=2",
+        "dataset.playback_fps=1000",
+        f"device={device}",
+    ]
     cfg = load_config([*argv, f"output_dir={tmp_path}", "run_name=async"])
     run_dir, metrics = run(cfg, progress=False)
     for name in ("trajectory.txt", "map.ply", "keyframes.npz", "metrics.json"):
@@ -171,6 +179,11 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert metrics["photometric"]["psnr_db"] > 15.0, metrics["photometric"]
     latency = metrics["keyframe_to_map_s"]
     assert latency["count"] >= 1 and 0 < latency["p50"] <= latency["max"]
+    # played as a camera at 1000 frames/s would deliver it: every frame's lag logged and summarised
+    lags = [json.loads(line)["lag_s"] for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert len(lags) == 20 and min(lags) >= 0.0
+    assert metrics["playback"]["fps"] == 1000.0
+    assert metrics["playback"]["lag_ms_max"] == pytest.approx(1e3 * max(lags), abs=0.1)
 
 
 @pytest.mark.slow
@@ -197,3 +210,38 @@ def test_asynchronous_library_use_with_device_frames(device):
     assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
     res = slam.render(poses[-1])
     assert float(res.color.numpy().mean()) > 0.05  # the map renders colour, not the zeroed buffers
+
+
+@pytest.mark.slow
+def test_keyframe_mapping_keeps_pace_with_min_iters(device):
+    """``mapping.min_iters``: with a keyframe at every frame (IoU threshold 1, no motion bound), keyframes
+    come faster than 30 mapping iterations each can run; a window's mapping then ends after min_iters
+    once the next keyframe waits (on the CPU: 3, 3, 3, 3, 30), where without it every keyframe gets all
+    30 (and tracking waits); the last keyframe, with none after it, gets all of them either way."""
+    from rgs_warp import SLAM, open_dataset
+
+    argv = [
+        *OVERRIDES,
+        "dataset.max_frames=10",
+        "mapping.asynchronous=true",
+        "mapping.iters=30",
+        "keyframes.iou_threshold=1.0",
+        "keyframes.min_translation_m=0",
+        "keyframes.min_rotation_deg=0",
+        f"device={device}",
+    ]
+    done = {}
+    for min_iters in (0, 3):
+        cfg = load_config([*argv, f"mapping.min_iters={min_iters}"])
+        ds = open_dataset(cfg, device=device)
+        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+        results = [slam.process(f.rgb, f.depth, f.timestamp) for f in ds]
+        slam.finish()
+        later = [r for r in results[cfg.mapping.init_window :] if r.keyframe]
+        assert len(later) >= 4
+        done[min_iters] = [r.mapping.iters for r in later]
+        _, poses = slam.trajectory()
+        gt = np.array([f.pose_gt for f in ds])
+        assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
+    assert all(n == 30 for n in done[0]), done
+    assert all(n >= 3 for n in done[3]) and min(done[3]) < 30 and done[3][-1] == 30, done

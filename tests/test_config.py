@@ -72,6 +72,9 @@ def test_group_option_replaces_section_and_keys_apply_after():
         (["mode=mnoo"], r"mode: 'mnoo' is not one of rgbd, mono. Did you mean 'mono'"),
         (["trackingiters"], r"not of the form key=value"),
         (["render.background=[1,1]"], r"expected 3 values"),
+        (["mapping.min_iters=20"], r"mapping.min_iters \(20\) applies to asynchronous mapping only"),
+        (["mapping.asynchronous=true", "mapping.min_iters=200"], r"mapping.min_iters \(200\) must not exceed"),
+        (["dataset.playback_fps=-30"], r"dataset.playback_fps: -30.0 is out of range"),
     ],
 )
 def test_errors(args, message):

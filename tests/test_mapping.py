@@ -715,3 +715,42 @@ def test_count_overflow_counts_renders_beyond_their_capacity(device):
             device=device,
         )
     assert int(overflows.numpy()[0]) == 2
+
+
+def test_stop_ends_the_call_after_the_iterations_it_asked_for(device, room):
+    """``optimize(stop=...)`` (asynchronous mapping keeping pace: ``mapping.min_iters``): asked after every
+    iteration but the last with the iterations done; True ends the call there, and the result holds
+    only the iterations that ran."""
+    cam = room["camera"]
+    kf, slots = _keyframes(room, room["frames"], device)
+    asked = []
+
+    def stop(done):
+        asked.append(done)
+        return done == 4
+
+    runs = {}
+    for name, iters, hook in (("stopped", 20, stop), ("short", 4, None)):
+        gmap = _room_map(room, device)
+        mapper = Mapper(MappingConfig(graph="off"), cam, gmap, device, seed=5)
+        result = mapper.optimize(kf, slots, iters, stop=hook)
+        runs[name] = (result, mapper.total_iters, gmap.means.numpy()[: len(gmap)])
+    result, total, _ = runs["stopped"]
+    assert asked == [1, 2, 3, 4]
+    assert result.iters == 4 and total == 4
+    assert len(result.loss_history) == len(result.l1_history) == len(result.depth_l1_history) == 4
+    assert np.all(np.isfinite(result.l1_history))
+    # the map moved about as far as in a call of 4 iterations (the same views; the learning rates differ,
+    # their cosine schedule planned over 20 iterations instead of 4)
+    short = runs["short"]
+    assert short[0].iters == 4
+    moved_stopped = np.abs(runs["stopped"][2] - _room_map(room, device).means.numpy()[: len(short[2])]).max()
+    moved_short = np.abs(short[2] - _room_map(room, device).means.numpy()[: len(short[2])]).max()
+    assert moved_stopped > 0 and moved_short > 0
+    assert 0.5 < moved_stopped / moved_short < 4.0
+
+    # never asked after the last iteration: a stop that always says yes still runs one iteration
+    gmap = _room_map(room, device)
+    mapper = Mapper(MappingConfig(graph="off"), cam, gmap, device)
+    assert mapper.optimize(kf, slots, 1, stop=lambda done: pytest.fail("asked after the last")).iters == 1
+    assert mapper.optimize(kf, slots, 5, stop=lambda done: True).iters == 1

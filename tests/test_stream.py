@@ -3,6 +3,7 @@ by the test (pyrealsense2's software device; no camera)."""
 
 import importlib.util
 import sys
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,7 +14,7 @@ from rgs_warp.datasets import CallbackSource, DatasetError, open_dataset
 from rgs_warp.datasets.stream import camera_from_intrinsics, frame_from_images
 from rgs_warp.eval import ate
 from rgs_warp.io.trajectory import read_tum_trajectory
-from rgs_warp.run import run
+from rgs_warp.run import Playback, run
 from rgs_warp.types import Camera, Frame
 
 HAS_REALSENSE = importlib.util.find_spec("pyrealsense2") is not None
@@ -218,3 +219,31 @@ def test_realsense_live_camera_configuration():
     assert frame.timestamp == 2.0 and frame.rgb.max() == 1.0
     with pytest.raises(DatasetError, match="no frames for 10 ms"):
         next(frames)
+
+
+def test_playback_hands_frames_no_faster_than_the_camera():
+    """``dataset.playback_fps``: frame k is handed over no earlier than k periods after frame 0."""
+    pb = Playback(fps=100.0)  # a frame every 10 ms
+    t0 = time.perf_counter()
+    for _ in range(6):
+        pb.wait()
+        pb.taken()
+    assert time.perf_counter() - t0 >= 5 * 0.010 - 1e-3
+    assert len(pb.lags) == 6 and min(pb.lags) >= 0.0
+    assert pb.summary()["fps"] == 100.0
+
+
+def test_playback_lag_grows_while_the_slam_falls_behind():
+    """A SLAM taking 15 ms a frame at 200 frames/s (5 ms): frame k is handed over once the SLAM is free
+    (never dropped), so its result comes at least 15 (k + 1) ms after the start, 10 k + 15 ms after its due
+    time; the run did not keep pace."""
+    pb = Playback(fps=200.0)
+    for _ in range(5):
+        pb.wait()
+        time.sleep(0.015)
+        pb.taken()
+    lags = np.array(pb.lags)
+    assert np.all(lags >= 0.010 * np.arange(5) + 0.015 - 1e-3), lags
+    assert np.all(np.diff(lags) > 0), lags
+    s = pb.summary()
+    assert not s["kept_pace"] and s["lag_ms_last"] >= 54.0 and s["lag_ms_max"] == s["lag_ms_last"]

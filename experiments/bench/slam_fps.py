@@ -95,6 +95,9 @@ def plot(name: str, log: list[dict], path: Path, title: str) -> None:
         bottom.plot(frame[window:-window], smooth[window:-window], color="k", label=f"whole frame, mean of {window}")
         smooth_t = np.convolve(np.nan_to_num(tracking), kernel, mode="same")
         bottom.plot(frame[window:-window], smooth_t[window:-window], color="tab:green", label="tracking, mean")
+    lag = np.array([e.get("lag_s", np.nan) for e in log]) * 1e3
+    if np.isfinite(lag).any():  # dataset.playback_fps: how far each frame's result came behind the camera
+        bottom.plot(frame, np.maximum(lag, 0.1), color="tab:purple", lw=0.8, label="lag behind the camera")
     bottom.vlines(keyframes, 0, 3, color="tab:red", lw=0.5, label="keyframes")
     bottom.set_yscale("log")
     bottom.set_ylabel("ms per frame")
@@ -150,6 +153,7 @@ def main(argv=None) -> int:
             "mapping_graph_steps": metrics.get("mapping_graph_steps"),
             "mapping_iterations_per_s": metrics.get("mapping_iterations", 0) / metrics["wall_s"],
             "keyframe_to_map_s": metrics.get("keyframe_to_map_s"),
+            "playback": metrics.get("playback"),  # dataset.playback_fps: the frames' lag behind the camera
             **summarise(log),
         }
         title = f"{name}: {cfg.dataset.width}x{cfg.dataset.height}, {metrics['frames']} frames ({args.commit})"

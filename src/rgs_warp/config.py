@@ -43,6 +43,10 @@ class DatasetConfig:
     max_frames: int | None = None
     downscale: int = 1
     prefetch: int = 2
+    # frames/s at which a run plays a recorded sequence, as a live camera would deliver it: frame i is
+    # handed to the SLAM no earlier than i / playback_fps seconds after frame 0 (never dropped: a frame
+    # the SLAM takes late is taken at once, and its lag is logged); 0: as fast as the SLAM takes them
+    playback_fps: float = 0.0
     # 7-Scenes only: its colour and depth images come from two cameras.  register_depth reprojects each
     # depth image into the colour camera (colour_intrinsics fx, fy, cx, cy; a depth-camera point plus
     # depth_to_colour_m is the colour-camera point) and moves the ground-truth poses (the depth
@@ -325,6 +329,10 @@ class MappingConfig:
     # (0: tracking waits for each keyframe's mapping, as in the synchronous mode, with frame fills and
     # frame_iters still beside it; more: lower latency, a map further behind the camera)
     async_queue: int = 1
+    # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
+    # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
+    # does not wait for it; 0: every keyframe gets `iters`
+    min_iters: int = 0
     # after the last frame (SLAM.finish), this many more iterations over windows of `window` keyframes
     # drawn from every keyframe of the run (host copies keep those the buffer evicted); 0 = off
     final_iters: int = 0
@@ -596,6 +604,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "dataset.height": AT_LEAST_1,
     "dataset.n_frames": AT_LEAST_1,
     "dataset.fps": AT_LEAST_1,
+    "dataset.playback_fps": NON_NEGATIVE,
     "dataset.depth_noise_m": NON_NEGATIVE,
     "dataset.seed": SEED,
     "render.sh_degree": Bound(0, 3),
@@ -672,6 +681,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.frame_iters": NON_NEGATIVE,
     "mapping.final_iters": NON_NEGATIVE,
     "mapping.async_queue": NON_NEGATIVE,
+    "mapping.min_iters": NON_NEGATIVE,
     "mapping.views_per_iter": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,
     "mapping.history": FRACTION,
@@ -744,6 +754,7 @@ ORDERED_KEYS = (
     ("seeding.axial_min_ratio", "seeding.axial_max_ratio", ": the clip of Eq. 13's axial scale"),
     ("seeding.detail_stride", "seeding.depth_stride", ": detail seeds are the finer ones"),
     ("mapping.init_window", "mapping.init_iters", ": each initial frame gets init_iters // init_window iterations"),
+    ("mapping.min_iters", "mapping.iters", ": a keyframe's window mapping may end early, not run longer"),
 )
 # The smallest images the pipeline runs on: mapping's SSIM has an 11x11 window (DSSIMLoss refuses
 # 11 px and less; at 20x11 the office's map stayed empty, 22x12 ran: measured on CPU); tracking
@@ -783,6 +794,11 @@ def check_config(cfg: Config) -> Config:
         a, b = _config_value(cfg, small), _config_value(cfg, large)
         if a > b:
             raise ConfigError(f"{small} ({a!r}) must not exceed {large} ({b!r}){why}")
+    if cfg.mapping.min_iters > 0 and not cfg.mapping.asynchronous:
+        raise ConfigError(
+            f"mapping.min_iters ({cfg.mapping.min_iters}) applies to asynchronous mapping only: "
+            "set mapping.asynchronous=true with it, or leave it at 0"
+        )
     if cfg.dataset.type == "synthetic":
         check_image_size(cfg.dataset.width, cfg.dataset.height, cfg, native=True)
     return cfg

@@ -238,6 +238,7 @@ class Mapper:
         fixed_exposure: Sequence[int] = (),
         pause: Callable[[], None] | None = None,
         history: Sequence[tuple[KeyframeBuffer, int]] = (),
+        stop: Callable[[int], bool] | None = None,
     ) -> MappingResult:
         """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  The exposures (g, b)
         of the window's keyframes are refined with the map (``mapping.lr_exposure``) and written back
@@ -249,7 +250,10 @@ class Mapper:
         fit).  ``pause``: called after every iteration but the last (asynchronous mapping: where
         tracking may take the device).  ``history``: older keyframes as (buffer, slot); each view an
         iteration renders is one of them, drawn at random, with probability ``mapping.history``
-        (their exposures held), so that the window's steps do not undo what earlier windows fitted."""
+        (their exposures held), so that the window's steps do not undo what earlier windows fitted.
+        ``stop``: called with the iterations done after every iteration but the last; True ends the call
+        there (asynchronous mapping keeping pace with the camera: ``mapping.min_iters``), and the result
+        then holds the iterations that ran."""
         dev, gmap = self.device, self.gmap
         window = list(window)
         if not window:
@@ -296,6 +300,9 @@ class Mapper:
                 result.psnr_curve.append((self.total_iters, psnr_db, len(gmap)))
             if self.densifier is not None:
                 self._densify(result)
+            if it + 1 < iters and stop is not None and stop(it + 1):
+                iters = result.iters = it + 1
+                break
             if pause is not None and it + 1 < iters:
                 pause()
 

@@ -331,6 +331,47 @@ def run(cfg: Config, run_dir: Path | None = None, progress: bool = True, source=
         return _run_frames(cfg, ds, slam, run_dir, state, bar, kernels, frames, viewer)
 
 
+class Playback:
+    """A recorded sequence handed to the SLAM as a live camera at ``fps`` would deliver it
+    (``dataset.playback_fps``): ``wait`` before each frame sleeps until that frame is due (the k-th
+    frame since the first at k / fps s after it); ``taken`` after the SLAM returned the frame records
+    how late its result came (lag: 0 while the SLAM keeps pace, growing while it falls behind; no frame
+    is dropped)."""
+
+    def __init__(self, fps: float):
+        self.period = 1.0 / fps
+        self.fps = fps
+        self._t0: float | None = None
+        self._due = 0.0
+        self.lags: list[float] = []
+
+    def wait(self) -> None:
+        now = time.perf_counter()
+        if self._t0 is None:
+            self._t0 = now
+        self._due = self._t0 + len(self.lags) * self.period
+        if self._due > now:
+            time.sleep(self._due - now)
+
+    def taken(self) -> float:
+        lag = max(0.0, time.perf_counter() - self._due)
+        self.lags.append(lag)
+        return lag
+
+    def summary(self) -> dict:
+        """``metrics.json``'s ``playback``: the rate, and the frames' lag (ms) at p50 / p99 / worst / last;
+        ``kept_pace``: the last frame's result came within two frame periods of its frame."""
+        lag = np.array(self.lags) * 1e3 if self.lags else np.zeros(1)
+        return {
+            "fps": self.fps,
+            "lag_ms_p50": float(np.percentile(lag, 50)),
+            "lag_ms_p99": float(np.percentile(lag, 99)),
+            "lag_ms_max": float(lag.max()),
+            "lag_ms_last": float(lag[-1]),
+            "kept_pace": bool(lag[-1] <= 2e3 * self.period),
+        }
+
+
 def _is_stream(ds) -> bool:
     """A frame source without random access (``CallbackSource``, ``RealSenseSource``)."""
     return not hasattr(ds, "__getitem__")
@@ -377,21 +418,27 @@ def _run_frames(
     checkpoints = cfg.checkpoint_every if kept is None else 0  # a stream cannot be read again to resume
     writer = CheckpointWriter(run_dir, warn=bar.write)
     frames = iter(frames)
+    playback = Playback(cfg.dataset.playback_fps) if cfg.dataset.playback_fps > 0 else None
     try:
         while True:
             t_wait = time.perf_counter()
             frame = next(frames, None)
+            if frame is not None and playback is not None:
+                playback.wait()  # the camera has not delivered the frame yet
             state.input_wait_s += time.perf_counter() - t_wait
             if frame is None:
                 break
             waiting = slam.bootstrap is not None  # monocular: the bootstrap has not built the map yet
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
+            lag = None if playback is None else playback.taken()
             state.gt_poses.append(frame.pose_gt)
             state.next_frame = result.index + 1
             scored_later = result.keyframe or result.index % cfg.eval.every == 0 or slam.bootstrap is not None
             if kept is not None and scored_later:
                 kept.keep(result.index, frame)
             entry = _log_entry(cfg, slam, result, state)
+            if lag is not None:
+                entry["lag_s"] = round(lag, 4)
             if waiting and slam.bootstrap is None and slam.bootstrap_fallback:  # said at once, not after the run
                 bar.write(f"warning: {slam.bootstrap_fallback}", file=sys.stderr)
             if viewer is not None:
@@ -468,6 +515,7 @@ def _run_frames(
             state.exposures,
             loop_s=loop,
             save=save,
+            playback=None if playback is None else playback.summary(),
         )
     except OSError as e:
         if isinstance(e, SaveError):
@@ -792,6 +840,7 @@ def evaluate_run(
     exposures: list | None = None,
     loop_s: dict | None = None,
     save: FinalSave | None = None,
+    playback: dict | None = None,
 ) -> dict:
     """Metrics of a finished run (supplement §3) written with ``write_report``; ``tracking``: the
     section of ``tracking_section``; ``kernels``: ``KernelLoads.summary()`` (the seconds the run spent
@@ -799,7 +848,8 @@ def evaluate_run(
     ``exposures``: each frame's tracked (gain, bias) (``RunState.exposures``), for the scores at the
     tracked exposure; ``loop_s``: more seconds for ``time_s`` (the frame loop's waits); ``save``: the
     run's final save, written meanwhile: waited for (its ``SaveError`` raised) before the report, its
-    seconds ``time_s.save_s``."""
+    seconds ``time_s.save_s``; ``playback``: ``Playback.summary()`` of a run played at
+    ``dataset.playback_fps``."""
     _, est = slam.trajectory()
     n = len(est)
     metrics: dict = {
@@ -826,6 +876,8 @@ def evaluate_run(
     # mapping steps run eagerly, captured and replayed (mapping.graph), replays that overflowed
     metrics["mapping_graph_steps"] = dict(slam.mapper.graph_counts)
     metrics["mapping"] = "asynchronous" if cfg.mapping.asynchronous else "synchronous"
+    if playback is not None:
+        metrics["playback"] = playback
     if slam.keyframe_latency_s:  # asynchronous: from a keyframe's tracking to its map published
         lat = np.array(slam.keyframe_latency_s)
         metrics["keyframe_to_map_s"] = {

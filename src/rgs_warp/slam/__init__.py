@@ -323,15 +323,33 @@ class SLAM:
         self.stats["seeding_s"] += time.perf_counter() - t1
 
     def _refine_window(self, result: FrameResult) -> None:
-        """``mapping.frame_iters`` iterations over the current window, after a frame that is no keyframe."""
+        """``mapping.frame_iters`` iterations over the current window, after a frame that is no keyframe
+        (asynchronous: fewer if a keyframe comes meanwhile)."""
         t1 = time.perf_counter()
         window = self.keyframes.slots()[-self.cfg.mapping.window :]
         iters, held = self.cfg.mapping.frame_iters, self._held_exposures(window)
         result.mapping = self.mapper.optimize(
-            self.keyframes, window, iters, fixed_exposure=held, pause=self._pause, history=self._older(window)
+            self.keyframes,
+            window,
+            iters,
+            fixed_exposure=held,
+            pause=self._pause,
+            history=self._older(window),
+            stop=self._keyframe_waits,
         )
         self.stats["mapping_s"] += time.perf_counter() - t1
         self._publish()
+
+    def _keyframe_waits(self, done: int) -> bool:
+        """Whether a refinement between keyframes (``mapping.frame_iters``) ends after ``done`` iterations:
+        with asynchronous mapping, as soon as a keyframe waits for the worker (it uses idle time only)."""
+        return self.worker is not None and self.worker.queued("keyframe") > 0
+
+    def _next_keyframe_waits(self, done: int) -> bool:
+        """Whether a keyframe's window mapping ends after ``done`` iterations (``mapping.min_iters``):
+        with asynchronous mapping, once it had that many and the next keyframe waits for the worker."""
+        n = self.cfg.mapping.min_iters
+        return self.worker is not None and 0 < n <= done and self.worker.queued("keyframe") > 1
 
     def _pause(self) -> None:
         """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
@@ -398,7 +416,14 @@ class SLAM:
         psnr_every = cfg.eval.convergence_every if init else 0
         held = self._held_exposures(window)
         result.mapping = self.mapper.optimize(
-            kf, window, iters, psnr_every, held, pause=self._pause, history=self._older(window)
+            kf,
+            window,
+            iters,
+            psnr_every,
+            held,
+            pause=self._pause,
+            history=self._older(window),
+            stop=None if init else self._next_keyframe_waits,
         )
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
