@@ -157,6 +157,17 @@ def test_back_pressure_waits_for_the_worker():
     assert worker.queued("keyframe") == 0
 
 
+def test_drain_with_hurry_is_seen_by_the_jobs_it_waits_for():
+    worker, seen = MappingWorker(DeviceTurns()), []
+    worker.submit("keyframe", lambda: (worker.hurry.wait(5.0), seen.append(worker.hurry.is_set())))
+    worker.submit("keyframe", lambda: seen.append(worker.hurry.is_set()))
+    worker.drain(hurry=True)
+    assert seen == [True, True] and not worker.hurry.is_set()
+    worker.submit("keyframe", lambda: seen.append(worker.hurry.is_set()))
+    worker.drain()
+    assert seen == [True, True, False]
+
+
 @pytest.mark.slow
 def test_asynchronous_run_is_valid(tmp_path, device):
     """The run of ``test_slam.test_small_run_end_to_end`` with the keyframe work and 2 iterations per
@@ -216,8 +227,9 @@ def test_asynchronous_library_use_with_device_frames(device):
 def test_keyframe_mapping_keeps_pace_with_min_iters(device):
     """``mapping.min_iters``: with a keyframe at every frame (IoU threshold 1, no motion bound), keyframes
     come faster than 30 mapping iterations each can run; a window's mapping then ends after min_iters
-    once the next keyframe waits (on the CPU: 3, 3, 3, 3, 30), where without it every keyframe gets all
-    30 (and tracking waits); the last keyframe, with none after it, gets all of them either way."""
+    once the next keyframe waits (on the CPU: 3, 3, 3, 3, 3), where without it every keyframe gets all
+    30 (and tracking waits).  The last keyframe, with none after it, ends at min_iters too because a
+    checkpoint waits for it (``snapshot(hurry=True)``), but gets all 30 without min_iters."""
     from rgs_warp import SLAM, open_dataset
 
     argv = [
@@ -236,6 +248,7 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
         ds = open_dataset(cfg, device=device)
         slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
         results = [slam.process(f.rgb, f.depth, f.timestamp) for f in ds]
+        slam.snapshot(hurry=True)  # a checkpoint: the last keyframe's mapping ends at min_iters too
         slam.finish()
         later = [r for r in results[cfg.mapping.init_window :] if r.keyframe]
         assert len(later) >= 4
@@ -244,4 +257,4 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
         gt = np.array([f.pose_gt for f in ds])
         assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
     assert all(n == 30 for n in done[0]), done
-    assert all(n >= 3 for n in done[3]) and min(done[3]) < 30 and done[3][-1] == 30, done
+    assert all(n >= 3 for n in done[3]) and min(done[3]) < 30 and done[3][-1] < 30, done

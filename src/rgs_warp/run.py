@@ -643,7 +643,7 @@ class CheckpointWriter:
 
     def write(self, slam: SLAM, state: RunState) -> None:
         self.close()
-        snapshot = slam.snapshot(state=True)
+        snapshot = slam.snapshot(state=True, hurry=True)  # live: the camera does not wait for full windows
         run_state = json.dumps(state.to_json(), default=_plain)
         self._thread = threading.Thread(
             target=self._write, args=(snapshot, run_state, state.next_frame), name="rgs-checkpoint", daemon=False

@@ -342,14 +342,17 @@ class SLAM:
 
     def _keyframe_waits(self, done: int) -> bool:
         """Whether a refinement between keyframes (``mapping.frame_iters``) ends after ``done`` iterations:
-        with asynchronous mapping, as soon as a keyframe waits for the worker (it uses idle time only)."""
-        return self.worker is not None and self.worker.queued("keyframe") > 0
+        with asynchronous mapping, as soon as a keyframe or a checkpoint waits for the worker (it uses
+        idle time only)."""
+        w = self.worker
+        return w is not None and (w.queued("keyframe") > 0 or w.hurry.is_set())
 
     def _next_keyframe_waits(self, done: int) -> bool:
         """Whether a keyframe's window mapping ends after ``done`` iterations (``mapping.min_iters``):
-        with asynchronous mapping, once it had that many and the next keyframe waits for the worker."""
-        n = self.cfg.mapping.min_iters
-        return self.worker is not None and 0 < n <= done and self.worker.queued("keyframe") > 1
+        with asynchronous mapping, once it had that many and the next keyframe, or a checkpoint
+        (``snapshot(hurry=True)``), waits for the worker."""
+        n, w = self.cfg.mapping.min_iters, self.worker
+        return w is not None and 0 < n <= done and (w.queued("keyframe") > 1 or w.hurry.is_set())
 
     def _pause(self) -> None:
         """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
@@ -601,11 +604,12 @@ class SLAM:
             with self.publisher.read() as published:
                 return whole(self._tracking_renderer, published)
 
-    def wait_for_mapping(self, check: bool = True) -> None:
+    def wait_for_mapping(self, check: bool = True, hurry: bool = False) -> None:
         """Return when the mapping worker has done every job queued so far (at once without one);
-        with ``check``, raises a job's exception."""
+        with ``check``, raises a job's exception; with ``hurry``, the keyframes' window mapping ends at
+        ``mapping.min_iters`` (when set) instead of ``mapping.iters``, as when the next keyframe waits."""
         if self.worker is not None:
-            self.worker.drain(check)
+            self.worker.drain(check, hurry)
 
     def _archive(self, slot: int) -> None:
         if self.archive is not None:
@@ -635,11 +639,12 @@ class SLAM:
         worker first (a worker that failed does not stop the save: what was tracked is kept)."""
         return self.snapshot(state).write(directory)
 
-    def snapshot(self, state: bool = False) -> SlamSnapshot:
+    def snapshot(self, state: bool = False, hurry: bool = False) -> SlamSnapshot:
         """What ``save(directory, state)`` writes, copied into host memory now (after waiting for the
-        mapping worker): its ``write(directory)`` does not read the SLAM, so it can run in another
-        thread while this SLAM goes on (a run's checkpoints and final save)."""
-        self.wait_for_mapping(check=False)
+        mapping worker, ``wait_for_mapping(hurry=hurry)``): its ``write(directory)`` does not read the
+        SLAM, so it can run in another thread while this SLAM goes on (a run's checkpoints, which
+        hurry, and final save)."""
+        self.wait_for_mapping(check=False, hurry=hurry)
         return snapshot_slam(self, state)
 
     @classmethod

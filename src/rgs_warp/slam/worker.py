@@ -155,6 +155,9 @@ class MappingWorker:
         self._cv = threading.Condition()
         self._queued: dict[str, int] = {}
         self._error: BaseException | None = None
+        # set while a caller waits in ``drain(hurry=True)``: jobs that can end early do (SLAM: at
+        # ``mapping.min_iters``), since the caller waits for them (a run's checkpoint)
+        self.hurry = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -175,9 +178,15 @@ class MappingWorker:
             self._cv.wait_for(lambda: self._queued.get(kind, 0) < n or self._error is not None)
         self.check()
 
-    def drain(self, check: bool = True) -> None:
-        """Wait until every submitted job has run; with ``check``, raise the first job's exception."""
-        self._jobs.join()
+    def drain(self, check: bool = True, hurry: bool = False) -> None:
+        """Wait until every submitted job has run; with ``check``, raise the first job's exception; with
+        ``hurry``, ``self.hurry`` is set meanwhile."""
+        if hurry:
+            self.hurry.set()
+        try:
+            self._jobs.join()
+        finally:
+            self.hurry.clear()
         if check:
             self.check()
 
