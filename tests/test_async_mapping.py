@@ -173,12 +173,14 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     """The run of ``test_slam.test_small_run_end_to_end`` with the keyframe work and 2 iterations per
     frame in the worker, played at 1000 frames/s (``dataset.playback_fps``): a full run folder, every
     frame tracked, a map, metrics within the bounds of the synchronous run's test (its CPU numbers:
-    4.4 cm, 16.8 dB), keyframe-to-map latencies and every frame's lag behind the playback."""
+    4.4 cm, 16.8 dB), keyframe-to-map latencies, every frame's lag behind the playback, and no
+    checkpoint although one is asked at every keyframe (a live stream has none)."""
     argv = [
         *OVERRIDES,
         "mapping.asynchronous=true",
         "mapping.frame_iters=2",
         "dataset.playback_fps=1000",
+        "checkpoint_every=1",
         f"device={device}",
     ]
     cfg = load_config([*argv, f"output_dir={tmp_path}", "run_name=async"])
@@ -195,6 +197,7 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert len(lags) == 20 and min(lags) >= 0.0
     assert metrics["playback"]["fps"] == 1000.0
     assert metrics["playback"]["lag_ms_max"] == pytest.approx(1e3 * max(lags), abs=0.1)
+    assert metrics["time_s"]["checkpoints_s"] == 0.0  # played as a live stream: no checkpoint at any keyframe
 
 
 @pytest.mark.slow

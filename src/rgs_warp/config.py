@@ -45,7 +45,8 @@ class DatasetConfig:
     prefetch: int = 2
     # frames/s at which a run plays a recorded sequence, as a live camera would deliver it: frame i is
     # handed to the SLAM no earlier than i / playback_fps seconds after frame 0 (never dropped: a frame
-    # the SLAM takes late is taken at once, and its lag is logged); 0: as fast as the SLAM takes them
+    # the SLAM takes late is taken at once, and its lag is logged; no checkpoints, as for a live
+    # stream); 0: as fast as the SLAM takes them
     playback_fps: float = 0.0
     # 7-Scenes only: its colour and depth images come from two cameras.  register_depth reprojects each
     # depth image into the colour camera (colour_intrinsics fx, fy, cx, cy; a depth-camera point plus
