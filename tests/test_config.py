@@ -187,3 +187,16 @@ def test_cli_applies_the_cpu_sized_run_and_says_so(argv, device, sized, monkeypa
         assert "CPU-sized" in err and "cpu_sized=false" in err
     else:
         assert width == (200 if argv else 240) and "CPU-sized" not in err
+
+
+def test_timing_groups():
+    """``timing=live``: asynchronous mapping that keeps pace with the camera (keys override it);
+    ``timing=offline``, the default, leaves the synchronous mode."""
+    live = load_config(["timing=live", "mapping.init_iters=700"])
+    assert live.mapping.asynchronous and live.mapping.min_iters == 15 and live.mapping.init_iters == 700
+    assert live.mapping.iters == load_config([]).mapping.iters
+    assert load_config([]) == load_config(["timing=offline"])
+    assert not load_config([]).mapping.asynchronous
+    assert "timing: live, offline" in help_text()
+    with pytest.raises(ConfigError, match="applies to asynchronous mapping only"):
+        load_config(["timing=live", "mapping.asynchronous=false"])

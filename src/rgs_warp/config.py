@@ -24,8 +24,8 @@ from rgs_warp.io.atomic import write_text_atomic
 CONFIG_DIR = Path(__file__).parent / "configs"
 # Groups whose YAML fills one section of the config; ``method`` files are merged at the top level
 # because a method sets values in several stages at once.
-GROUPS = {"dataset": "dataset", "method": None}
-DEFAULTS = {"dataset": "synthetic/room0", "method": "rgs"}
+GROUPS = {"dataset": "dataset", "method": None, "timing": None}
+DEFAULTS = {"dataset": "synthetic/room0", "method": "rgs", "timing": "offline"}
 
 
 class ConfigError(ValueError):
