@@ -157,54 +157,6 @@ def test_back_pressure_waits_for_the_worker():
     assert worker.queued("keyframe") == 0
 
 
-def test_idle_work_runs_between_jobs_and_stops_when_held():
-    """``MappingWorker(idle=...)``: idle work runs whenever no job waits and returns once one comes
-    (the job then runs, in order); ``hold_idle`` returns only when the idle work has stopped, and none
-    starts again until ``allow_idle``."""
-    calls, order = [], []
-    worker = None
-
-    def idle():
-        if worker is None:  # the thread starts before the constructor returns
-            return False
-        calls.append(time.perf_counter())
-        while worker.pending() == 0 and not worker.idle_held:  # one "iteration" at a time
-            time.sleep(0.001)
-        return True
-
-    worker = MappingWorker(DeviceTurns(), idle=idle)
-    deadline = time.perf_counter() + 5.0
-    while not calls and time.perf_counter() < deadline:
-        time.sleep(0.001)
-    assert calls, "the idle work never ran"
-    worker.submit("keyframe", lambda: order.append(1))
-    worker.submit("keyframe", lambda: order.append(2))
-    worker.drain()
-    assert order == [1, 2]
-    worker.hold_idle()
-    n = len(calls)
-    time.sleep(0.05)
-    assert len(calls) == n  # held: no call started
-    worker.allow_idle()
-    deadline = time.perf_counter() + 5.0
-    while len(calls) == n and time.perf_counter() < deadline:
-        time.sleep(0.001)
-    assert len(calls) > n
-    worker.hold_idle()
-
-
-def test_a_failing_idle_work_is_raised_in_the_callers_thread():
-    def idle():
-        raise ValueError("idle broke")
-
-    worker = MappingWorker(DeviceTurns(), idle=idle)
-    deadline = time.perf_counter() + 5.0
-    while worker._error is None and time.perf_counter() < deadline:
-        time.sleep(0.001)
-    with pytest.raises(RuntimeError, match="idle broke"):
-        worker.check()
-
-
 def test_drain_with_hurry_is_seen_by_the_jobs_it_waits_for():
     worker, seen = MappingWorker(DeviceTurns()), []
     worker.submit("keyframe", lambda: (worker.hurry.wait(5.0), seen.append(worker.hurry.is_set())))
@@ -251,12 +203,10 @@ def test_asynchronous_run_is_valid(tmp_path, device):
 @pytest.mark.slow
 def test_asynchronous_library_use_with_device_frames(device):
     """``SLAM.track`` with frames as ``wp.array``s that the caller overwrites after each call: the
-    queued keyframe jobs own copies, so the map is built from the frames as they were; with idle
-    refinement (``mapping.idle_iters``), which ``finish`` stops."""
+    queued keyframe jobs own copies, so the map is built from the frames as they were."""
     from rgs_warp import SLAM, open_dataset
 
-    argv = [*OVERRIDES, "dataset.max_frames=12", "mapping.asynchronous=true", "mapping.idle_iters=2"]
-    cfg = load_config([*argv, f"device={device}"])
+    cfg = load_config([*OVERRIDES, "dataset.max_frames=12", "mapping.asynchronous=true", f"device={device}"])
     ds = open_dataset(cfg, device=device)
     slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
     rgb = wp.zeros((90, 160), dtype=wp.vec3, device=device)
@@ -274,12 +224,6 @@ def test_asynchronous_library_use_with_device_frames(device):
     assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
     res = slam.render(poses[-1])
     assert float(res.color.numpy().mean()) > 0.05  # the map renders colour, not the zeroed buffers
-    # the worker refined the window while it had no job (mapping.idle_iters), and stopped for finish:
-    # the map stays as it was while the caller reads it
-    assert slam.stats["idle_iterations"] > 0
-    means = slam.map.means.numpy()[: len(slam.map)].copy()
-    time.sleep(0.2)
-    assert np.array_equal(slam.map.means.numpy()[: len(slam.map)], means)
 
 
 @pytest.mark.slow

@@ -75,7 +75,6 @@ def test_group_option_replaces_section_and_keys_apply_after():
         (["mapping.min_iters=20"], r"mapping.min_iters \(20\) applies to asynchronous mapping only"),
         (["mapping.asynchronous=true", "mapping.min_iters=200"], r"mapping.min_iters \(200\) must not exceed"),
         (["dataset.playback_fps=-30"], r"dataset.playback_fps: -30.0 is out of range"),
-        (["mapping.idle_iters=5"], r"mapping.idle_iters \(5\) applies to asynchronous mapping only"),
     ],
 )
 def test_errors(args, message):

@@ -150,7 +150,6 @@ def main(argv=None) -> int:
             "time_s": metrics.get("time_s"),
             "mapping": metrics.get("mapping"),
             "mapping_iterations": metrics.get("mapping_iterations"),
-            "mapping_idle_iterations": metrics.get("mapping_idle_iterations"),
             "mapping_graph_steps": metrics.get("mapping_graph_steps"),
             "mapping_iterations_per_s": metrics.get("mapping_iterations", 0) / metrics["wall_s"],
             "keyframe_to_map_s": metrics.get("keyframe_to_map_s"),

@@ -334,10 +334,6 @@ class MappingConfig:
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
     # does not wait for it; 0: every keyframe gets `iters`
     min_iters: int = 0
-    # asynchronous: whenever the worker has no job (the camera is slower than the system), it refines the
-    # current window in calls of this many iterations (with the history's views), each ended as soon as a
-    # job comes; the map improves between keyframes with time that would idle; 0 = off
-    idle_iters: int = 0
     # after the last frame (SLAM.finish), this many more iterations over windows of `window` keyframes
     # drawn from every keyframe of the run (host copies keep those the buffer evicted); 0 = off
     final_iters: int = 0
@@ -687,7 +683,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.final_iters": NON_NEGATIVE,
     "mapping.async_queue": NON_NEGATIVE,
     "mapping.min_iters": NON_NEGATIVE,
-    "mapping.idle_iters": NON_NEGATIVE,
     "mapping.views_per_iter": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,
     "mapping.history": FRACTION,
@@ -800,13 +795,11 @@ def check_config(cfg: Config) -> Config:
         a, b = _config_value(cfg, small), _config_value(cfg, large)
         if a > b:
             raise ConfigError(f"{small} ({a!r}) must not exceed {large} ({b!r}){why}")
-    for key in ("min_iters", "idle_iters"):
-        value = getattr(cfg.mapping, key)
-        if value > 0 and not cfg.mapping.asynchronous:
-            raise ConfigError(
-                f"mapping.{key} ({value}) applies to asynchronous mapping only: "
-                "set mapping.asynchronous=true with it, or leave it at 0"
-            )
+    if cfg.mapping.min_iters > 0 and not cfg.mapping.asynchronous:
+        raise ConfigError(
+            f"mapping.min_iters ({cfg.mapping.min_iters}) applies to asynchronous mapping only: "
+            "set mapping.asynchronous=true with it, or leave it at 0"
+        )
     if cfg.dataset.type == "synthetic":
         check_image_size(cfg.dataset.width, cfg.dataset.height, cfg, native=True)
     return cfg

@@ -873,7 +873,6 @@ def evaluate_run(
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
     metrics["mapping_iterations"] = slam.mapper.total_iters
-    metrics["mapping_idle_iterations"] = slam.stats.get("idle_iterations", 0)  # of those: mapping.idle_iters'
     # renders of the mapping renderer (mapping, seeding) found to have dropped intersections
     metrics["mapping_renders_overflowed"] = slam.renderer.overflowed_renders
     # mapping steps run eagerly, captured and replayed (mapping.graph), replays that overflowed

@@ -143,14 +143,7 @@ class SLAM:
         self.poses: list[np.ndarray] = []  # camera-to-world of every processed frame
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
-        self.stats = {
-            "tracking_s": 0.0,
-            "mapping_s": 0.0,
-            "seeding_s": 0.0,
-            "maintenance_s": 0.0,
-            "frames": 0,
-            "idle_iterations": 0,
-        }
+        self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
@@ -164,8 +157,7 @@ class SLAM:
         if cfg.mapping.asynchronous:
             self.turns = DeviceTurns()
             self.publisher = MapPublisher(cfg.render.sh_degree, dev)
-            idle = self._refine_idle if cfg.mapping.idle_iters > 0 else None
-            self.worker = MappingWorker(self.turns, idle=idle)
+            self.worker = MappingWorker(self.turns)
 
     # ---- per frame -----------------------------------------------------------------------------
     def track(self, rgb, depth=None, timestamp=None, T_init_WC=None, T_WC=None) -> np.ndarray:
@@ -206,7 +198,6 @@ class SLAM:
         if self.worker is None:
             return self._process(rgb, depth, timestamp, T_init_WC, T_WC, self.map)
         self.worker.check()
-        self.worker.allow_idle()  # held while the caller waited for the worker (wait_for_mapping)
         t0 = time.perf_counter()
         with self.turns.tracking():
             if self.publisher.version == 0 and len(self.map):  # a loaded or resumed map
@@ -362,34 +353,6 @@ class SLAM:
         (``snapshot(hurry=True)``), waits for the worker."""
         n, w = self.cfg.mapping.min_iters, self.worker
         return w is not None and 0 < n <= done and (w.queued("keyframe") > 1 or w.hurry.is_set())
-
-    def _refine_idle(self) -> bool:
-        """``mapping.idle_iters`` iterations over the current window, run by the asynchronous worker
-        whenever it has no job, ended when one comes (``_idle_ends``); whether it ran (not before the
-        initial window is mapped)."""
-        if len(self.poses) < self._init_window_end or not len(self.keyframes) or not len(self.map):
-            return False
-        t1 = time.perf_counter()
-        window = self.keyframes.slots()[-self.cfg.mapping.window :]
-        result = self.mapper.optimize(
-            self.keyframes,
-            window,
-            self.cfg.mapping.idle_iters,
-            fixed_exposure=self._held_exposures(window),
-            pause=self._pause,
-            history=self._older(window),
-            stop=self._idle_ends,
-        )
-        self.stats["mapping_s"] += time.perf_counter() - t1
-        self.stats["idle_iterations"] = (
-            self.stats.get("idle_iterations", 0) + result.iters
-        )  # (a resumed run's may lack it)
-        self._publish()
-        return True
-
-    def _idle_ends(self, done: int) -> bool:
-        w = self.worker
-        return w.pending() > 0 or w.idle_held
 
     def _pause(self) -> None:
         """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
@@ -642,12 +605,10 @@ class SLAM:
                 return whole(self._tracking_renderer, published)
 
     def wait_for_mapping(self, check: bool = True, hurry: bool = False) -> None:
-        """Return when the mapping worker has done every job queued so far (at once without one) and
-        its idle refinement (``mapping.idle_iters``) has stopped, until the next frame; with ``check``,
-        raises a job's exception; with ``hurry``, the keyframes' window mapping ends at
+        """Return when the mapping worker has done every job queued so far (at once without one);
+        with ``check``, raises a job's exception; with ``hurry``, the keyframes' window mapping ends at
         ``mapping.min_iters`` (when set) instead of ``mapping.iters``, as when the next keyframe waits."""
         if self.worker is not None:
-            self.worker.hold_idle()
             self.worker.drain(check, hurry)
 
     def _archive(self, slot: int) -> None:

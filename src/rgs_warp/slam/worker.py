@@ -16,8 +16,7 @@ Three parts, each usable alone:
   number that is odd while it is written; a reader that finds it odd, or changed when it is done,
   has read a map being written (``TornMapError``): the check that the tests make fail on a
   deliberately unsynchronised publisher.
-* ``MappingWorker``: the thread and its queue of jobs, run in order, and optional idle work run
-  whenever no job waits (SLAM: ``mapping.idle_iters``).  An exception in a job or the idle work stops
+* ``MappingWorker``: the thread and its queue of jobs, run in order.  An exception in a job stops
   the worker and is raised in the caller's thread at its next call (``check``, ``submit``,
   ``drain``): nothing fails silently.
 """
@@ -30,9 +29,6 @@ from collections.abc import Callable
 from contextlib import contextmanager
 
 from rgs_warp.types import GaussianMap
-
-# seconds the worker waits for a job before it asks its idle work again, when that had nothing to do
-IDLE_POLL_S = 0.005
 
 
 class TornMapError(RuntimeError):
@@ -153,15 +149,8 @@ class MappingWorker:
     carry a kind ("keyframe", "fill", "refine"); ``queued(kind)`` counts those not finished, and
     ``wait_until_fewer(kind, n)`` is the caller's back-pressure."""
 
-    def __init__(self, turns: DeviceTurns, name: str = "rgs_warp-mapping", idle: Callable[[], bool] | None = None):
+    def __init__(self, turns: DeviceTurns, name: str = "rgs_warp-mapping"):
         self.turns = turns
-        # idle work: called (holding the device's mapping turn) whenever no job waits, until it returns
-        # False (nothing to do: the worker then polls for jobs); a job that comes is the idle work's cue
-        # to return (``pending``), and ``hold_idle`` stops it until ``allow_idle``
-        self.idle = idle
-        self._idle_allowed = threading.Event()
-        self._idle_allowed.set()
-        self._idle_lock = threading.Lock()
         self._jobs: queue.Queue = queue.Queue()
         self._cv = threading.Condition()
         self._queued: dict[str, int] = {}
@@ -177,26 +166,6 @@ class MappingWorker:
         with self._cv:
             self._queued[kind] = self._queued.get(kind, 0) + 1
         self._jobs.put((kind, job))
-
-    def pending(self) -> int:
-        """Jobs of every kind submitted and not finished."""
-        with self._cv:
-            return sum(self._queued.values())
-
-    @property
-    def idle_held(self) -> bool:
-        """Whether ``hold_idle`` stopped the idle work (until ``allow_idle``)."""
-        return not self._idle_allowed.is_set()
-
-    def hold_idle(self) -> None:
-        """Stop the idle work: no call starts, and a running one has returned when this returns (it is
-        expected to return soon after ``idle_held``).  Not from a thread that holds the device's turn."""
-        self._idle_allowed.clear()
-        with self._idle_lock:
-            pass
-
-    def allow_idle(self) -> None:
-        self._idle_allowed.set()
 
     def queued(self, kind: str) -> int:
         """Jobs of ``kind`` submitted and not finished."""
@@ -227,18 +196,7 @@ class MappingWorker:
 
     def _run(self) -> None:
         while True:
-            if self.idle is None:
-                kind, job = self._jobs.get()
-            else:
-                try:
-                    kind, job = self._jobs.get_nowait()
-                except queue.Empty:
-                    if self._run_idle():
-                        continue
-                    try:  # nothing to do: wait a little for a job, then ask the idle work again
-                        kind, job = self._jobs.get(timeout=IDLE_POLL_S)
-                    except queue.Empty:
-                        continue
+            kind, job = self._jobs.get()
             try:
                 if self._error is None:  # after a failure the rest are dropped (drain still returns)
                     with self.turns.mapping():
@@ -250,15 +208,3 @@ class MappingWorker:
                     self._queued[kind] -= 1
                     self._cv.notify_all()
                 self._jobs.task_done()
-
-    def _run_idle(self) -> bool:
-        """One call of the idle work, if allowed and nothing failed; whether it did any work."""
-        with self._idle_lock:
-            if self._error is not None or not self._idle_allowed.is_set():
-                return False
-            try:
-                with self.turns.mapping():
-                    return bool(self.idle())
-            except BaseException as e:  # noqa: BLE001 - raised again in the caller's thread
-                self._error = e
-                return False
