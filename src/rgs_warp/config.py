@@ -42,7 +42,7 @@ class DatasetConfig:
     start: int = 0
     max_frames: int | None = None
     downscale: int = 1
-    prefetch: int = 2
+    prefetch: int = 6  # frames read ahead while the SLAM runs, by up to 3 threads (datasets/base.py)
     # frames/s at which a run plays a recorded sequence, as a live camera would deliver it: frame i is
     # handed to the SLAM no earlier than i / playback_fps seconds after frame 0 (never dropped: a frame
     # the SLAM takes late is taken at once, and its lag is logged; no checkpoints, as for a live

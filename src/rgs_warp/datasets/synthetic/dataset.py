@@ -75,7 +75,7 @@ class SyntheticDataset(ReplicaDataset):
         start: int = 0,
         max_frames: int | None = None,
         downscale: int = 1,
-        prefetch: int = 2,
+        prefetch: int = 6,
         device: str | None = None,
         cache_root: Path | str | None = None,
         progress: bool = True,
