@@ -455,13 +455,16 @@ def _run_frames(
                 writer.write(slam, state)
                 state.checkpoint_s += time.perf_counter() - t_checkpoint
             elapsed = time.perf_counter() - t_start
-            bar.set_postfix(
+            postfix = dict(
                 fps=f"{(result.index + 1) / elapsed:.2f}",
                 kf=len(slam.keyframe_indices),
                 gaussians=len(slam.map),
                 loss=f"{state.frame_losses[-1]:.4f}" if state.frame_losses else "-",
                 lost=len(state.lost),
             )
+            if lag is not None:  # dataset.playback_fps: how far behind the camera this frame's result came
+                postfix["lag"] = f"{lag:.2f}s"
+            bar.set_postfix(**postfix)
             bar.update(1)
     except BaseException as stop:  # an error, Ctrl-C or SIGTERM: save what was tracked, then stop as asked
         bar.close()
