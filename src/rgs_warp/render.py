@@ -363,7 +363,16 @@ class Renderer:
             wp.launch(
                 emit_intersections,
                 dim=n,
-                inputs=[self._xyod, self._depth_bits, self._radii, self._touched, self._offsets, cam, capacity],
+                inputs=[
+                    self._xyod,
+                    self._depth_bits,
+                    self._conic,
+                    self._radii,
+                    self._touched,
+                    self._offsets,
+                    cam,
+                    capacity,
+                ],
                 outputs=[self._keys, self._ids],
                 device=dev,
                 record_tape=False,

@@ -133,6 +133,51 @@ def tile_rect(mean2d: wp.vec2, radii: wp.vec2i, cam: CameraParams):
 
 
 @wp.func
+def alpha_extent2(opacity: float):
+    """Squared Mahalanobis radius of the ellipse where opacity * G = 1/255 (the compositing's skip rule)."""
+    return 2.0 * wp.log(opacity / ALPHA_MIN)
+
+
+@wp.func
+def tile_reached(mean2d: wp.vec2, conic: wp.vec3, extent2: float, tx: int, ty: int):
+    """Whether the ellipse d^T Q d <= extent2 (d = mean2d - p, Q the conic) reaches the rectangle of pixel
+    centres of tile (tx, ty), [16 tx, 16 tx + 15] x [16 ty, 16 ty + 15].  Its minimum over the (continuous)
+    rectangle: 0 when it holds mean2d, else on an edge, where the quadratic in the free coordinate is least
+    at its clamped stationary point; never above the minimum over the tile's pixels, so a tile with a pixel
+    the compositing would not skip is always reached (and a little slack covers fast-math exp)."""
+    span = float(TILE_SIZE - 1)
+    dx0 = mean2d[0] - (float(tx * TILE_SIZE) + span)
+    dx1 = mean2d[0] - float(tx * TILE_SIZE)
+    dy0 = mean2d[1] - (float(ty * TILE_SIZE) + span)
+    dy1 = mean2d[1] - float(ty * TILE_SIZE)
+    if dx0 <= 0.0 and dx1 >= 0.0 and dy0 <= 0.0 and dy1 >= 0.0:
+        return True
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    best = float(1.0e30)
+    for k in range(2):
+        dx = wp.where(k == 0, dx0, dx1)  # a vertical edge: dy free
+        dy = wp.clamp(-b * dx / c, dy0, dy1)
+        best = wp.min(best, a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+        dy = wp.where(k == 0, dy0, dy1)  # a horizontal edge: dx free
+        dx = wp.clamp(-b * dy / a, dx0, dx1)
+        best = wp.min(best, a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+    return best <= extent2 * 1.001 + 1.0e-3
+
+
+@wp.func
+def tiles_reached(mean2d: wp.vec2, conic: wp.vec3, extent2: float, rect: wp.vec4i):
+    """How many tiles of ``rect`` (``tile_rect``) the ellipse reaches (``tile_reached``)."""
+    n = int(0)
+    for ty in range(rect[2], rect[3]):
+        for tx in range(rect[0], rect[1]):
+            if tile_reached(mean2d, conic, extent2, tx, ty):
+                n += 1
+    return n
+
+
+@wp.func
 def view_direction(mean: wp.vec3, view: wp.mat44):
     """Unnormalised direction from the camera centre C = -W^T t to the mean, and W, t."""
     W = wp.mat33(
@@ -258,15 +303,21 @@ def project_gaussians(
 
     # Axis-aligned half extent of the ellipse where opacity * G = 1/255: outside it the compositing
     # skips the Gaussian anyway, so tile culling drops nothing the dense composite would keep
-    # (3 sigma in 3DGS; here sqrt(2 ln(255 o)) <= 3.33 sigma, exact for the 1/255 rule).
-    extent = wp.sqrt(2.0 * wp.log(opacity / ALPHA_MIN))
+    # (3 sigma in 3DGS; here sqrt(2 ln(255 o)) <= 3.33 sigma, exact for the 1/255 rule).  Of the tiles
+    # that box covers, only those the ellipse itself reaches get the Gaussian (``tile_reached``): an
+    # elongated or tilted one misses the box's corners.
+    extent2 = alpha_extent2(opacity)
+    extent = wp.sqrt(extent2)
     rx = int(wp.ceil(wp.min(extent * wp.sqrt(a), 1.0e6)))
     ry = int(wp.ceil(wp.min(extent * wp.sqrt(c), 1.0e6)))
     mean2d = wp.vec2(cam.fx * X[0] / z + cam.cx, cam.fy * X[1] / z + cam.cy)
     radii = wp.vec2i(rx, ry)
     rect = tile_rect(mean2d, radii, cam)
-    touched = (rect[1] - rect[0]) * (rect[3] - rect[2])
-    if touched <= 0:
+    if (rect[1] - rect[0]) * (rect[3] - rect[2]) <= 0:
+        return
+    conic = wp.vec3(c / det, -b / det, a / det)
+    touched = tiles_reached(mean2d, conic, extent2, rect)
+    if touched == 0:
         return
 
     d = wp.normalize(dir_raw)
@@ -285,7 +336,6 @@ def project_gaussians(
             g_db += coeff[2] * dy
     # 3DGS: the SH value is offset by 0.5 and clamped at 0 (no upper clamp).
     color = wp.vec3(wp.max(raw[0] + 0.5, 0.0), wp.max(raw[1] + 0.5, 0.0), wp.max(raw[2] + 0.5, 0.0))
-    conic = wp.vec3(c / det, -b / det, a / det)
 
     xy_opacity_depth_out[i] = wp.vec4(mean2d[0], mean2d[1], opacity, z)
     depth_out[i] = z
@@ -322,6 +372,7 @@ def emit_intersections(
     # in: projected Gaussians (depth_bits: the float32 depths reinterpreted as int32)
     xy_opacity_depth: wp.array(dtype=wp.vec4),
     depth_bits: wp.array(dtype=wp.int32),
+    conic: wp.array(dtype=wp.vec3),
     radii: wp.array(dtype=wp.vec2i),
     tiles_touched: wp.array(dtype=wp.int32),
     offsets_inclusive: wp.array(dtype=wp.int32),
@@ -340,15 +391,20 @@ def emit_intersections(
     if j >= capacity:
         return
     xyod = xy_opacity_depth[i]
-    rect = tile_rect(wp.vec2(xyod[0], xyod[1]), radii[i], cam)
+    mean2d = wp.vec2(xyod[0], xyod[1])
+    rect = tile_rect(mean2d, radii[i], cam)
+    extent2 = alpha_extent2(xyod[2])
+    con = conic[i]
+    end = j + n  # the tiles the projection counted, with the same test
     # Positive IEEE floats order like their bit patterns, so the low word sorts by depth exactly.
     zbits = wp.int64(depth_bits[i])
     for ty in range(rect[2], rect[3]):
         for tx in range(rect[0], rect[1]):
-            if j < capacity:
-                keys_out[j] = (wp.int64(ty * cam.tiles_x + tx) << wp.int64(32)) | zbits
-                ids_out[j] = wp.int32(i)
-            j += 1
+            if j < end and tile_reached(mean2d, con, extent2, tx, ty):
+                if j < capacity:
+                    keys_out[j] = (wp.int64(ty * cam.tiles_x + tx) << wp.int64(32)) | zbits
+                    ids_out[j] = wp.int32(i)
+                j += 1
 
 
 @wp.kernel
