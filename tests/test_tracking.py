@@ -757,12 +757,13 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
     # replay, replay; 6: replay (kept); 7: the replay overflows, the frame runs eagerly (whose first
     # render sizes the buffers exactly, where the eager tracker's first render dropped intersections:
     # close, not equal).  The widened map does not match the frame: both descend about 0.4 m away from
-    # the truth along nearly the same path (within 1 cm with every tile, 3.0 cm apart with the
+    # the truth along nearly the same path (1.6 cm apart with every tile, 1 cm before session 23's
+    # ellipse-tile culling changed which intersections the eager render dropped; 3.3 cm apart with the
     # checkerboard, whose steps see half the image each and so follow the one dropped render's
-    # difference further; 20 cm with the direct alignment and its 10 steps, whose Gauss-Newton steps
-    # take the difference of the one dropped render further still)
+    # difference further; with the direct alignment and its 10 steps 0 since the culling, 20 cm before:
+    # its Gauss-Newton steps take the difference of a dropped render further still)
     assert graphed.graph_counts == {"eager": 1, "captured": 2, "replayed": 7, "overflowed": 1}
-    assert pose_error(a.T_WC, b.T_WC)[0] < (0.3 if direct_levels else 0.01 if tile_stride == 1 else 0.05)
+    assert pose_error(a.T_WC, b.T_WC)[0] < (0.3 if direct_levels else 0.03 if tile_stride == 1 else 0.05)
 
 
 @pytest.mark.slow
