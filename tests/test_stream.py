@@ -230,6 +230,7 @@ def test_playback_hands_frames_no_faster_than_the_camera():
         pb.taken()
     assert time.perf_counter() - t0 >= 5 * 0.010 - 1e-3
     assert len(pb.lags) == 6 and min(pb.lags) >= 0.0
+    assert 5 * 0.010 - 1e-3 <= pb.slept_s <= time.perf_counter() - t0
     assert pb.summary()["fps"] == 100.0
 
 
@@ -247,3 +248,4 @@ def test_playback_lag_grows_while_the_slam_falls_behind():
     assert np.all(np.diff(lags) > 0), lags
     s = pb.summary()
     assert not s["kept_pace"] and s["lag_ms_last"] >= 54.0 and s["lag_ms_max"] == s["lag_ms_last"]
+    assert s["slept_s"] == 0.0  # every frame was due before the SLAM was free

@@ -2,11 +2,12 @@
 
     python experiments/bench/loader_threads.py [--path REPLICA_SEQUENCE] [--consumer-ms 15] [--repeat 12]
 
-Reads a Replica sequence (default: the shared office0 sample, 1200x680) through the dataset's own frame
-reader, the selection repeated ``--repeat`` times, with a consumer that takes ``--consumer-ms`` per frame
-without holding the GIL (the GPU's work) and a second thread doing Python work (the mapping worker's host
-side), and prints the wall time and the consumer's wait for frames.  Session 23 on a 2-core CPU: 7.3 ms a
-frame waited with one thread (2 ahead), 3.1 with two (4 ahead), 1.3 with three (6 ahead).
+Reads a Replica sequence (default: the shared office0 sample, 1200x680) through the dataset's own
+prefetching iterator (``LOAD_THREADS`` and ``prefetch`` set per case), the selection repeated ``--repeat``
+times, with a consumer that takes ``--consumer-ms`` per frame without holding the GIL (the GPU's work) and
+a second thread doing Python work (the mapping worker's host side), and prints the wall time and the
+consumer's wait for frames.  Session 23 on an otherwise idle 2-core CPU, two runs: 2.9-4.6 ms a frame
+waited with one thread (2 ahead), 0.7-0.8 with two (4 ahead), 1.0-1.3 with three (6 ahead).
 """
 
 from __future__ import annotations
@@ -14,25 +15,10 @@ from __future__ import annotations
 import argparse
 import threading
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 
+import rgs_warp.datasets.base as base
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
-
-
-def frames(ds, threads: int, ahead: int):
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        pending, nxt = deque(), 0
-        while nxt < len(ds) and len(pending) <= ahead:
-            pending.append(pool.submit(ds.__getitem__, nxt))
-            nxt += 1
-        while pending:
-            frame = pending.popleft().result()
-            if nxt < len(ds):
-                pending.append(pool.submit(ds.__getitem__, nxt))
-                nxt += 1
-            yield frame
 
 
 def main(argv=None) -> int:
@@ -54,10 +40,12 @@ def main(argv=None) -> int:
 
     worker = threading.Thread(target=host_work)
     worker.start()
+    shipped = base.LOAD_THREADS
     try:
         for threads, ahead in ((1, 2), (2, 4), (3, 6)):
+            base.LOAD_THREADS, ds.prefetch = threads, ahead  # the dataset's own iterator, so configured
             waited, t0 = 0.0, time.perf_counter()
-            it = frames(ds, threads, ahead)
+            it = iter(ds)
             while True:
                 t = time.perf_counter()
                 frame = next(it, None)
@@ -69,6 +57,7 @@ def main(argv=None) -> int:
             per_frame = waited / len(ds) * 1e3
             print(f"{threads} threads, {ahead} ahead: wall {wall:.2f} s, {per_frame:.1f} ms a frame waited")
     finally:
+        base.LOAD_THREADS = shipped
         stop.set()
         worker.join()
     return 0

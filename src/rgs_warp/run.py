@@ -336,7 +336,8 @@ class Playback:
     (``dataset.playback_fps``): ``wait`` before each frame sleeps until that frame is due (the k-th
     frame since the first at k / fps s after it); ``taken`` after the SLAM returned the frame records
     how late its result came (lag: 0 while the SLAM keeps pace, growing while it falls behind; no frame
-    is dropped)."""
+    is dropped); ``slept_s``: the seconds ``wait`` slept (the run's ``input_wait_s`` is the loader's
+    alone)."""
 
     def __init__(self, fps: float):
         self.period = 1.0 / fps
@@ -344,6 +345,7 @@ class Playback:
         self._t0: float | None = None
         self._due = 0.0
         self.lags: list[float] = []
+        self.slept_s = 0.0
 
     def wait(self) -> None:
         now = time.perf_counter()
@@ -352,6 +354,7 @@ class Playback:
         self._due = self._t0 + len(self.lags) * self.period
         if self._due > now:
             time.sleep(self._due - now)
+            self.slept_s += self._due - now
 
     def taken(self) -> float:
         lag = max(0.0, time.perf_counter() - self._due)
@@ -360,7 +363,7 @@ class Playback:
 
     def summary(self) -> dict:
         """``metrics.json``'s ``playback``: the rate, and the frames' lag (ms) at p50 / p99 / worst / last;
-        ``kept_pace``: the last frame's result came within two frame periods of its frame."""
+        ``kept_pace``: the last frame's result came within two frame periods of its frame; ``slept_s``."""
         lag = np.array(self.lags) * 1e3 if self.lags else np.zeros(1)
         return {
             "fps": self.fps,
@@ -369,6 +372,7 @@ class Playback:
             "lag_ms_max": float(lag.max()),
             "lag_ms_last": float(lag[-1]),
             "kept_pace": bool(lag[-1] <= 2e3 * self.period),
+            "slept_s": self.slept_s,
         }
 
 
@@ -425,11 +429,11 @@ def _run_frames(
         while True:
             t_wait = time.perf_counter()
             frame = next(frames, None)
-            if frame is not None and playback is not None:
-                playback.wait()  # the camera has not delivered the frame yet
             state.input_wait_s += time.perf_counter() - t_wait
             if frame is None:
                 break
+            if playback is not None:
+                playback.wait()  # the camera has not delivered the frame yet
             waiting = slam.bootstrap is not None  # monocular: the bootstrap has not built the map yet
             result = slam.process(frame.rgb, frame.depth if cfg.mode == "rgbd" else None, frame.timestamp)
             lag = None if playback is None else playback.taken()

@@ -25,10 +25,10 @@ class DatasetWarning(UserWarning):
 
 
 # Threads that read frames ahead of the SLAM (``RGBDDataset.__iter__``).  One 1200x680 Replica frame took
-# 23 ms to read on a 2-core CPU; with a consumer at 15 ms a frame and a busy second thread it waited 7.3 ms
-# a frame with one thread (2 ahead), 3.1 with two (4 ahead), 1.3 with three (6 ahead) (session 23,
-# experiments/bench/loader_threads.py).  The live office runs on the H100 waited 2.3-3.1 s of about 11 s
-# for frames with one thread.
+# 23 ms to read on a 2-core CPU; with a consumer at 15 ms a frame and a busy second thread it waited
+# 2.9-4.6 ms a frame with one thread (2 ahead), 0.7-0.8 with two (4 ahead), 1.0-1.3 with three (6 ahead)
+# (session 23, experiments/bench/loader_threads.py; three for the GPU machines' 16 cores, not measured
+# there).  A live office run on the H100 waited 3.1 s of 12.0 s for frames with one thread.
 LOAD_THREADS = 3
 
 
