@@ -81,8 +81,8 @@ def test_window_search_matches_brute_force(device, offset, exclusion, bands, rad
     query[150] = 0.0  # textureless
     kw = {"device": device}
     outs = [wp.zeros(n, dtype=wp.vec2, **kw), wp.zeros(n, dtype=wp.float32, **kw), wp.zeros(n, dtype=wp.float32, **kw)]
-    rgb = wp.zeros((2, 2), dtype=wp.vec3, **kw)  # unused without ZNCC refinement
-    args = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), rgb, wp.array(target, **kw), rgb, stride]
+    grey = wp.zeros((2, 2), dtype=wp.float32, **kw)  # unused without ZNCC refinement
+    args = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), grey, wp.array(target, **kw), grey, stride]
     if bands:
         BandedWindowSearch(n, bands, device)(*args, wp.vec2(*offset), radius, exclusion, [0, 0], outs)
     else:

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from rgs_warp.config import MatchingConfig, TriangulationConfig
+from rgs_warp.config import MAX_PATCH_RADIUS, MatchingConfig, TriangulationConfig
 from rgs_warp.geometry import invert_pose, se3_exp
-from rgs_warp.kernels.matching import NO_MATCH, score_matches
+from rgs_warp.kernels.matching import NO_MATCH, grey_image, refine_zncc, score_matches
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.triangulation import Triangulator
@@ -226,3 +226,97 @@ def test_select_neighbours_by_proximity_and_parallax(device):
     assert [names[s] for s in matcher.select_neighbours(slots["ref"], buf)] == ["ideal", "wide", "tiny"]
     # judged at a scene 8 m away, the 0.7 m baseline gives the 5 deg and comes first
     assert [names[s] for s in matcher.select_neighbours(slots["ref"], buf, scene_depth_m=8.0)][0] == "wide"
+
+
+@wp.kernel
+def _refine_kernel(
+    query_grey: wp.array2d(dtype=wp.float32),
+    q: wp.array(dtype=wp.vec2),
+    target_grey: wp.array2d(dtype=wp.float32),
+    coarse: wp.array(dtype=wp.vec2),
+    refine_radius: int,
+    patch_radius: int,
+    out: wp.array(dtype=wp.vec2),
+):
+    i = wp.tid()
+    out[i] = refine_zncc(query_grey, q[i], target_grey, coarse[i], refine_radius, patch_radius)
+
+
+def _bilinear(img, u, v):
+    """Clamped bilinear sample at (u, v) (pixel centres at integers), as kernels.math.bilinear_corner."""
+    h, w = img.shape
+    u, v = min(max(u, 0.0), w - 1.0), min(max(v, 0.0), h - 1.0)
+    x0, y0 = min(int(u), w - 2), min(int(v), h - 2)
+    fx, fy = u - x0, v - y0
+    top = (1 - fx) * img[y0, x0] + fx * img[y0, x0 + 1]
+    bottom = (1 - fx) * img[y0 + 1, x0] + fx * img[y0 + 1, x0 + 1]
+    return (1 - fy) * top + fy * bottom
+
+
+def _zncc_reference(a_img, q, b_img, t, r):
+    offsets = [(dx, dy) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+    a = np.array([_bilinear(a_img, q[0] + dx, q[1] + dy) for dx, dy in offsets])
+    b = np.array([_bilinear(b_img, t[0] + dx, t[1] + dy) for dx, dy in offsets])
+    n = len(offsets)
+    if a.var() * n < 1e-4 * n or b.var() * n < 1e-4 * n:
+        return NO_MATCH
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def _parabola(sm, s0, sp):
+    c = sm - 2 * s0 + sp
+    return 0.0 if c >= 0 else float(np.clip(0.5 * (sm - sp) / c, -0.5, 0.5))
+
+
+def _refine_reference(a_img, q, b_img, coarse, R, r):
+    """The ZNCC refinement of kernels/matching.py written from its docstring, in float64."""
+    scores = {
+        (dx, dy): _zncc_reference(a_img, q, b_img, (coarse[0] + dx, coarse[1] + dy), r)
+        for dy in range(-R, R + 1)
+        for dx in range(-R, R + 1)
+    }
+    (bx, by), best = max(scores.items(), key=lambda kv: kv[1])  # first of equal scores, row by row
+    if best <= NO_MATCH:
+        return np.array(coarse)
+    z = lambda dx, dy: _zncc_reference(a_img, q, b_img, (coarse[0] + dx, coarse[1] + dy), r)  # noqa: E731
+    off_x = _parabola(z(bx - 1, by), best, z(bx + 1, by)) if abs(bx) < R else 0.0
+    off_y = _parabola(z(bx, by - 1), best, z(bx, by + 1)) if abs(by) < R else 0.0
+    return np.array([coarse[0] + bx + off_x, coarse[1] + by + off_y])
+
+
+@pytest.mark.parametrize("R, r", [(3, 3), (2, 1), (4, MAX_PATCH_RADIUS)])
+def test_zncc_refinement_against_reference(device, R, r):
+    """kernels/matching.py: grey_image and refine_zncc against a float64 NumPy reference on smooth
+    random images, the target the query moved by a known sub-pixel shift: the same best shift and
+    parabola offsets, and the shift recovered; a flat query patch keeps the coarse match."""
+    rng = np.random.default_rng(1)
+    a_rgb = _texture(40, 48, seed=3)
+    shift = np.array([2.3, -1.4])
+    # the target image: the query image resampled at (x - shift), so query point q is at q + shift
+    ys, xs = np.mgrid[0:40, 0:48].astype(np.float32)
+    b_rgb = cv2.remap(a_rgb, xs - np.float32(shift[0]), ys - np.float32(shift[1]), cv2.INTER_CUBIC, cv2.BORDER_REFLECT)
+    b_rgb[:, :8] = 0.5  # a flat band: queries there have no texture
+    a_rgb[:, :8] = 0.5
+    kw = {"device": device}
+    greys = []
+    for img in (a_rgb, b_rgb):
+        g = wp.zeros(img.shape[:2], dtype=wp.float32, **kw)
+        wp.launch(grey_image, dim=g.shape, inputs=[wp.array(img, dtype=wp.vec3, **kw)], outputs=[g], device=device)
+        np.testing.assert_allclose(g.numpy(), img.mean(axis=2), atol=1e-6)
+        greys.append(g)
+    a_grey, b_grey = (g.numpy().astype(np.float64) for g in greys)
+    n = 40
+    q = np.column_stack([rng.uniform(14, 34, n), rng.uniform(12, 28, n)])
+    q[:4, 0] = rng.uniform(1, 4, 4)  # flat query patches
+    coarse = q + shift + rng.uniform(-1.6, 1.6, (n, 2))
+    out = wp.zeros(n, dtype=wp.vec2, **kw)
+    inputs = [greys[0], wp.array(q.astype(np.float32), dtype=wp.vec2, **kw), greys[1]]
+    inputs += [wp.array(coarse.astype(np.float32), dtype=wp.vec2, **kw), R, r]
+    wp.launch(_refine_kernel, dim=n, inputs=inputs, outputs=[out], device=device)
+    got = out.numpy()
+    want = np.array([_refine_reference(a_grey, q[i], b_grey, coarse[i].astype(np.float32), R, r) for i in range(n)])
+    np.testing.assert_allclose(got, want, atol=2e-3)
+    np.testing.assert_allclose(got[:4], coarse[:4], atol=1e-5)  # flat: the coarse match stays
+    if r >= 2:  # a patch wide enough to lock on: the planted shift's pixel, to the parabola's bias
+        err = np.linalg.norm(got[4:] - (q[4:] + shift), axis=1)
+        assert np.median(err) < 0.2 and err.max() < 0.5

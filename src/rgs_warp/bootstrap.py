@@ -44,6 +44,7 @@ from rgs_warp.config import BootstrapConfig, MatchingConfig
 from rgs_warp.features import feature_centres, make_backbone
 from rgs_warp.geometry import invert_pose, skew
 from rgs_warp.kernels.matching import (
+    grey_image,
     sample_descriptors,
     score_matches,
     select_matches,
@@ -71,7 +72,7 @@ class BandedWindowSearch:
         self._best_xy = wp.zeros(queries, dtype=wp.vec2i, **kw)
 
     def __call__(
-        self, query_desc, query_uv, query_rgb, target_desc, target_rgb, stride, offset, radius, exclusion, refine, out
+        self, query_desc, query_uv, query_grey, target_desc, target_grey, stride, offset, radius, exclusion, refine, out
     ) -> None:
         """As ``window_search`` with the same arguments (``refine``: [refine_radius, patch_radius];
         ``out``: [match_uv, sim, second_sim])."""
@@ -89,7 +90,7 @@ class BandedWindowSearch:
         wp.launch(
             window_search_finish,
             dim=n,
-            inputs=[query_desc, query_uv, query_rgb, target_desc, target_rgb, stride, self._best_xy, self._band_sim]
+            inputs=[query_desc, query_uv, query_grey, target_desc, target_grey, stride, self._best_xy, self._band_sim]
             + [exclusion, *refine, sim],
             outputs=[match_uv, second],
             device=d,
@@ -145,6 +146,7 @@ class MonoBootstrap:
         self._ref_uv_host = centres
         kw = {"device": self.device}
         self._rgb = [wp.zeros((camera.height, camera.width), dtype=wp.vec3, **kw) for _ in range(2)]
+        self._grey = [wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw) for _ in range(2)]
         self._desc = [wp.zeros((hf, wf, self.backbone.dim), dtype=wp.float32, **kw) for _ in range(2)]
         self._ref_uv = wp.array(centres.astype(np.float32), dtype=wp.vec2, **kw)
         self._query = wp.zeros((n, self.backbone.dim), dtype=wp.float32, **kw)
@@ -179,6 +181,9 @@ class MonoBootstrap:
             else:
                 buf.assign(np.ascontiguousarray(img, dtype=np.float32))
         rgb0_d, rgbk_d = self._rgb
+        grey0, greyk = self._grey
+        for rgb, grey in zip(self._rgb, self._grey, strict=True):
+            wp.launch(grey_image, dim=grey.shape, inputs=[rgb], outputs=[grey], device=d)
         desc0 = self.backbone.describe(rgb0_d, out=self._desc[0])
         desck = self.backbone.describe(rgbk_d, out=self._desc[1])
         self.last_motion_px = motion = self._global_motion(desc0, desck) if cfg.coarse_step > 0 else np.zeros(2)
@@ -187,7 +192,7 @@ class MonoBootstrap:
         wp.launch(
             window_search,
             dim=n,
-            inputs=[desc0.reshape((n, self.backbone.dim)), self._ref_uv, rgb0_d, desck, rgbk_d, s, fwd_offset]
+            inputs=[desc0.reshape((n, self.backbone.dim)), self._ref_uv, grey0, desck, greyk, s, fwd_offset]
             + [cfg.search_radius, cfg.ratio_exclusion, *refine],
             outputs=[self._fwd_uv, self._fwd_sim, self._fwd_second],
             device=d,
@@ -196,7 +201,7 @@ class MonoBootstrap:
         wp.launch(  # back from k into 0: only its best match matters (exclusion -1: no second best)
             window_search,
             dim=n,
-            inputs=[self._query, self._fwd_uv, rgbk_d, desc0, rgb0_d, s, bwd_offset, cfg.search_radius, -1, *refine],
+            inputs=[self._query, self._fwd_uv, greyk, desc0, grey0, s, bwd_offset, cfg.search_radius, -1, *refine],
             outputs=[self._bwd_uv, self._bwd_sim, self._bwd_second],
             device=d,
         )
@@ -219,9 +224,9 @@ class MonoBootstrap:
         self._coarse_search(
             self._coarse_query,
             self._coarse_uv,
-            self._rgb[0],
+            self._grey[0],
             desck,
-            self._rgb[1],
+            self._grey[1],
             s,
             wp.vec2(0.0, 0.0),
             max(self.grid),

@@ -580,6 +580,10 @@ class Bound:
         return f"in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
 
 
+# The ZNCC refinement's patch radius (matching.patch_radius_px, bootstrap.patch_radius_px): each query
+# keeps its (2r+1)^2 patch in a fixed-size local vector (kernels/matching.py, query_patch)
+MAX_PATCH_RADIUS = 4
+PATCH_RADIUS = Bound(0, MAX_PATCH_RADIUS)
 POSITIVE = Bound(lo=0, lo_open=True)
 NON_NEGATIVE = Bound(lo=0)
 AT_LEAST_1 = Bound(lo=1)
@@ -651,7 +655,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "matching.band": NON_NEGATIVE,
     "matching.max_steps": AT_LEAST_1,
     "matching.refine_radius": NON_NEGATIVE,
-    "matching.patch_radius_px": NON_NEGATIVE,
+    "matching.patch_radius_px": PATCH_RADIUS,
     "matching.w_sim": NON_NEGATIVE,
     "matching.w_fb": NON_NEGATIVE,
     "matching.w_epi": NON_NEGATIVE,
@@ -734,7 +738,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "bootstrap.max_ratio": POSITIVE,
     "bootstrap.max_fb_px": NON_NEGATIVE,
     "bootstrap.refine_radius_px": NON_NEGATIVE,
-    "bootstrap.patch_radius_px": NON_NEGATIVE,
+    "bootstrap.patch_radius_px": PATCH_RADIUS,
     "bootstrap.ransac_iters": AT_LEAST_1,
     "bootstrap.ransac_confidence": Bound(0, 1, lo_open=True, hi_open=True),
     "bootstrap.ransac_threshold_px": POSITIVE,

@@ -28,6 +28,7 @@ from rgs_warp.kernels.matching import (
     aggregate_confidence,
     apply_thinning,
     epipolar_search,
+    grey_image,
     sample_descriptors,
     score_matches,
 )
@@ -98,6 +99,8 @@ class DenseMatcher:
         self._kept_count = wp.zeros(1, dtype=wp.int32, **kw)
         self._P = wp.zeros(m + 1, dtype=mat34d, **kw)
         self._zero_depth = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)  # monocular search
+        self._ref_grey = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)  # the ZNCC refinement's
+        self._nb_grey = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
         self._desc: wp.array | None = None
         self._query = None  # (N, D) backward-search queries, allocated with the descriptors
 
@@ -167,7 +170,8 @@ class DenseMatcher:
         n = hf * wf
         ref_desc_3d = self.describe(ref_slot, buffer)
         ref_desc = ref_desc_3d.reshape((n, self.backbone.dim))
-        ref_rgb = buffer.rgb[ref_slot]
+        ref_grey, nb_grey = self._ref_grey, self._nb_grey
+        wp.launch(grey_image, dim=ref_grey.shape, inputs=[buffer.rgb[ref_slot]], outputs=[ref_grey], device=d)
         cam = self.camera
         K = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
         depth_range = wp.vec2(cfg.min_depth_m, cfg.max_depth_m)
@@ -177,7 +181,7 @@ class DenseMatcher:
         T_r = buffer.poses[ref_slot]
         for column, slot in enumerate(neighbours):
             nb_desc = self.describe(slot, buffer)
-            nb_rgb = buffer.rgb[slot]
+            wp.launch(grey_image, dim=nb_grey.shape, inputs=[buffer.rgb[slot]], outputs=[nb_grey], device=d)
             T_nr = invert_pose(buffer.poses[slot]) @ T_r  # reference camera -> neighbour camera
             T_rn = invert_pose(T_nr)
             ref_depth = buffer.depth[ref_slot] if use_depth else self._zero_depth
@@ -190,9 +194,9 @@ class DenseMatcher:
                     self._ref_uv,
                     self._always,
                     ref_depth,
-                    ref_rgb,
+                    ref_grey,
                     nb_desc,
-                    nb_rgb,
+                    nb_grey,
                     K,
                     *_warp_rigid(T_nr),
                 ]
@@ -204,7 +208,7 @@ class DenseMatcher:
             wp.launch(
                 epipolar_search,
                 dim=n,
-                inputs=[self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_rgb, ref_desc_3d, ref_rgb, K]
+                inputs=[self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_grey, ref_desc_3d, ref_grey, K]
                 + [*_warp_rigid(T_rn), *search],
                 outputs=[self._bwd_uv, self._bwd_sim, self._bwd_epi],
                 device=d,

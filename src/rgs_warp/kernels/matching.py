@@ -9,13 +9,16 @@ feature grid; positions they return are in image pixels.
 
 import warp as wp
 
-from rgs_warp.kernels.math import bilerp, bilinear_corner, grey_bilinear, sample_depth
+from rgs_warp.config import MAX_PATCH_RADIUS
+from rgs_warp.kernels.math import bilerp, bilinear_corner, grey_level, grey_sample, sample_depth
 
 wp.set_module_options({"enable_backward": False})
 
 # Similarity of a query without a match (its segment leaves the image, or it was skipped).
 NO_MATCH = wp.constant(-2.0)
 MIN_Z_M = wp.constant(0.05)  # points closer than this to a camera are not searched for
+# A ZNCC query patch, read once per query (``query_patch``): patch radii up to MAX_PATCH_RADIUS
+patch_values = wp.types.vector(length=(2 * MAX_PATCH_RADIUS + 1) ** 2, dtype=wp.float32)
 
 
 @wp.func
@@ -48,32 +51,61 @@ def parabola_peak(s_minus: float, s0: float, s_plus: float) -> float:
     return wp.clamp(0.5 * (s_minus - s_plus) / curvature, -0.5, 0.5)
 
 
+@wp.kernel
+def grey_image(
+    # in:
+    rgb: wp.array2d(dtype=wp.vec3),
+    # out:
+    grey_out: wp.array2d(dtype=wp.float32),
+):
+    """The grey level (``grey_level``) of every pixel: the ZNCC refinement's input."""
+    y, x = wp.tid()
+    grey_out[y, x] = grey_level(rgb[y, x])
+
+
+@wp.func
+def query_patch(grey: wp.array2d(dtype=wp.float32), q: wp.vec2, radius: int):
+    """The (2r+1)^2 grey patch at q (bilinear, row by row; r <= MAX_PATCH_RADIUS), its sum and n
+    times its variance: what ``patch_zncc`` needs of the query, read once for all its shifts."""
+    a = patch_values()
+    sa = float(0.0)
+    saa = float(0.0)
+    k = int(0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            v = grey_sample(grey, q[0] + float(dx), q[1] + float(dy))
+            a[k] = v
+            sa += v
+            saa += v * v
+            k += 1
+    n = float((2 * radius + 1) * (2 * radius + 1))
+    return a, sa, saa - sa * sa / n
+
+
 @wp.func
 def patch_zncc(
-    query_rgb: wp.array2d(dtype=wp.vec3),
-    q: wp.vec2,
-    target_rgb: wp.array2d(dtype=wp.vec3),
+    a: patch_values,
+    sa: float,
+    va: float,
+    target_grey: wp.array2d(dtype=wp.float32),
     t: wp.vec2,
     radius: int,
 ) -> float:
-    """Zero-mean normalised cross-correlation of the grey (2r+1)^2 patches at q and t (bilinear);
-    NO_MATCH when either patch is flat (below 1e-4 grey-level variance: JPEG noise)."""
-    sa = float(0.0)
+    """Zero-mean normalised cross-correlation of the query patch (``query_patch``: values ``a``,
+    sum ``sa``, n times its variance ``va``) with the grey (2r+1)^2 patch at t (bilinear); NO_MATCH
+    when either patch is flat (below 1e-4 grey-level variance: JPEG noise)."""
     sb = float(0.0)
-    saa = float(0.0)
     sbb = float(0.0)
     sab = float(0.0)
+    k = int(0)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
-            a = grey_bilinear(query_rgb, q[0] + float(dx), q[1] + float(dy))
-            b = grey_bilinear(target_rgb, t[0] + float(dx), t[1] + float(dy))
-            sa += a
+            b = grey_sample(target_grey, t[0] + float(dx), t[1] + float(dy))
             sb += b
-            saa += a * a
             sbb += b * b
-            sab += a * b
+            sab += a[k] * b
+            k += 1
     n = float((2 * radius + 1) * (2 * radius + 1))
-    va = saa - sa * sa / n
     vb = sbb - sb * sb / n
     if va < 1e-4 * n or vb < 1e-4 * n:
         return NO_MATCH
@@ -87,20 +119,24 @@ def project(K: wp.vec4, X: wp.vec3) -> wp.vec2:
 
 @wp.func
 def refine_zncc(
-    query_rgb: wp.array2d(dtype=wp.vec3),
+    query_grey: wp.array2d(dtype=wp.float32),
     q: wp.vec2,
-    target_rgb: wp.array2d(dtype=wp.vec3),
+    target_grey: wp.array2d(dtype=wp.float32),
     coarse: wp.vec2,
     refine_radius: int,
     patch_radius: int,
 ) -> wp.vec2:
-    """Image-resolution refinement of a match around ``coarse`` by patch ZNCC (see epipolar_search)."""
+    """Image-resolution refinement of a match around ``coarse`` by patch ZNCC (see epipolar_search)
+    on the grey images (``grey_image``)."""
+    a, sa, va = query_patch(query_grey, q, patch_radius)
+    if va < 1e-4 * float((2 * patch_radius + 1) * (2 * patch_radius + 1)):
+        return coarse  # a flat query patch: no shift correlates
     best = float(NO_MATCH)
     bx = int(0)
     by = int(0)
     for dy in range(-refine_radius, refine_radius + 1):
         for dx in range(-refine_radius, refine_radius + 1):
-            c = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(dx), float(dy)), patch_radius)
+            c = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(dx), float(dy)), patch_radius)
             if c > best:
                 best = c
                 bx = dx
@@ -109,13 +145,14 @@ def refine_zncc(
         return coarse
     off_x = float(0.0)
     off_y = float(0.0)
+    r = patch_radius
     if wp.abs(bx) < refine_radius:
-        left = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx - 1), float(by)), patch_radius)
-        right = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx + 1), float(by)), patch_radius)
+        left = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx - 1), float(by)), r)
+        right = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx + 1), float(by)), r)
         off_x = parabola_peak(left, best, right)
     if wp.abs(by) < refine_radius:
-        up = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx), float(by - 1)), patch_radius)
-        down = patch_zncc(query_rgb, q, target_rgb, coarse + wp.vec2(float(bx), float(by + 1)), patch_radius)
+        up = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx), float(by - 1)), r)
+        down = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx), float(by + 1)), r)
         off_y = parabola_peak(up, best, down)
     return coarse + wp.vec2(float(bx) + off_x, float(by) + off_y)
 
@@ -127,9 +164,9 @@ def epipolar_search(
     query_uv: wp.array(dtype=wp.vec2),
     query_sim: wp.array(dtype=wp.float32),
     query_depth: wp.array2d(dtype=wp.float32),
-    query_rgb: wp.array2d(dtype=wp.vec3),
+    query_grey: wp.array2d(dtype=wp.float32),
     target_desc: wp.array3d(dtype=wp.float32),
-    target_rgb: wp.array2d(dtype=wp.vec3),
+    target_grey: wp.array2d(dtype=wp.float32),
     K: wp.vec4,
     R_tq: wp.mat33,
     t_tq: wp.vec3,
@@ -247,7 +284,7 @@ def epipolar_search(
         s_down = similarity(query_desc, i, target_desc, by + 1, bx)
     g = wp.vec2(float(bx) + parabola_peak(s_left, best, s_right), float(by) + parabola_peak(s_up, best, s_down))
     coarse = wp.vec2(to_image(g[0], stride), to_image(g[1], stride))
-    fine = refine_zncc(query_rgb, uv, target_rgb, coarse, refine_radius, patch_radius)
+    fine = refine_zncc(query_grey, uv, target_grey, coarse, refine_radius, patch_radius)
     match_uv_out[i] = fine
     sim_out[i] = best
     g_fine = wp.vec2(to_grid(fine[0], stride), to_grid(fine[1], stride))
@@ -452,9 +489,9 @@ def refined_match(
     query_desc: wp.array2d(dtype=wp.float32),
     i: int,
     uv: wp.vec2,
-    query_rgb: wp.array2d(dtype=wp.vec3),
+    query_grey: wp.array2d(dtype=wp.float32),
     target_desc: wp.array3d(dtype=wp.float32),
-    target_rgb: wp.array2d(dtype=wp.vec3),
+    target_grey: wp.array2d(dtype=wp.float32),
     stride: int,
     best: float,
     bx: int,
@@ -478,7 +515,7 @@ def refined_match(
         off_y = parabola_peak(up, best, down)
     match = wp.vec2(to_image(float(bx) + off_x, stride), to_image(float(by) + off_y, stride))
     if refine_radius > 0:
-        match = refine_zncc(query_rgb, uv, target_rgb, match, refine_radius, patch_radius)
+        match = refine_zncc(query_grey, uv, target_grey, match, refine_radius, patch_radius)
     return match
 
 
@@ -487,9 +524,9 @@ def window_search(
     # in:
     query_desc: wp.array2d(dtype=wp.float32),
     query_uv: wp.array(dtype=wp.vec2),
-    query_rgb: wp.array2d(dtype=wp.vec3),
+    query_grey: wp.array2d(dtype=wp.float32),
     target_desc: wp.array3d(dtype=wp.float32),
-    target_rgb: wp.array2d(dtype=wp.vec3),
+    target_grey: wp.array2d(dtype=wp.float32),
     stride: int,
     offset: wp.vec2,
     radius: int,
@@ -524,7 +561,7 @@ def window_search(
     if exclusion >= 0:
         second = second_in_rows(query_desc, i, target_desc, y0, y1, x0, x1, bx, by, exclusion)
     match_uv_out[i] = refined_match(
-        query_desc, i, uv, query_rgb, target_desc, target_rgb, stride, best, bx, by, refine_radius, patch_radius
+        query_desc, i, uv, query_grey, target_desc, target_grey, stride, best, bx, by, refine_radius, patch_radius
     )
     sim_out[i] = best
     second_sim_out[i] = second
@@ -611,9 +648,9 @@ def window_search_finish(
     # in:
     query_desc: wp.array2d(dtype=wp.float32),
     query_uv: wp.array(dtype=wp.vec2),
-    query_rgb: wp.array2d(dtype=wp.vec3),
+    query_grey: wp.array2d(dtype=wp.float32),
     target_desc: wp.array3d(dtype=wp.float32),
-    target_rgb: wp.array2d(dtype=wp.vec3),
+    target_grey: wp.array2d(dtype=wp.float32),
     stride: int,
     best_xy: wp.array(dtype=wp.vec2i),
     band_sim: wp.array2d(dtype=wp.float32),
@@ -644,9 +681,9 @@ def window_search_finish(
         query_desc,
         i,
         uv,
-        query_rgb,
+        query_grey,
         target_desc,
-        target_rgb,
+        target_grey,
         stride,
         sim_out[i],
         xy[0],

@@ -175,6 +175,13 @@ def grey_bilinear(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
 
 
 @wp.func
+def grey_sample(grey: wp.array2d(dtype=wp.float32), u: float, v: float) -> float:
+    """Bilinear grey level at image point (u, v) of a grey image (clamped into the image)."""
+    x0, y0, fx, fy = bilinear_corner(u, v, grey.shape[1], grey.shape[0])
+    return bilerp(grey[y0, x0], grey[y0, x0 + 1], grey[y0 + 1, x0], grey[y0 + 1, x0 + 1], fx, fy)
+
+
+@wp.func
 def sample_depth(depth: wp.array2d(dtype=wp.float32), u: float, v: float, max_rel_spread: float) -> float:
     """Bilinear depth at image point (u, v); 0 where any of the 4 pixels is invalid or they spread by
     more than ``max_rel_spread`` of their mean (a depth edge: interpolating there invents depth)."""
