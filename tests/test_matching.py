@@ -9,7 +9,14 @@ import warp as wp
 
 from rgs_warp.config import MAX_PATCH_RADIUS, MatchingConfig, TriangulationConfig
 from rgs_warp.geometry import invert_pose, se3_exp
-from rgs_warp.kernels.matching import NO_MATCH, grey_image, refine_zncc, score_matches
+from rgs_warp.kernels.matching import (
+    NO_MATCH,
+    epipolar_search,
+    epipolar_search_parts,
+    grey_image,
+    refine_zncc,
+    score_matches,
+)
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.triangulation import Triangulator
@@ -18,6 +25,10 @@ from rgs_warp.types import Camera
 H, W = 72, 112
 CAM = Camera(fx=56.0, fy=56.0, cx=55.5, cy=35.5, width=W, height=H)
 DEPTH_M = 2.0
+
+
+def unit_rows_np(a):
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
 
 
 def _texture(h, w, seed=0):
@@ -320,3 +331,134 @@ def test_zncc_refinement_against_reference(device, R, r):
     if r >= 2:  # a patch wide enough to lock on: the planted shift's pixel, to the parabola's bias
         err = np.linalg.norm(got[4:] - (q[4:] + shift), axis=1)
         assert np.median(err) < 0.2 and err.max() < 0.5
+
+
+@pytest.mark.parametrize("parts", [5, 16])
+def test_epipolar_scan_in_parts_equals_one_thread_a_query(device, parts):
+    """kernels/matching.py: the descriptor scan spread over ``parts`` threads a query
+    (``epipolar_search_parts``) gives ``epipolar_search`` bit for bit what one thread scanning every
+    sample in order gives (parts=1), ties included (a target grid of 4 distinct descriptors ties
+    along every segment), for queries with depth, without (long segments) and skipped."""
+    rng = np.random.default_rng(2)
+    hf, wf, dim, stride = 12, 16, 8, 4
+    h, w = hf * stride, wf * stride
+    kw = {"device": device}
+    palette = unit_rows_np(rng.normal(size=(4, dim)))
+    target = palette[rng.integers(0, 4, (hf, wf))].astype(np.float32)
+    n = hf * wf
+    query = unit_rows_np(palette[rng.integers(0, 4, n)] + 0.05 * rng.normal(size=(n, dim))).astype(np.float32)
+    uv = ((np.mgrid[0:hf, 0:wf][::-1].reshape(2, -1).T) * stride + 0.5 * (stride - 1)).astype(np.float32)
+    depth = rng.uniform(1.0, 3.0, (h, w)).astype(np.float32)
+    depth[rng.random((h, w)) < 0.3] = 0.0  # holes: full segments
+    query_sim = np.ones(n, np.float32)
+    query_sim[::7] = NO_MATCH  # skipped queries
+    T = se3_exp(np.array([0.2, -0.05, 0.03, 0.02, 0.05, -0.01]))
+    R, t = wp.mat33(*T[:3, :3].ravel()), wp.vec3(*T[:3, 3])
+    grey = wp.array(rng.random((h, w)).astype(np.float32), **kw)
+    inputs = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), wp.array(query_sim, **kw)]
+    inputs += [wp.array(depth, **kw), grey, wp.array(target, **kw), grey, wp.vec4(40.0, 40.0, 31.5, 23.5), R, t]
+    search = [stride, wp.vec2(0.1, 10.0), 0.05, 2.0, 1, 512, 3, 2]
+    results = []
+    for p in (1, parts):
+        part_sim = wp.zeros((n, p), dtype=wp.float32, **kw)
+        part_cell = wp.zeros((n, p), dtype=wp.vec3i, **kw)
+        part_inputs = inputs[:4] + [inputs[5]] + inputs[7:] + search[:6]
+        wp.launch(epipolar_search_parts, dim=(n, p), inputs=part_inputs, outputs=[part_sim, part_cell], device=device)
+        outs = [wp.zeros(n, dtype=wp.vec2, **kw), wp.zeros(n, dtype=wp.float32, **kw), wp.zeros(n, **kw)]
+        wp.launch(epipolar_search, dim=n, inputs=inputs + search + [part_sim, part_cell], outputs=outs, device=device)
+        results.append([o.numpy() for o in outs])
+    for a, b in zip(*results, strict=True):
+        np.testing.assert_array_equal(a, b)
+    sim = results[0][1]
+    assert np.all(sim[::7] == NO_MATCH) and (sim > 0.9).mean() > 0.5  # skipped; most find their descriptor
+
+
+def _segment_reference(uv, depth, hf, wf, K, T, stride, depth_range, tol, min_radius, band, max_steps):
+    """epipolar_segment of kernels/matching.py from its docstring, in float64: (g0, direction, normal,
+    t_lo, n_steps, step), n_steps 0 where nothing is scanned."""
+    fx, fy, cx, cy = K
+    ray = T[:3, :3] @ np.array([(uv[0] - cx) / fx, (uv[1] - cy) / fy, 1.0])
+    t = T[:3, 3]
+    d = _bilinear(depth, uv[0], uv[1])
+    x0, y0 = min(int(uv[0]), depth.shape[1] - 2), min(int(uv[1]), depth.shape[0] - 2)
+    corners = depth[y0 : y0 + 2, x0 : x0 + 2]
+    if corners.min() <= 0 or corners.max() - corners.min() > tol * 0.5 * (corners.max() + corners.min()):
+        d = 0.0
+    near, far = (d * (1 - tol), d * (1 + tol)) if d > 0 else depth_range
+    if ray[2] > 0:
+        near = max(near, (0.05 - t[2]) / ray[2])
+    elif ray[2] < 0:
+        far = min(far, (0.05 - t[2]) / ray[2])
+    if near >= far:
+        return None
+
+    def grid(X):
+        p = np.array([fx * X[0] / X[2] + cx, fy * X[1] / X[2] + cy])
+        return (p - 0.5 * (stride - 1)) / stride
+
+    g0, g1 = grid(near * ray + t), grid(far * ray + t)
+    length = np.linalg.norm(g1 - g0)
+    direction = (g1 - g0) / length if length > 1e-6 else np.array([1.0, 0.0])
+    if length < 2 * min_radius:
+        g0, length = 0.5 * (g0 + g1) - min_radius * direction, 2 * min_radius
+    margin, t_lo, t_hi = band + 0.5, 0.0, length
+    for axis, top in ((0, wf - 1), (1, hf - 1)):
+        if abs(direction[axis]) > 1e-9:
+            ta, tb = (-margin - g0[axis]) / direction[axis], (top + margin - g0[axis]) / direction[axis]
+            t_lo, t_hi = max(t_lo, min(ta, tb)), min(t_hi, max(ta, tb))
+        elif not -margin <= g0[axis] <= top + margin:
+            t_hi = -1.0
+    if t_lo > t_hi:
+        return None
+    n_steps = min(int(np.ceil(t_hi - t_lo)) + 1, max_steps)
+    return g0, direction, np.array([-direction[1], direction[0]]), t_lo, n_steps, (t_hi - t_lo) / max(n_steps - 1, 1)
+
+
+def test_epipolar_scan_against_reference(device):
+    """kernels/matching.py: the best similarity of ``epipolar_search``'s descriptor scan (in parts)
+    against a float64 NumPy scan of every sample and band offset of the same segment, for queries
+    with depth (short segments) and without (long ones); a sample's rounding to a cell may differ
+    between float32 and float64, so 99 % of the queries, not all, must agree (all do here; dropping a
+    segment's last sample leaves 85 %)."""
+    rng = np.random.default_rng(3)
+    hf, wf, dim, stride, band = 12, 16, 8, 4, 1
+    h, w = hf * stride, wf * stride
+    kw = {"device": device}
+    target = unit_rows_np(rng.normal(size=(hf, wf, dim))).astype(np.float32)
+    n = hf * wf
+    query = unit_rows_np(rng.normal(size=(n, dim))).astype(np.float32)
+    uv = ((np.mgrid[0:hf, 0:wf][::-1].reshape(2, -1).T) * stride + 0.5 * (stride - 1)).astype(np.float32)
+    depth = np.repeat(np.repeat(rng.uniform(1.0, 3.0, (hf, wf)), stride, 0), stride, 1).astype(np.float32)
+    depth[:, : w // 3] = 0.0  # no depth: full segments
+    T = se3_exp(np.array([0.15, -0.04, 0.02, 0.03, -0.04, 0.01]))
+    K = (40.0, 40.0, 31.5, 23.5)
+    grey = wp.array(rng.random((h, w)).astype(np.float32), **kw)
+    inputs = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), wp.full(n, 1.0, dtype=wp.float32, **kw)]
+    inputs += [wp.array(depth, **kw), grey, wp.array(target, **kw), grey, wp.vec4(*K)]
+    inputs += [wp.mat33(*T[:3, :3].ravel()), wp.vec3(*T[:3, 3])]
+    search = [stride, wp.vec2(0.1, 10.0), 0.05, 2.0, band, 512, 0, 2]
+    part_sim = wp.zeros((n, 16), dtype=wp.float32, **kw)
+    part_cell = wp.zeros((n, 16), dtype=wp.vec3i, **kw)
+    part_inputs = inputs[:4] + [inputs[5]] + inputs[7:] + search[:6]
+    wp.launch(
+        epipolar_search_parts, dim=part_sim.shape, inputs=part_inputs, outputs=[part_sim, part_cell], device=device
+    )
+    outs = [wp.zeros(n, dtype=wp.vec2, **kw), wp.zeros(n, dtype=wp.float32, **kw), wp.zeros(n, **kw)]
+    wp.launch(epipolar_search, dim=n, inputs=inputs + search + [part_sim, part_cell], outputs=outs, device=device)
+    got = outs[1].numpy()
+    want = np.full(n, NO_MATCH)
+    long_segment = np.zeros(n, bool)
+    for i in range(n):
+        seg = _segment_reference(uv[i], depth, hf, wf, K, T, stride, (0.1, 10.0), 0.05, 2.0, band, 512)
+        if seg is None:
+            continue
+        g0, direction, normal, t_lo, n_steps, step = seg
+        long_segment[i] = n_steps > 12
+        for s in range(n_steps):
+            for k in range(-band, band + 1):
+                x, y = np.round(g0 + (t_lo + s * step) * direction + k * normal).astype(int)
+                if 0 <= x < wf and 0 <= y < hf:
+                    want[i] = max(want[i], float(query[i] @ target[y, x]))
+    agree = np.abs(got - want) < 1e-5
+    assert long_segment.sum() > 20 and (~long_segment & (want > NO_MATCH)).sum() > 50  # both kinds are tested
+    assert agree.mean() > 0.99, np.flatnonzero(~agree)

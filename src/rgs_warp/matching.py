@@ -28,6 +28,7 @@ from rgs_warp.kernels.matching import (
     aggregate_confidence,
     apply_thinning,
     epipolar_search,
+    epipolar_search_parts,
     grey_image,
     sample_descriptors,
     score_matches,
@@ -36,6 +37,11 @@ from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.sampling import thin_blue_noise
 from rgs_warp.triangulation import projection_matrices
 from rgs_warp.types import Camera
+
+# Threads a query of the epipolar descriptor scan (``epipolar_search_parts``): a segment without depth
+# has up to ``max_steps`` samples against a few with depth, and one thread a query left the GPU waiting
+# on those (7-Scenes, H100: experiments/results/perf.md)
+EPIPOLAR_PARTS = 16
 
 
 @dataclass
@@ -99,6 +105,9 @@ class DenseMatcher:
         self._kept_count = wp.zeros(1, dtype=wp.int32, **kw)
         self._P = wp.zeros(m + 1, dtype=mat34d, **kw)
         self._zero_depth = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)  # monocular search
+        self._part_sim = wp.zeros((n, EPIPOLAR_PARTS), dtype=wp.float32, **kw)
+        self._part_cell = wp.zeros((n, EPIPOLAR_PARTS), dtype=wp.vec3i, **kw)
+        self._parts = [self._part_sim, self._part_cell]
         self._ref_grey = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)  # the ZNCC refinement's
         self._nb_grey = wp.zeros((camera.height, camera.width), dtype=wp.float32, **kw)
         self._desc: wp.array | None = None
@@ -149,6 +158,16 @@ class DenseMatcher:
         return buffer.descriptors[slot]
 
     # ------------------------------------------------------------------ matching
+    def _search(self, query_target: list, search: tuple, out: list) -> None:
+        """``epipolar_search`` of ``query_target`` (its inputs up to the target's pose) with the
+        search parameters ``search``, its descriptor scan spread over EPIPOLAR_PARTS threads a query
+        (``epipolar_search_parts``) into ``out`` (match, similarity, epipolar distance)."""
+        n, d = self._part_sim.shape[0], self.device
+        desc, uv, sim, depth, _, target_desc, _, K, R, t = query_target
+        parts = [desc, uv, sim, depth, target_desc, K, R, t, *search[:6]]
+        wp.launch(epipolar_search_parts, dim=self._part_sim.shape, inputs=parts, outputs=self._parts, device=d)
+        wp.launch(epipolar_search, dim=n, inputs=query_target + [*search, *self._parts], outputs=out, device=d)
+
     def match(
         self,
         ref_slot: int,
@@ -186,33 +205,11 @@ class DenseMatcher:
             T_rn = invert_pose(T_nr)
             ref_depth = buffer.depth[ref_slot] if use_depth else self._zero_depth
             nb_depth = buffer.depth[slot] if use_depth else self._zero_depth
-            wp.launch(
-                epipolar_search,
-                dim=n,
-                inputs=[
-                    ref_desc,
-                    self._ref_uv,
-                    self._always,
-                    ref_depth,
-                    ref_grey,
-                    nb_desc,
-                    nb_grey,
-                    K,
-                    *_warp_rigid(T_nr),
-                ]
-                + [*search],
-                outputs=[self._fwd_uv, self._fwd_sim, self._fwd_epi],
-                device=d,
-            )
+            fwd = [ref_desc, self._ref_uv, self._always, ref_depth, ref_grey, nb_desc, nb_grey, K, *_warp_rigid(T_nr)]
+            self._search(fwd, search, [self._fwd_uv, self._fwd_sim, self._fwd_epi])
             wp.launch(sample_descriptors, dim=n, inputs=[nb_desc, self._fwd_uv, s], outputs=[self._query], device=d)
-            wp.launch(
-                epipolar_search,
-                dim=n,
-                inputs=[self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_grey, ref_desc_3d, ref_grey, K]
-                + [*_warp_rigid(T_rn), *search],
-                outputs=[self._bwd_uv, self._bwd_sim, self._bwd_epi],
-                device=d,
-            )
+            bwd = [self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_grey, ref_desc_3d, ref_grey, K]
+            self._search(bwd + [*_warp_rigid(T_rn)], search, [self._bwd_uv, self._bwd_sim, self._bwd_epi])
             wp.launch(
                 score_matches,
                 dim=n,

@@ -157,16 +157,12 @@ def refine_zncc(
     return coarse + wp.vec2(float(bx) + off_x, float(by) + off_y)
 
 
-@wp.kernel
-def epipolar_search(
-    # in:
-    query_desc: wp.array2d(dtype=wp.float32),
-    query_uv: wp.array(dtype=wp.vec2),
-    query_sim: wp.array(dtype=wp.float32),
+@wp.func
+def epipolar_segment(
+    uv: wp.vec2,
     query_depth: wp.array2d(dtype=wp.float32),
-    query_grey: wp.array2d(dtype=wp.float32),
-    target_desc: wp.array3d(dtype=wp.float32),
-    target_grey: wp.array2d(dtype=wp.float32),
+    Hf: int,
+    Wf: int,
     K: wp.vec4,
     R_tq: wp.mat33,
     t_tq: wp.vec3,
@@ -176,31 +172,10 @@ def epipolar_search(
     min_radius: float,
     band: int,
     max_steps: int,
-    refine_radius: int,
-    patch_radius: int,
-    # out:
-    match_uv_out: wp.array(dtype=wp.vec2),
-    sim_out: wp.array(dtype=wp.float32),
-    epi_dist_out: wp.array(dtype=wp.float32),
 ):
-    """For query i (descriptor row i at image point query_uv[i]; skipped when query_sim[i] is
-    NO_MATCH), the best match in the target image along the epipolar segment of its ray between
-    the depths the query's depth allows (d (1 -/+ depth_rel_tol), else depth_range), widened by
-    ``band`` feature pixels either side, refined to sub-pixel by a parabola fit of the similarity in
-    x and y, then at image resolution: the best patch ZNCC of the grey images over integer shifts
-    within +/- refine_radius px, refined by a parabola fit of the ZNCC (where both patches are flat
-    the descriptor estimate stays).
-    R_tq, t_tq map query-camera points into the target camera.  Writes the match (image px), its
-    similarity (Eq. 10, NO_MATCH if none) and its distance to the epipolar line (image px)."""
-    i = wp.tid()
-    match_uv_out[i] = wp.vec2(0.0, 0.0)
-    sim_out[i] = NO_MATCH
-    epi_dist_out[i] = 0.0
-    if query_sim[i] <= NO_MATCH:
-        return
-    Hf = target_desc.shape[0]
-    Wf = target_desc.shape[1]
-    uv = query_uv[i]
+    """The feature-grid segment that ``epipolar_search`` scans for the query at image point uv: its
+    start g0, unit direction and normal, a point of the epipolar line, the parameter range's start
+    t_lo, the number of samples and their spacing (0 samples: none to scan)."""
     ray = R_tq @ wp.vec3((uv[0] - K[2]) / K[0], (uv[1] - K[3]) / K[1], 1.0)
     d = sample_depth(query_depth, uv[0], uv[1], depth_rel_tol)
     d_near = depth_range[0]
@@ -208,15 +183,16 @@ def epipolar_search(
     if d > 0.0:
         d_near = d * (1.0 - depth_rel_tol)
         d_far = d * (1.0 + depth_rel_tol)
+    none = wp.vec2(0.0, 0.0)
     # Keep the segment in front of the target camera: z(d) = d * ray.z + t.z >= MIN_Z_M.
     if ray[2] > 0.0:
         d_near = wp.max(d_near, (MIN_Z_M - t_tq[2]) / ray[2])
     elif ray[2] < 0.0:
         d_far = wp.min(d_far, (MIN_Z_M - t_tq[2]) / ray[2])
     elif t_tq[2] < MIN_Z_M:
-        return
+        return none, none, none, none, 0.0, 0, 0.0
     if d_near >= d_far:
-        return
+        return none, none, none, none, 0.0, 0, 0.0
     p_near = project(K, d_near * ray + t_tq)
     p_far = project(K, d_far * ray + t_tq)
     g0 = wp.vec2(to_grid(p_near[0], stride), to_grid(p_near[1], stride))
@@ -250,13 +226,53 @@ def epipolar_search(
         elif g0[axis] < lo or g0[axis] > hi:
             t_hi = -1.0
     if t_lo > t_hi:
-        return
+        return none, none, none, none, 0.0, 0, 0.0
     n_steps = wp.min(int(wp.ceil(t_hi - t_lo)) + 1, max_steps)
     step = (t_hi - t_lo) / float(wp.max(n_steps - 1, 1))
+    return g0, direction, normal, line_point, t_lo, n_steps, step
+
+
+@wp.kernel
+def epipolar_search_parts(
+    # in:
+    query_desc: wp.array2d(dtype=wp.float32),
+    query_uv: wp.array(dtype=wp.vec2),
+    query_sim: wp.array(dtype=wp.float32),
+    query_depth: wp.array2d(dtype=wp.float32),
+    target_desc: wp.array3d(dtype=wp.float32),
+    K: wp.vec4,
+    R_tq: wp.mat33,
+    t_tq: wp.vec3,
+    stride: int,
+    depth_range: wp.vec2,
+    depth_rel_tol: float,
+    min_radius: float,
+    band: int,
+    max_steps: int,
+    # out:
+    part_sim_out: wp.array2d(dtype=wp.float32),
+    part_cell_out: wp.array2d(dtype=wp.vec3i),
+):
+    """The descriptor scan of ``epipolar_search`` spread over P = part_sim_out.shape[1] threads a
+    query: thread (i, p) scans the segment's samples p, p + P, p + 2P, ... (every band offset of
+    each, in ``epipolar_search``'s order) and writes its best similarity and its cell (x, y, sample
+    index; NO_MATCH where it has none), which ``epipolar_search`` reduces in sample order.  One
+    thread a query left the GPU waiting on the few queries without depth, whose segments are up to
+    ``max_steps`` long against a few samples with depth."""
+    i, part = wp.tid()
+    parts = part_sim_out.shape[1]
+    part_sim_out[i, part] = NO_MATCH
+    part_cell_out[i, part] = wp.vec3i(-1, -1, -1)
+    if query_sim[i] <= NO_MATCH:
+        return
+    Hf = target_desc.shape[0]
+    Wf = target_desc.shape[1]
+    g0, direction, normal, line_point, t_lo, n_steps, step = epipolar_segment(
+        query_uv[i], query_depth, Hf, Wf, K, R_tq, t_tq, stride, depth_range, depth_rel_tol, min_radius, band, max_steps
+    )
     best = float(NO_MATCH)
-    bx = int(-1)
-    by = int(-1)
-    for s in range(n_steps):
+    cell = wp.vec3i(-1, -1, -1)
+    for s in range(part, n_steps, parts):
         p = g0 + (t_lo + float(s) * step) * direction
         for k in range(-band, band + 1):
             q = p + float(k) * normal
@@ -266,8 +282,71 @@ def epipolar_search(
                 sim = similarity(query_desc, i, target_desc, y, x)
                 if sim > best:
                     best = sim
-                    bx = x
-                    by = y
+                    cell = wp.vec3i(x, y, s)
+    part_sim_out[i, part] = best
+    part_cell_out[i, part] = cell
+
+
+@wp.kernel
+def epipolar_search(
+    # in:
+    query_desc: wp.array2d(dtype=wp.float32),
+    query_uv: wp.array(dtype=wp.vec2),
+    query_sim: wp.array(dtype=wp.float32),
+    query_depth: wp.array2d(dtype=wp.float32),
+    query_grey: wp.array2d(dtype=wp.float32),
+    target_desc: wp.array3d(dtype=wp.float32),
+    target_grey: wp.array2d(dtype=wp.float32),
+    K: wp.vec4,
+    R_tq: wp.mat33,
+    t_tq: wp.vec3,
+    stride: int,
+    depth_range: wp.vec2,
+    depth_rel_tol: float,
+    min_radius: float,
+    band: int,
+    max_steps: int,
+    refine_radius: int,
+    patch_radius: int,
+    part_sim: wp.array2d(dtype=wp.float32),
+    part_cell: wp.array2d(dtype=wp.vec3i),
+    # out:
+    match_uv_out: wp.array(dtype=wp.vec2),
+    sim_out: wp.array(dtype=wp.float32),
+    epi_dist_out: wp.array(dtype=wp.float32),
+):
+    """For query i (descriptor row i at image point query_uv[i]; skipped when query_sim[i] is
+    NO_MATCH), the best match in the target image along the epipolar segment of its ray between
+    the depths the query's depth allows (d (1 -/+ depth_rel_tol), else depth_range), widened by
+    ``band`` feature pixels either side (the first best in sample order, from the parts of
+    ``epipolar_search_parts``, launched before with the same arguments), refined to sub-pixel by a
+    parabola fit of the similarity in x and y, then at image resolution: the best patch ZNCC of the
+    grey images over integer shifts within +/- refine_radius px, refined by a parabola fit of the
+    ZNCC (where both patches are flat the descriptor estimate stays).
+    R_tq, t_tq map query-camera points into the target camera.  Writes the match (image px), its
+    similarity (Eq. 10, NO_MATCH if none) and its distance to the epipolar line (image px)."""
+    i = wp.tid()
+    match_uv_out[i] = wp.vec2(0.0, 0.0)
+    sim_out[i] = NO_MATCH
+    epi_dist_out[i] = 0.0
+    if query_sim[i] <= NO_MATCH:
+        return
+    Hf = target_desc.shape[0]
+    Wf = target_desc.shape[1]
+    uv = query_uv[i]
+    g0, direction, normal, line_point, t_lo, n_steps, step = epipolar_segment(
+        uv, query_depth, Hf, Wf, K, R_tq, t_tq, stride, depth_range, depth_rel_tol, min_radius, band, max_steps
+    )
+    best = float(NO_MATCH)
+    cell = wp.vec3i(-1, -1, -1)
+    for part in range(part_sim.shape[1]):
+        c = part_cell[i, part]
+        sim = part_sim[i, part]
+        if c[0] >= 0 and (sim > best or (sim == best and c[2] < cell[2])):
+            best = sim
+            cell = c
+    bx = cell[0]
+    by = cell[1]
     if bx < 0:
         return
     s_left = best
