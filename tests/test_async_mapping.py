@@ -261,3 +261,46 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
         assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
     assert all(n == 30 for n in done[0]), done
     assert all(n >= 3 for n in done[3]) and min(done[3]) < 30 and done[3][-1] < 30, done
+
+
+@pytest.mark.slow
+def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
+    """Asynchronous: a frame that wants a fill while an earlier fill still waits for (or runs in) the
+    worker gets none (that fill seeds most of what this frame would); the synchronous mode fills every
+    frame that wants it.  Each fill is slowed to 1 s, so frames pass while one is queued."""
+    from rgs_warp import SLAM, open_dataset
+    from rgs_warp.seeding import Seeder
+
+    wanted, filled = [], []
+    wants_fill = Seeder.wants_fill
+    fill_frame = SLAM._fill_frame
+
+    def counting_wants(self, coverage):
+        w = wants_fill(self, coverage)
+        wanted.append(w)
+        return w
+
+    def slow_fill(self, i, *args):
+        if self.worker is not None:
+            time.sleep(1.0)
+        filled.append(i)
+        return fill_frame(self, i, *args)
+
+    monkeypatch.setattr(Seeder, "wants_fill", counting_wants)
+    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
+    counts = {}
+    for asynchronous in (False, True):
+        wanted.clear()
+        filled.clear()
+        argv = [*OVERRIDES, "dataset.max_frames=14", f"mapping.asynchronous={str(asynchronous).lower()}"]
+        cfg = load_config([*argv, "seeding.frame_fill_min_uncovered=0", f"device={device}"])
+        ds = open_dataset(cfg, device=device)
+        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+        for f in ds:
+            slam.process(f.rgb, f.depth, f.timestamp)
+        slam.finish()
+        counts[asynchronous] = (sum(wanted), len(filled))
+    n_wanted, n_filled = counts[False]
+    assert n_wanted >= 4 and n_filled == n_wanted, counts  # synchronous: every frame that wants a fill
+    n_filled = counts[True][1]
+    assert 1 <= n_filled < counts[True][0], counts  # asynchronous: frames passed while a fill waited

@@ -269,7 +269,10 @@ class SLAM:
             if self.worker is None:  # the next frame's tracking graphs, for the grown map: not in its latency
                 self.tracker.prepare(self.map, T)
         else:
-            if pose_ok and self.seeder.wants_fill(decision.coverage):
+            # asynchronous: one frame fill waits for the worker at most; it seeds most of what this
+            # frame would, and fills queued behind every frame cost 7-Scenes at 60 Hz its pace (perf.md)
+            fill_waits = self.worker is not None and self.worker.queued("fill") > 0
+            if pose_ok and self.seeder.wants_fill(decision.coverage) and not fill_waits:
                 rgb_t, depth_t = self.tracker.frame
                 # synchronous: the map as tracking's last render saw it (not rendered again)
                 alpha = tracking.alpha if tracking is not None else self.tracker.alpha
