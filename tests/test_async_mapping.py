@@ -265,9 +265,10 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
 
 @pytest.mark.slow
 def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
-    """Asynchronous: a frame that wants a fill while an earlier fill still waits for (or runs in) the
-    worker gets none (that fill seeds most of what this frame would); the synchronous mode fills every
-    frame that wants it.  Each fill is slowed to 1 s, so frames pass while one is queued."""
+    """Asynchronous (``mapping.fill_queue=1``, the default): a frame that wants a fill while an earlier
+    fill still waits for (or runs in) the worker gets none (that fill seeds most of what this frame
+    would); ``fill_queue=0`` and the synchronous mode fill every frame that wants it.  Each fill is
+    slowed to 1 s in the asynchronous runs, so frames pass while one is queued."""
     from rgs_warp import SLAM, open_dataset
     from rgs_warp.seeding import Seeder
 
@@ -289,18 +290,21 @@ def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
     monkeypatch.setattr(Seeder, "wants_fill", counting_wants)
     monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
     counts = {}
-    for asynchronous in (False, True):
+    for asynchronous, bound in ((False, 1), (True, 1), (True, 0)):
         wanted.clear()
         filled.clear()
         argv = [*OVERRIDES, "dataset.max_frames=14", f"mapping.asynchronous={str(asynchronous).lower()}"]
-        cfg = load_config([*argv, "seeding.frame_fill_min_uncovered=0", f"device={device}"])
+        argv += [f"mapping.fill_queue={bound}", "seeding.frame_fill_min_uncovered=0", f"device={device}"]
+        cfg = load_config(argv)
         ds = open_dataset(cfg, device=device)
         slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
         for f in ds:
             slam.process(f.rgb, f.depth, f.timestamp)
         slam.finish()
-        counts[asynchronous] = (sum(wanted), len(filled))
-    n_wanted, n_filled = counts[False]
+        counts[asynchronous, bound] = (sum(wanted), len(filled))
+    n_wanted, n_filled = counts[False, 1]
     assert n_wanted >= 4 and n_filled == n_wanted, counts  # synchronous: every frame that wants a fill
-    n_filled = counts[True][1]
-    assert 1 <= n_filled < counts[True][0], counts  # asynchronous: frames passed while a fill waited
+    n_wanted, n_filled = counts[True, 1]
+    assert 1 <= n_filled < n_wanted, counts  # asynchronous: frames passed while a fill waited
+    n_wanted, n_filled = counts[True, 0]
+    assert n_wanted >= 4 and n_filled == n_wanted, counts  # no bound

@@ -330,6 +330,11 @@ class MappingConfig:
     # (0: tracking waits for each keyframe's mapping, as in the synchronous mode, with frame fills and
     # frame_iters still beside it; more: lower latency, a map further behind the camera)
     async_queue: int = 1
+    # asynchronous: frame fills (seeding.frame_fill_min_uncovered) that may wait for the worker; a frame
+    # that wants a fill while this many wait or run gets none, since they seed most of what it would
+    # (fills queued behind every frame kept 7-Scenes from a 60 Hz pace: experiments/results/perf.md);
+    # 0: no bound
+    fill_queue: int = 1
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
     # does not wait for it; 0: every keyframe gets `iters`
@@ -686,6 +691,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.frame_iters": NON_NEGATIVE,
     "mapping.final_iters": NON_NEGATIVE,
     "mapping.async_queue": NON_NEGATIVE,
+    "mapping.fill_queue": NON_NEGATIVE,
     "mapping.min_iters": NON_NEGATIVE,
     "mapping.views_per_iter": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,

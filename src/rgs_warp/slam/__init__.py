@@ -269,9 +269,10 @@ class SLAM:
             if self.worker is None:  # the next frame's tracking graphs, for the grown map: not in its latency
                 self.tracker.prepare(self.map, T)
         else:
-            # asynchronous: one frame fill waits for the worker at most; it seeds most of what this
-            # frame would, and fills queued behind every frame cost 7-Scenes at 60 Hz its pace (perf.md)
-            fill_waits = self.worker is not None and self.worker.queued("fill") > 0
+            # asynchronous: at most mapping.fill_queue frame fills wait for the worker (they seed most of
+            # what this frame would)
+            bound = self.cfg.mapping.fill_queue
+            fill_waits = self.worker is not None and 0 < bound <= self.worker.queued("fill")
             if pose_ok and self.seeder.wants_fill(decision.coverage) and not fill_waits:
                 rgb_t, depth_t = self.tracker.frame
                 # synchronous: the map as tracking's last render saw it (not rendered again)
