@@ -11,6 +11,7 @@ from rgs_warp.config import MAX_PATCH_RADIUS, MatchingConfig, TriangulationConfi
 from rgs_warp.geometry import invert_pose, se3_exp
 from rgs_warp.kernels.matching import (
     NO_MATCH,
+    EpipolarSearch,
     epipolar_search,
     epipolar_search_parts,
     grey_image,
@@ -333,6 +334,16 @@ def test_zncc_refinement_against_reference(device, R, r):
         assert np.median(err) < 0.2 and err.max() < 0.5
 
 
+def _search_params(K, T, stride, band):
+    """An EpipolarSearch into the camera T (query to target): depths 0.1-10 m without depth, 5 %
+    tolerance with it, segments of at least +/- 2 feature px, at most 512 samples."""
+    e = EpipolarSearch()
+    e.K, e.R_tq, e.t_tq = wp.vec4(*K), wp.mat33(*T[:3, :3].ravel()), wp.vec3(*T[:3, 3])
+    e.stride, e.depth_range, e.depth_rel_tol = stride, wp.vec2(0.1, 10.0), 0.05
+    e.min_radius, e.band, e.max_steps = 2.0, band, 512
+    return e
+
+
 @pytest.mark.parametrize("parts", [5, 16])
 def test_epipolar_scan_in_parts_equals_one_thread_a_query(device, parts):
     """kernels/matching.py: the descriptor scan spread over ``parts`` threads a query
@@ -353,19 +364,19 @@ def test_epipolar_scan_in_parts_equals_one_thread_a_query(device, parts):
     query_sim = np.ones(n, np.float32)
     query_sim[::7] = NO_MATCH  # skipped queries
     T = se3_exp(np.array([0.2, -0.05, 0.03, 0.02, 0.05, -0.01]))
-    R, t = wp.mat33(*T[:3, :3].ravel()), wp.vec3(*T[:3, 3])
     grey = wp.array(rng.random((h, w)).astype(np.float32), **kw)
     inputs = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), wp.array(query_sim, **kw)]
-    inputs += [wp.array(depth, **kw), grey, wp.array(target, **kw), grey, wp.vec4(40.0, 40.0, 31.5, 23.5), R, t]
-    search = [stride, wp.vec2(0.1, 10.0), 0.05, 2.0, 1, 512, 3, 2]
+    inputs += [wp.array(depth, **kw), grey, wp.array(target, **kw), grey]
+    e = _search_params((40.0, 40.0, 31.5, 23.5), T, stride, band=1)
     results = []
     for p in (1, parts):
         part_sim = wp.zeros((n, p), dtype=wp.float32, **kw)
         part_cell = wp.zeros((n, p), dtype=wp.vec3i, **kw)
-        part_inputs = inputs[:4] + [inputs[5]] + inputs[7:] + search[:6]
+        part_inputs = inputs[:4] + [inputs[5], e]
         wp.launch(epipolar_search_parts, dim=(n, p), inputs=part_inputs, outputs=[part_sim, part_cell], device=device)
         outs = [wp.zeros(n, dtype=wp.vec2, **kw), wp.zeros(n, dtype=wp.float32, **kw), wp.zeros(n, **kw)]
-        wp.launch(epipolar_search, dim=n, inputs=inputs + search + [part_sim, part_cell], outputs=outs, device=device)
+        search = [e, 3, 2, part_sim, part_cell]
+        wp.launch(epipolar_search, dim=n, inputs=inputs + search, outputs=outs, device=device)
         results.append([o.numpy() for o in outs])
     for a, b in zip(*results, strict=True):
         np.testing.assert_array_equal(a, b)
@@ -434,17 +445,16 @@ def test_epipolar_scan_against_reference(device):
     K = (40.0, 40.0, 31.5, 23.5)
     grey = wp.array(rng.random((h, w)).astype(np.float32), **kw)
     inputs = [wp.array(query, **kw), wp.array(uv, dtype=wp.vec2, **kw), wp.full(n, 1.0, dtype=wp.float32, **kw)]
-    inputs += [wp.array(depth, **kw), grey, wp.array(target, **kw), grey, wp.vec4(*K)]
-    inputs += [wp.mat33(*T[:3, :3].ravel()), wp.vec3(*T[:3, 3])]
-    search = [stride, wp.vec2(0.1, 10.0), 0.05, 2.0, band, 512, 0, 2]
+    inputs += [wp.array(depth, **kw), grey, wp.array(target, **kw), grey]
+    e = _search_params(K, T, stride, band)
     part_sim = wp.zeros((n, 16), dtype=wp.float32, **kw)
     part_cell = wp.zeros((n, 16), dtype=wp.vec3i, **kw)
-    part_inputs = inputs[:4] + [inputs[5]] + inputs[7:] + search[:6]
+    part_inputs = inputs[:4] + [inputs[5], e]
     wp.launch(
         epipolar_search_parts, dim=part_sim.shape, inputs=part_inputs, outputs=[part_sim, part_cell], device=device
     )
     outs = [wp.zeros(n, dtype=wp.vec2, **kw), wp.zeros(n, dtype=wp.float32, **kw), wp.zeros(n, **kw)]
-    wp.launch(epipolar_search, dim=n, inputs=inputs + search + [part_sim, part_cell], outputs=outs, device=device)
+    wp.launch(epipolar_search, dim=n, inputs=inputs + [e, 0, 2, part_sim, part_cell], outputs=outs, device=device)
     got = outs[1].numpy()
     want = np.full(n, NO_MATCH)
     long_segment = np.zeros(n, bool)

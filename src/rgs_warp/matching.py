@@ -25,6 +25,7 @@ from rgs_warp.features import feature_centres, make_backbone
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.kernels.dlt import mat34d
 from rgs_warp.kernels.matching import (
+    EpipolarSearch,
     aggregate_confidence,
     apply_thinning,
     epipolar_search,
@@ -158,15 +159,35 @@ class DenseMatcher:
         return buffer.descriptors[slot]
 
     # ------------------------------------------------------------------ matching
-    def _search(self, query_target: list, search: tuple, out: list) -> None:
-        """``epipolar_search`` of ``query_target`` (its inputs up to the target's pose) with the
-        search parameters ``search``, its descriptor scan spread over EPIPOLAR_PARTS threads a query
-        (``epipolar_search_parts``) into ``out`` (match, similarity, epipolar distance)."""
-        n, d = self._part_sim.shape[0], self.device
-        desc, uv, sim, depth, _, target_desc, _, K, R, t = query_target
-        parts = [desc, uv, sim, depth, target_desc, K, R, t, *search[:6]]
-        wp.launch(epipolar_search_parts, dim=self._part_sim.shape, inputs=parts, outputs=self._parts, device=d)
-        wp.launch(epipolar_search, dim=n, inputs=query_target + [*search, *self._parts], outputs=out, device=d)
+    def _epipolar(self, T_tq: np.ndarray) -> EpipolarSearch:
+        """The search parameters from the query camera into the target camera ``T_tq`` (4x4)."""
+        cfg, cam = self.cfg, self.camera
+        e = EpipolarSearch()
+        e.K = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
+        e.R_tq = wp.mat33(*T_tq[:3, :3].astype(np.float32).ravel())
+        e.t_tq = wp.vec3(*T_tq[:3, 3].astype(np.float32))
+        e.stride, e.depth_range = self.stride, wp.vec2(cfg.min_depth_m, cfg.max_depth_m)
+        e.depth_rel_tol, e.min_radius = cfg.depth_rel_tol, cfg.min_search_radius
+        e.band, e.max_steps = cfg.band, cfg.max_steps
+        return e
+
+    def _search(self, images: list, T_tq: np.ndarray, out: list) -> None:
+        """``epipolar_search`` of the queries in ``images`` (query descriptors, points, similarities,
+        depth and grey image; target descriptors and grey image) into the target camera ``T_tq`` (from
+        the query camera), its descriptor scan spread over EPIPOLAR_PARTS threads a query
+        (``epipolar_search_parts``), into ``out`` (match, similarity, epipolar distance)."""
+        n, d, cfg = self._part_sim.shape[0], self.device, self.cfg
+        desc, uv, sim, depth, query_grey, target_desc, target_grey = images
+        e = self._epipolar(T_tq)
+        wp.launch(
+            epipolar_search_parts,
+            dim=self._part_sim.shape,
+            inputs=[desc, uv, sim, depth, target_desc, e],
+            outputs=self._parts,
+            device=d,
+        )
+        refine = [int(np.ceil(cfg.refine_radius * self.stride)), cfg.patch_radius_px]
+        wp.launch(epipolar_search, dim=n, inputs=images + [e, *refine, *self._parts], outputs=out, device=d)
 
     def match(
         self,
@@ -192,10 +213,6 @@ class DenseMatcher:
         ref_grey, nb_grey = self._ref_grey, self._nb_grey
         wp.launch(grey_image, dim=ref_grey.shape, inputs=[buffer.rgb[ref_slot]], outputs=[ref_grey], device=d)
         cam = self.camera
-        K = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
-        depth_range = wp.vec2(cfg.min_depth_m, cfg.max_depth_m)
-        search = (s, depth_range, cfg.depth_rel_tol, cfg.min_search_radius, cfg.band, cfg.max_steps)
-        search += (int(np.ceil(cfg.refine_radius * s)), cfg.patch_radius_px)
         weights = wp.vec3(cfg.w_sim, cfg.w_fb, cfg.w_epi)
         T_r = buffer.poses[ref_slot]
         for column, slot in enumerate(neighbours):
@@ -205,11 +222,11 @@ class DenseMatcher:
             T_rn = invert_pose(T_nr)
             ref_depth = buffer.depth[ref_slot] if use_depth else self._zero_depth
             nb_depth = buffer.depth[slot] if use_depth else self._zero_depth
-            fwd = [ref_desc, self._ref_uv, self._always, ref_depth, ref_grey, nb_desc, nb_grey, K, *_warp_rigid(T_nr)]
-            self._search(fwd, search, [self._fwd_uv, self._fwd_sim, self._fwd_epi])
+            fwd = [ref_desc, self._ref_uv, self._always, ref_depth, ref_grey, nb_desc, nb_grey]
+            self._search(fwd, T_nr, [self._fwd_uv, self._fwd_sim, self._fwd_epi])
             wp.launch(sample_descriptors, dim=n, inputs=[nb_desc, self._fwd_uv, s], outputs=[self._query], device=d)
-            bwd = [self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_grey, ref_desc_3d, ref_grey, K]
-            self._search(bwd + [*_warp_rigid(T_rn)], search, [self._bwd_uv, self._bwd_sim, self._bwd_epi])
+            bwd = [self._query, self._fwd_uv, self._fwd_sim, nb_depth, nb_grey, ref_desc_3d, ref_grey]
+            self._search(bwd, T_rn, [self._bwd_uv, self._bwd_sim, self._bwd_epi])
             wp.launch(
                 score_matches,
                 dim=n,
@@ -247,7 +264,3 @@ class DenseMatcher:
             self.grid,
             s,
         )
-
-
-def _warp_rigid(T: np.ndarray) -> tuple[wp.mat33, wp.vec3]:
-    return wp.mat33(*T[:3, :3].astype(np.float32).ravel()), wp.vec3(*T[:3, 3].astype(np.float32))

@@ -157,29 +157,39 @@ def refine_zncc(
     return coarse + wp.vec2(float(bx) + off_x, float(by) + off_y)
 
 
+@wp.struct
+class EpipolarSearch:
+    """What an epipolar search (``epipolar_search_parts``, ``epipolar_search``) needs besides its
+    images: the intrinsics (fx, fy, cx, cy), the query camera into the target camera (R_tq, t_tq),
+    the descriptor stride, the depths searched without a query depth, the relative depth tolerance
+    with one, the least half-length and the band of the segment (feature px), and its most samples."""
+
+    K: wp.vec4
+    R_tq: wp.mat33
+    t_tq: wp.vec3
+    stride: int
+    depth_range: wp.vec2
+    depth_rel_tol: float
+    min_radius: float
+    band: int
+    max_steps: int
+
+
 @wp.func
-def epipolar_segment(
-    uv: wp.vec2,
-    query_depth: wp.array2d(dtype=wp.float32),
-    Hf: int,
-    Wf: int,
-    K: wp.vec4,
-    R_tq: wp.mat33,
-    t_tq: wp.vec3,
-    stride: int,
-    depth_range: wp.vec2,
-    depth_rel_tol: float,
-    min_radius: float,
-    band: int,
-    max_steps: int,
-):
+def epipolar_segment(uv: wp.vec2, query_depth: wp.array2d(dtype=wp.float32), Hf: int, Wf: int, e: EpipolarSearch):
     """The feature-grid segment that ``epipolar_search`` scans for the query at image point uv: its
     start g0, unit direction and normal, a point of the epipolar line, the parameter range's start
     t_lo, the number of samples and their spacing (0 samples: none to scan)."""
+    K = e.K
+    R_tq = e.R_tq
+    t_tq = e.t_tq
+    stride = e.stride
+    depth_rel_tol = e.depth_rel_tol
+    min_radius = e.min_radius
     ray = R_tq @ wp.vec3((uv[0] - K[2]) / K[0], (uv[1] - K[3]) / K[1], 1.0)
     d = sample_depth(query_depth, uv[0], uv[1], depth_rel_tol)
-    d_near = depth_range[0]
-    d_far = depth_range[1]
+    d_near = e.depth_range[0]
+    d_far = e.depth_range[1]
     if d > 0.0:
         d_near = d * (1.0 - depth_rel_tol)
         d_far = d * (1.0 + depth_rel_tol)
@@ -210,7 +220,7 @@ def epipolar_segment(
         g0 = middle - min_radius * direction
         length = 2.0 * min_radius
     # Clip the segment to the grid (widened by the band) by its parameter range.
-    margin = float(band) + 0.5
+    margin = float(e.band) + 0.5
     t_lo = float(0.0)
     t_hi = float(length)
     for axis in range(2):
@@ -227,7 +237,7 @@ def epipolar_segment(
             t_hi = -1.0
     if t_lo > t_hi:
         return none, none, none, none, 0.0, 0, 0.0
-    n_steps = wp.min(int(wp.ceil(t_hi - t_lo)) + 1, max_steps)
+    n_steps = wp.min(int(wp.ceil(t_hi - t_lo)) + 1, e.max_steps)
     step = (t_hi - t_lo) / float(wp.max(n_steps - 1, 1))
     return g0, direction, normal, line_point, t_lo, n_steps, step
 
@@ -240,15 +250,7 @@ def epipolar_search_parts(
     query_sim: wp.array(dtype=wp.float32),
     query_depth: wp.array2d(dtype=wp.float32),
     target_desc: wp.array3d(dtype=wp.float32),
-    K: wp.vec4,
-    R_tq: wp.mat33,
-    t_tq: wp.vec3,
-    stride: int,
-    depth_range: wp.vec2,
-    depth_rel_tol: float,
-    min_radius: float,
-    band: int,
-    max_steps: int,
+    search: EpipolarSearch,
     # out:
     part_sim_out: wp.array2d(dtype=wp.float32),
     part_cell_out: wp.array2d(dtype=wp.vec3i),
@@ -267,9 +269,8 @@ def epipolar_search_parts(
         return
     Hf = target_desc.shape[0]
     Wf = target_desc.shape[1]
-    g0, direction, normal, line_point, t_lo, n_steps, step = epipolar_segment(
-        query_uv[i], query_depth, Hf, Wf, K, R_tq, t_tq, stride, depth_range, depth_rel_tol, min_radius, band, max_steps
-    )
+    g0, direction, normal, line_point, t_lo, n_steps, step = epipolar_segment(query_uv[i], query_depth, Hf, Wf, search)
+    band = search.band
     best = float(NO_MATCH)
     cell = wp.vec3i(-1, -1, -1)
     for s in range(part, n_steps, parts):
@@ -297,15 +298,7 @@ def epipolar_search(
     query_grey: wp.array2d(dtype=wp.float32),
     target_desc: wp.array3d(dtype=wp.float32),
     target_grey: wp.array2d(dtype=wp.float32),
-    K: wp.vec4,
-    R_tq: wp.mat33,
-    t_tq: wp.vec3,
-    stride: int,
-    depth_range: wp.vec2,
-    depth_rel_tol: float,
-    min_radius: float,
-    band: int,
-    max_steps: int,
+    search: EpipolarSearch,
     refine_radius: int,
     patch_radius: int,
     part_sim: wp.array2d(dtype=wp.float32),
@@ -322,9 +315,10 @@ def epipolar_search(
     ``epipolar_search_parts``, launched before with the same arguments), refined to sub-pixel by a
     parabola fit of the similarity in x and y, then at image resolution: the best patch ZNCC of the
     grey images over integer shifts within +/- refine_radius px, refined by a parabola fit of the
-    ZNCC (where both patches are flat the descriptor estimate stays).
-    R_tq, t_tq map query-camera points into the target camera.  Writes the match (image px), its
-    similarity (Eq. 10, NO_MATCH if none) and its distance to the epipolar line (image px)."""
+    ZNCC (where both patches are flat the descriptor estimate stays).  ``search`` (``EpipolarSearch``)
+    maps query-camera points into the target camera and holds the segment's bounds.  Writes the match
+    (image px), its similarity (Eq. 10, NO_MATCH if none) and its distance to the epipolar line
+    (image px)."""
     i = wp.tid()
     match_uv_out[i] = wp.vec2(0.0, 0.0)
     sim_out[i] = NO_MATCH
@@ -334,9 +328,8 @@ def epipolar_search(
     Hf = target_desc.shape[0]
     Wf = target_desc.shape[1]
     uv = query_uv[i]
-    g0, direction, normal, line_point, t_lo, n_steps, step = epipolar_segment(
-        uv, query_depth, Hf, Wf, K, R_tq, t_tq, stride, depth_range, depth_rel_tol, min_radius, band, max_steps
-    )
+    g0, direction, normal, line_point, t_lo, n_steps, step = epipolar_segment(uv, query_depth, Hf, Wf, search)
+    stride = search.stride
     best = float(NO_MATCH)
     cell = wp.vec3i(-1, -1, -1)
     for part in range(part_sim.shape[1]):
