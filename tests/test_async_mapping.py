@@ -198,6 +198,8 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert metrics["playback"]["fps"] == 1000.0
     assert metrics["playback"]["lag_ms_max"] == pytest.approx(1e3 * max(lags), abs=0.1)
     assert metrics["time_s"]["checkpoints_s"] == 0.0  # played as a live stream: no checkpoint at any keyframe
+    fills = metrics["frame_fills"]
+    assert fills["wanted"] >= 1 and 0 <= fills["skipped"] <= fills["wanted"], fills
 
 
 @pytest.mark.slow
@@ -302,6 +304,7 @@ def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
             slam.process(f.rgb, f.depth, f.timestamp)
         slam.finish()
         counts[asynchronous, bound] = (sum(wanted), len(filled))
+        assert slam.frame_fills == {"wanted": sum(wanted), "skipped": sum(wanted) - len(filled)}
     n_wanted, n_filled = counts[False, 1]
     assert n_wanted >= 4 and n_filled == n_wanted, counts  # synchronous: every frame that wants a fill
     n_wanted, n_filled = counts[True, 1]

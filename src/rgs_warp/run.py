@@ -885,6 +885,8 @@ def evaluate_run(
     # mapping steps run eagerly, captured and replayed (mapping.graph), replays that overflowed
     metrics["mapping_graph_steps"] = dict(slam.mapper.graph_counts)
     metrics["mapping"] = "asynchronous" if cfg.mapping.asynchronous else "synchronous"
+    # tracked frames that wanted a frame fill, and those that got none (mapping.fill_queue, asynchronous)
+    metrics["frame_fills"] = dict(slam.frame_fills)
     if playback is not None:
         metrics["playback"] = playback
     if slam.keyframe_latency_s:  # asynchronous: from a keyframe's tracking to its map published

@@ -154,6 +154,9 @@ class SLAM:
         # holds; ``keyframe_latency_s``: from a keyframe's tracking to the map with its seeds published
         self.worker = self.publisher = self.turns = None
         self.keyframe_latency_s: list[float] = []
+        # tracked frames that wanted a frame fill, and those that got none because mapping.fill_queue
+        # fills already waited for the worker (asynchronous)
+        self.frame_fills = {"wanted": 0, "skipped": 0}
         if cfg.mapping.asynchronous:
             self.turns = DeviceTurns()
             self.publisher = MapPublisher(cfg.render.sh_degree, dev)
@@ -272,8 +275,11 @@ class SLAM:
             # asynchronous: at most mapping.fill_queue frame fills wait for the worker (they seed most of
             # what this frame would)
             bound = self.cfg.mapping.fill_queue
-            fill_waits = self.worker is not None and 0 < bound <= self.worker.queued("fill")
-            if pose_ok and self.seeder.wants_fill(decision.coverage) and not fill_waits:
+            wants = pose_ok and self.seeder.wants_fill(decision.coverage)
+            fill_waits = wants and self.worker is not None and 0 < bound <= self.worker.queued("fill")
+            self.frame_fills["wanted"] += int(wants)
+            self.frame_fills["skipped"] += int(fill_waits)
+            if wants and not fill_waits:
                 rgb_t, depth_t = self.tracker.frame
                 # synchronous: the map as tracking's last render saw it (not rendered again)
                 alpha = tracking.alpha if tracking is not None else self.tracker.alpha
