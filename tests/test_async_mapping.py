@@ -311,3 +311,23 @@ def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
     assert 1 <= n_filled < n_wanted, counts  # asynchronous: frames passed while a fill waited
     n_wanted, n_filled = counts[True, 0]
     assert n_wanted >= 4 and n_filled == n_wanted, counts  # no bound
+
+
+def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
+    """``run.print_summary`` of a played run: the lag at the last frame and the median, the skipped frame
+    fills, and a warning (stderr) only when the run fell behind the camera."""
+    from rgs_warp.run import print_summary
+
+    playback = {"fps": 60.0, "lag_ms_p50": 1120.0, "lag_ms_last": 1350.0, "kept_pace": False}
+    metrics = {"frames": 500, "keyframes": 33, "gaussians": 220000, "fps": 47.5, "playback": playback}
+    metrics["frame_fills"] = {"wanted": 445, "skipped": 368}
+    print_summary(tmp_path, metrics)
+    out, err = capsys.readouterr()
+    assert "camera    60 Hz: behind it by 1350 ms at the last frame, 1120 ms at the median" in out
+    assert "368 of 445 frame fills skipped" in out
+    assert "fell 1.35 s behind a 60 Hz camera" in err
+    metrics["playback"] = {**playback, "lag_ms_last": 10.0, "kept_pace": True}
+    metrics["frame_fills"] = {"wanted": 445, "skipped": 0}
+    print_summary(tmp_path, metrics)
+    out, err = capsys.readouterr()
+    assert "behind it by 10 ms" in out and "skipped" not in out and "fell" not in err

@@ -1085,7 +1085,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def print_summary(run_dir: Path, metrics: dict) -> None:
-    """The end of ``main``: where the run is and its headline numbers, and a warning when tracking was lost."""
+    """The end of ``main``: where the run is and its headline numbers, how far behind the camera a played
+    run ended, and warnings when it fell behind or tracking was lost."""
     ate = (metrics.get("ate") or {}).get("all_frames", {})
     photo = metrics.get("photometric") or {}
     print(f"run dir   {run_dir}")
@@ -1110,7 +1111,21 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
             f"kernels   {kernels['compiled_modules']} Warp modules compiled in {kernels['compile_s']:.0f} s of the run "
             f"(the first run only: cached in {wp.config.kernel_cache_dir})"
         )
+    playback, fills = metrics.get("playback"), metrics.get("frame_fills") or {}
+    if playback:
+        skipped = f"; {fills['skipped']} of {fills['wanted']} frame fills skipped" if fills.get("skipped") else ""
+        print(
+            f"camera    {playback['fps']:g} Hz: behind it by {playback['lag_ms_last']:.0f} ms at the last frame, "
+            f"{playback['lag_ms_p50']:.0f} ms at the median{skipped}"
+        )
     print(f"report    {run_dir / 'metrics.md'}")
+    if playback and not playback["kept_pace"]:
+        print(
+            f"warning: the run fell {playback['lag_ms_last'] / 1e3:.2f} s behind a {playback['fps']:g} Hz camera; "
+            "timing=live keeps pace by mapping less (mapping.min_iters), a lower dataset.playback_fps or fewer "
+            "tracking steps (tracking.iters) leave it more time (experiments/results/perf.md)",
+            file=sys.stderr,
+        )
     tracking = metrics.get("tracking") or {}
     if tracking.get("lost_frames"):
         print(
