@@ -334,7 +334,8 @@ class MappingConfig:
     # that wants a fill while this many wait or run gets none, since they seed most of what it would.
     # Measured (timing=live, H100, experiments/results/perf.md): unbounded, fills queued behind every
     # frame kept 7-Scenes from a 60 Hz pace; 1 keeps it but costs the office at 30 Hz about 0.5 dB;
-    # 2 keeps both; 3 loses 7-Scenes' pace again.  0: no bound
+    # 2 keeps the office's map and 7-Scenes' pace on the faster machines (2 of 4); 3 loses that pace
+    # again.  0: no bound
     fill_queue: int = 2
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
