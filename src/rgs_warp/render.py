@@ -169,6 +169,7 @@ class Renderer:
         self._touched = wp.zeros(n, dtype=wp.int32, **kw)
         self._offsets = wp.zeros(n, dtype=wp.int32, **kw)
         self._grad2d = wp.zeros(n, dtype=vec10, **kw)
+        self._grad2d_floats = self._grad2d.view(wp.float32)  # (n, 10): the tiled backward adds per component
         self._pose_jac = wp.zeros(1, dtype=vec32, **kw)  # grown by the first render that needs it
         self.grads = GaussianGrads(
             wp.zeros(n, dtype=wp.vec3, **kw),
@@ -460,7 +461,7 @@ class Renderer:
         if backward and self.tiled:
             kernel = rasterize_tiles_pose_backward if pose_only else rasterize_tiles_backward
             inputs = common + [self._final_t, self._n_contrib, *grads, self._pose_jac, cam.fx, cam.fy]
-            outputs = [self._grad2d, self.pose_grad]
+            outputs = [self._grad2d_floats, self.pose_grad]
         elif backward:
             kernel = rasterize_pixels_backward
             inputs = common + [self._final_t, self._n_contrib, *grads]

@@ -12,8 +12,8 @@ the last contributor. wp.Tape cannot differentiate these loops (loop-carried tra
 dynamic loop comes out wrong), hence the explicit adjoint.
 
 Two implementations share the per-splat math: a tiled one (one 256-thread block per image tile,
-batches of Gaussians gathered into shared memory, per-Gaussian gradients reduced over the block
-before one global atomic) for speed, and a plain per-pixel one used as a second reference.
+batches of Gaussians gathered into shared memory, per-Gaussian gradients reduced over each warp
+before global atomics) for speed, and a plain per-pixel one used as a second reference.
 """
 
 import warp as wp
@@ -41,19 +41,49 @@ ALPHA_MAX = 0.99
 T_MIN = 1.0e-4
 
 
-# Warp-level reduction of the backward's per-splat gradients (gsplat's scheme): 32 lanes fold their
-# vec10 with shuffles and one lane adds the sum to global memory, 8x fewer atomics than per pixel
-# and no block barrier per splat.  On the CPU (lanes run as fibers, no shuffles) every lane is its
-# own leader and adds its own value: same result.
-_WARP_SUM = """
+# Warp-level reduction of the backward's per-splat gradients (gsplat's scheme, with fewer shuffles): the
+# 32 lanes' vec10 (padded to 16 slots) are summed by recursive halving, each round a lane keeping half of
+# its slots and adding its partner's copy of them, so 8 + 4 + 2 + 1 + 1 = 16 shuffles instead of 10 x 5;
+# then lane 2s holds the warp's sum of slot s (s = 0..9 are the vec10 components) and adds it to global
+# memory: 10 lanes, one atomic each, instead of one lane's 10.  On the CPU (lanes run as fibers, no
+# shuffles) the sum is the lane's own vec10 and every lane adds all of it: the same result.
+_WARP_REDUCE_SCATTER = """
 #if defined(__CUDA_ARCH__)
-    for (int offset = 16; offset > 0; offset >>= 1) {
-        for (int c = 0; c < 10; ++c) {
-            v.c[c] += __shfl_down_sync(0xffffffffu, v.c[c], offset);
-        }
+    float s[16];
+#pragma unroll
+    for (int c = 0; c < 10; ++c) s[c] = v.c[c];
+#pragma unroll
+    for (int c = 10; c < 16; ++c) s[c] = 0.0f;
+#define RGS_HALVE(OFFSET, HALF)                                                   \
+    {                                                                             \
+        const bool upper = (lane & OFFSET) != 0;                                  \
+        _Pragma("unroll") for (int c = 0; c < HALF; ++c) {                        \
+            const float send = upper ? s[c] : s[c + HALF];                        \
+            const float keep = upper ? s[c + HALF] : s[c];                        \
+            s[c] = keep + __shfl_xor_sync(0xffffffffu, send, OFFSET);             \
+        }                                                                         \
     }
-#endif
+    RGS_HALVE(16, 8)
+    RGS_HALVE(8, 4)
+    RGS_HALVE(4, 2)
+    RGS_HALVE(2, 1)
+#undef RGS_HALVE
+    s[0] += __shfl_xor_sync(0xffffffffu, s[0], 1);
+    auto out = v;
+    out.c[0] = s[0];
+    return out;
+#else
     return v;
+#endif
+"""
+# The vec10 component whose warp sum this lane holds after warp_reduce_scatter, 10 and above for none
+# (odd lanes and padding slots); -1 on the CPU: the lane holds all ten.
+_SCATTER_SLOT = """
+#if defined(__CUDA_ARCH__)
+    return (lane & 1) == 0 ? ((lane >> 1) & 15) : 16;
+#else
+    return -1;
+#endif
 """
 _WARP_ANY = """
 #if defined(__CUDA_ARCH__)
@@ -62,25 +92,18 @@ _WARP_ANY = """
     return flag;
 #endif
 """
-_WARP_LEADER = """
-#if defined(__CUDA_ARCH__)
-    return (lane & 31) == 0 ? 1 : 0;
-#else
-    return 1;
-#endif
-"""
 
 
-@wp.func_native(_WARP_SUM)
-def warp_sum(v: vec10) -> vec10: ...
+@wp.func_native(_WARP_REDUCE_SCATTER)
+def warp_reduce_scatter(v: vec10, lane: int) -> vec10: ...
+
+
+@wp.func_native(_SCATTER_SLOT)
+def scatter_slot(lane: int) -> int: ...
 
 
 @wp.func_native(_WARP_ANY)
 def warp_any(flag: int) -> int: ...
-
-
-@wp.func_native(_WARP_LEADER)
-def warp_leader(lane: int) -> int: ...
 
 
 @wp.func
@@ -262,9 +285,9 @@ def _tiles_backward(pose_only: bool):
         pose_jac: wp.array(dtype=vec32),
         fx: float,
         fy: float,
-        # out: screen-space gradients per Gaussian (general variant, zeroed beforehand) or the twist
-        # gradient (pose-only variant, added to)
-        grad2d_out: wp.array(dtype=vec10),
+        # out: screen-space gradients per Gaussian, (N, 10) (general variant, zeroed beforehand: the
+        # renderer's vec10 buffer seen as floats) or the twist gradient (pose-only variant, added to)
+        grad2d_out: wp.array2d(dtype=float),
         grad_pose_out: wp.array(dtype=float),
     ):
         tile, lane = wp.tid()
@@ -326,9 +349,14 @@ def _tiles_backward(pose_only: bool):
                             g_pose += fold_pose(wp.tile_extract(s_jac, k), g, fx, fy)
                 if wp.static(not pose_only):
                     if warp_any(hit) != 0:
-                        total = warp_sum(g)
-                        if warp_leader(lane) != 0:
-                            wp.atomic_add(grad2d_out, wp.tile_extract(ids, k), total)
+                        total = warp_reduce_scatter(g, lane)
+                        slot = scatter_slot(lane)
+                        i = wp.tile_extract(ids, k)
+                        if slot < 0:
+                            for c in range(10):
+                                wp.atomic_add(grad2d_out, i, c, total[c])
+                        elif slot < 10:
+                            wp.atomic_add(grad2d_out, i, slot, total[0])
 
         if wp.static(pose_only):
             pose_total = block_sum(g_pose)
