@@ -85,17 +85,6 @@ _SCATTER_SLOT = """
     return -1;
 #endif
 """
-# The largest of the warp's 32 values (each pixel's last contributor), every lane getting it; on the CPU
-# the lane's own.
-_WARP_MAX = """
-#if defined(__CUDA_ARCH__)
-#pragma unroll
-    for (int offset = 16; offset > 0; offset >>= 1) {
-        value = max(value, __shfl_xor_sync(0xffffffffu, value, offset));
-    }
-#endif
-    return value;
-"""
 _WARP_ANY = """
 #if defined(__CUDA_ARCH__)
     return __any_sync(0xffffffffu, flag) ? 1 : 0;
@@ -113,23 +102,16 @@ def warp_reduce_scatter(v: vec10, lane: int) -> vec10: ...
 def scatter_slot(lane: int) -> int: ...
 
 
-@wp.func_native(_WARP_MAX)
-def warp_max(value: int) -> int: ...
-
-
 @wp.func_native(_WARP_ANY)
 def warp_any(flag: int) -> int: ...
 
 
 @wp.func
 def splat_alpha(xyod: wp.vec4, con: wp.vec3, px: float, py: float):
-    """alpha at pixel (px, py), the offset (dx, dy) of the splat's centre from it, and the Gaussian's
-    value there (alpha / opacity where alpha is not clamped)."""
     dx = xyod[0] - px
     dy = xyod[1] - py
     power = -0.5 * (con[0] * dx * dx + con[2] * dy * dy) - con[1] * dx * dy
-    gauss = wp.exp(power)
-    return wp.min(ALPHA_MAX, xyod[2] * gauss), dx, dy, gauss
+    return wp.min(ALPHA_MAX, xyod[2] * wp.exp(power)), dx, dy
 
 
 @wp.func
@@ -140,9 +122,7 @@ def splat_grad(
     dx: float,
     dy: float,
     alpha: float,
-    gauss: float,
     t_i: float,
-    inv_one_minus: float,
     t_final: float,
     acc_color: wp.vec3,
     acc_depth: float,
@@ -153,22 +133,23 @@ def splat_grad(
     """Screen-space gradient (vec10 layout of projection.vec10) of one splat at one pixel.
 
     acc_color / acc_depth hold what lies behind splat i (sum_{j>i} w_j c_j + T_final bg, and
-    sum_{j>i} w_j z_j); every w_j behind i carries a factor (1 - alpha_i), whose reciprocal the caller
-    has (inv_one_minus: one division a splat, not five), as it has splat_alpha's ``gauss``.
+    sum_{j>i} w_j z_j); every w_j behind i carries a factor (1 - alpha_i).
     """
+    one_minus = 1.0 - alpha
     w = alpha * t_i
     g_a = (
-        wp.dot(g_color, t_i * col - acc_color * inv_one_minus)
-        + g_depth * (t_i * xyod[3] - acc_depth * inv_one_minus)
-        + g_alpha * t_final * inv_one_minus
+        wp.dot(g_color, t_i * col - acc_color / one_minus)
+        + g_depth * (t_i * xyod[3] - acc_depth / one_minus)
+        + g_alpha * t_final / one_minus
     )
     out = vec10()
     out[6] = w * g_color[0]
     out[7] = w * g_color[1]
     out[8] = w * g_color[2]
     out[9] = w * g_depth
+    opacity = xyod[2]
     if alpha < ALPHA_MAX:
-        out[5] = g_a * gauss  # alpha = opacity gauss
+        out[5] = g_a * alpha / opacity
         # alpha = o exp(power): dL/dpower = dL/dalpha * alpha
         g_power = g_a * alpha
         out[0] = -g_power * (con[0] * dx + con[1] * dy)
@@ -231,7 +212,7 @@ def rasterize_tiles(
             if done:
                 break
             xyod = wp.tile_extract(s_xyod, k)
-            alpha, dx, dy, gauss = splat_alpha(xyod, wp.tile_extract(s_conic, k), px, py)
+            alpha, dx, dy = splat_alpha(xyod, wp.tile_extract(s_conic, k), px, py)
             if alpha < ALPHA_MIN:
                 continue
             t_next = T * (1.0 - alpha)
@@ -335,7 +316,6 @@ def _tiles_backward(pose_only: bool):
         g_pose = vec6()
 
         block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
-        warp_last = warp_max(last)
         n_batches = (block_last + BLOCK - 1) // BLOCK
         for bb in range(n_batches):
             b = n_batches - 1 - bb
@@ -351,32 +331,15 @@ def _tiles_backward(pose_only: bool):
                 k = count - 1 - kk
                 g = vec10()
                 hit = wp.int32(0)
-                if b * BLOCK + k >= warp_last:
-                    continue  # past every pixel's last contributor in this warp: the whole warp skips it
                 if b * BLOCK + k < last:
                     xyod = wp.tile_extract(s_xyod, k)
                     con = wp.tile_extract(s_conic, k)
-                    alpha, dx, dy, gauss = splat_alpha(xyod, con, px, py)
+                    alpha, dx, dy = splat_alpha(xyod, con, px, py)
                     if alpha >= ALPHA_MIN:
-                        inv_one_minus = 1.0 / (1.0 - alpha)
-                        T = T * inv_one_minus
+                        T = T / (1.0 - alpha)
                         col = wp.tile_extract(s_color, k)
                         g = splat_grad(
-                            xyod,
-                            con,
-                            col,
-                            dx,
-                            dy,
-                            alpha,
-                            gauss,
-                            T,
-                            inv_one_minus,
-                            t_final,
-                            acc_color,
-                            acc_depth,
-                            g_color,
-                            g_depth,
-                            g_alpha,
+                            xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha
                         )
                         w = alpha * T
                         acc_color += w * col
@@ -448,7 +411,7 @@ def rasterize_pixels(
     for j in range(start, end):
         i = sorted_ids[j]
         xyod = xy_opacity_depth[i]
-        alpha, dx, dy, gauss = splat_alpha(xyod, conic[i], px, py)
+        alpha, dx, dy = splat_alpha(xyod, conic[i], px, py)
         if alpha < ALPHA_MIN:
             continue
         t_next = T * (1.0 - alpha)
@@ -506,29 +469,12 @@ def rasterize_pixels_backward(
         i = sorted_ids[start + last - 1 - jj]
         xyod = xy_opacity_depth[i]
         con = conic[i]
-        alpha, dx, dy, gauss = splat_alpha(xyod, con, px, py)
+        alpha, dx, dy = splat_alpha(xyod, con, px, py)
         if alpha < ALPHA_MIN:
             continue
-        inv_one_minus = 1.0 / (1.0 - alpha)
-        T = T * inv_one_minus
+        T = T / (1.0 - alpha)
         col = color[i]
-        g = splat_grad(
-            xyod,
-            con,
-            col,
-            dx,
-            dy,
-            alpha,
-            gauss,
-            T,
-            inv_one_minus,
-            t_final,
-            acc_color,
-            acc_depth,
-            g_color,
-            g_depth,
-            g_alpha,
-        )
+        g = splat_grad(xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha)
         wp.atomic_add(grad2d_out, i, g)
         w = alpha * T
         acc_color += w * col
