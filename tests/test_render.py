@@ -7,8 +7,9 @@ import warp as wp
 from helpers_render import BACKGROUND, CAMERA, SMALL_CAMERA, T_WC, to_map
 from reference_render import project_reference, random_scene, render_reference
 from rgs_warp.geometry import invert_pose
+from rgs_warp.kernels.projection import intersection_key_layout
 from rgs_warp.render import Renderer, render
-from rgs_warp.types import GaussianMap
+from rgs_warp.types import Camera, GaussianMap
 
 TOL = 1e-4
 
@@ -138,6 +139,66 @@ def test_binning_and_sort(device):
                 assert i in lst, (tile, i, "the ellipse reaches the tile's pixel rectangle")
     assert total == result.num_intersections > 150
     assert total < 0.95 * boxed  # 320 of 358: the box alone would list them all (as before session 23)
+
+
+def test_intersection_keys_with_many_tiles(device):
+    """At 1200x680 (3,225 tiles: 12 bits of the 32-bit keys for the tile, 20 for the depth) each tile's
+    list holds its Gaussians in depth order over 0.03-300 m, except pairs closer than the keys' depth
+    step (a relative 2^-15 here), which keep their index order; a pair twice that far apart is ordered."""
+    cam = Camera(fx=600.0, fy=600.0, cx=599.5, cy=339.5, width=1200, height=680)
+    depth_bits, _ = intersection_key_layout(((1200 + 15) // 16) * ((680 + 15) // 16))
+    assert depth_bits == 20
+    step = 2.0 ** -(depth_bits - 5)
+    rng = np.random.default_rng(3)
+    n = 400
+    z = np.exp(rng.uniform(np.log(0.03), np.log(300.0), n))
+    z[0] = z[1] = 2.0  # an exact tie
+    z[2], z[3] = 2.0 * (1 + 0.3 * step), 2.0  # within one key step: either order
+    z[4], z[5] = 3.0 * (1 + 2.5 * step), 3.0  # 2.5 steps apart: ordered by depth
+    u = rng.uniform(50, 1150, n)
+    v = rng.uniform(50, 630, n)
+    u[:6] = v[:6] = 100.0
+    # 20 more pairs, the deeper one first, 1.2 steps apart: ordered by depth whatever the octave
+    z[6:46:2] = z[7:46:2] * (1 + 1.2 * step)
+    u[6:46:2], v[6:46:2] = u[7:46:2], v[7:46:2]
+    X = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z], 1)
+    scene = {
+        "means": X,
+        "quats": np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)),
+        "log_scales": np.log(np.repeat(z[:, None] * 0.02, 3, 1)),  # about 12 px wide at every depth
+        "opacity_logits": np.full(n, 2.0),
+        "sh": rng.normal(0.0, 0.3, (n, 1, 3)),
+    }
+    result = Renderer(device).forward(to_map(scene, device), cam, np.eye(4))
+    ranges = result.tile_ranges.numpy()
+    ids = result.sorted_ids.numpy()[: result.num_intersections]
+    pairs = 0
+    for tile in range(ranges.shape[0]):
+        lst = ids[ranges[tile, 0] : ranges[tile, 1]]
+        za, zb = z[lst[:-1]], z[lst[1:]]
+        out_of_order = zb < za
+        pairs += len(za)
+        # a pair out of depth order lies within one key step, and then in index order
+        assert (za[out_of_order] - zb[out_of_order] <= za[out_of_order] * step).all(), tile
+        assert (lst[1:][out_of_order] > lst[:-1][out_of_order]).all(), tile
+    tile0 = (100 // 16) * ((1200 + 15) // 16) + 100 // 16
+    first = list(ids[ranges[tile0, 0] : ranges[tile0, 1]])
+    assert first.index(0) < first.index(1)  # a tie: index order
+    assert first.index(5) < first.index(4)  # apart by more than a step: depth order
+    tiles_x = (1200 + 15) // 16
+    for k in range(7, 46, 2):
+        tile = int(v[k] // 16) * tiles_x + int(u[k] // 16)
+        listed = list(ids[ranges[tile, 0] : ranges[tile, 1]])
+        assert listed.index(k) < listed.index(k - 1), k
+    assert pairs > 300
+
+
+def test_intersection_key_layout():
+    assert intersection_key_layout(12) == (28, 0)  # few tiles: the depth keeps every float bit
+    assert intersection_key_layout(3225) == (20, 8)
+    assert intersection_key_layout(2**16 - 1) == (16, 12)
+    with pytest.raises(ValueError, match="65536 image tiles"):
+        intersection_key_layout(2**16)
 
 
 def test_intersection_capacity_and_overflow(device):

@@ -2,7 +2,7 @@
 for every Gaussian parameter and the analytic camera-pose gradient (supplement §4.1-4.2).
 
 Pipeline (one kernel per stage, all in ``rgs_warp.kernels``): EWA projection + SH colour + tile
-count per Gaussian -> inclusive scan -> (tile << 32 | depth) keys per tile touched -> radix sort ->
+count per Gaussian -> inclusive scan -> 32-bit (tile, quantized depth) keys per tile touched -> radix sort ->
 tile ranges -> front-to-back compositing per 16x16 tile.  The backward runs the hand-written
 compositing adjoint, then a per-Gaussian projection adjoint that also reduces the pose twist
 gradient block by block.
@@ -31,6 +31,7 @@ from rgs_warp.kernels.math import FRUSTUM_MARGIN, TILE_SIZE, CameraParams, camer
 from rgs_warp.kernels.projection import (
     PROJECT_BLOCK,
     emit_intersections,
+    intersection_key_layout,
     invert_rigid,
     pad_intersection_keys,
     project_gaussians,
@@ -187,7 +188,7 @@ class Renderer:
         if count > self._isect_alloc:
             n = grown_capacity(self._isect_alloc, count, minimum=1024)
             # radix_sort_pairs uses the second half as scratch
-            self._keys = wp.zeros(2 * n, dtype=wp.int64, device=self.device)
+            self._keys = wp.zeros(2 * n, dtype=wp.uint32, device=self.device)
             self._ids = wp.zeros(2 * n, dtype=wp.int32, device=self.device)
             self._isect_alloc = n
             self.buffers_version += 1
@@ -361,6 +362,10 @@ class Renderer:
 
         self._ranges.zero_()
         if n > 0:
+            num_tiles = self._ranges.shape[0]
+            depth_key_bits, depth_shift = intersection_key_layout(num_tiles)
+            # the keys count depth from the near plane's float bits (from 0.1 mm for a plane at 0)
+            near_bits = int(np.float32(max(self.near, 1e-4)).view(np.int32))
             wp.launch(
                 emit_intersections,
                 dim=n,
@@ -373,27 +378,27 @@ class Renderer:
                     self._offsets,
                     cam,
                     capacity,
+                    depth_key_bits,
+                    depth_shift,
+                    near_bits,
                 ],
                 outputs=[self._keys, self._ids],
                 device=dev,
                 record_tape=False,
             )
-            num_tiles = self._ranges.shape[0]
             wp.launch(
                 pad_intersection_keys,
                 dim=capacity,
-                inputs=[self._isect_count, num_tiles],
+                inputs=[self._isect_count, num_tiles, depth_key_bits],
                 outputs=[self._keys],
                 device=dev,
                 record_tape=False,
             )
-            # the padding's tile id, num_tiles, must fit in the sorted bits
-            tile_bits = max(1, math.ceil(math.log2(num_tiles + 1)))
-            wp.utils.radix_sort_pairs(self._keys, self._ids, capacity, end_bit=32 + tile_bits)
+            wp.utils.radix_sort_pairs(self._keys, self._ids, capacity)
             wp.launch(
                 tile_ranges_from_keys,
                 dim=capacity,
-                inputs=[self._keys, self._isect_count, capacity],
+                inputs=[self._keys, self._isect_count, capacity, depth_key_bits],
                 outputs=[self._ranges],
                 device=dev,
                 record_tape=False,
