@@ -118,6 +118,23 @@ def test_pose_only_path(device, problem):
     assert (renderer.grads.means.numpy() == 7.0).all()  # per-Gaussian storage untouched
 
 
+def test_mapping_path_without_pose(device, problem):
+    """``with_pose=False`` (the mapper's backward) gives the same per-Gaussian gradients, computes no
+    twist gradient and leaves the renderer's one as it was."""
+    scene, weights, _, _ = problem
+    renderer = Renderer(device)
+    gmap = to_map(scene, device)
+    renderer.forward(gmap, CAM, T_WC, BACKGROUND)
+    grads, _ = renderer.backward(*_image_grads(weights, device))
+    full = grads.to_numpy(len(gmap))
+    renderer.pose_grad.fill_(3.0)
+    grads, pose_grad = renderer.backward(*_image_grads(weights, device), with_pose=False)
+    assert pose_grad is None
+    assert (renderer.pose_grad.numpy() == 3.0).all()
+    for name, values in grads.to_numpy(len(gmap)).items():
+        np.testing.assert_array_equal(values, full[name], err_msg=name)
+
+
 @pytest.mark.parametrize("jacobians_in_forward", [True, False])
 def test_pose_only_fast_path(device, problem, jacobians_in_forward):
     """The pose-only compositing backward (per-Gaussian pose Jacobians, no per-Gaussian gradients)

@@ -4,9 +4,10 @@ Workload (issue 4): 1200x680, fx = fy = 600, cx = 599.5, cy = 339.5, identity po
 with means uniform (by area) on the five visible walls of the box x in [-3, 3], y in [-1.5, 1.5],
 z in [0.5, 4.5] seen from the origin down +z; scales uniform in [1, 2] cm, random unit quaternions,
 opacity uniform in [0.5, 1], SH degree 2 coefficients ~ N(0, 0.1).  Colour + depth (sum w z:
-gsplat's "RGB+D").  Steps: forward, forward + backward of every Gaussian parameter (rgs_warp also
-returns the pose twist gradient; gsplat's view matrix gets none), forward + pose-only backward
-(gsplat: gradient of the view matrix only).  gsplat's forward runs under torch.no_grad(); gsplat
+gsplat's "RGB+D").  Steps: forward, forward + backward of every Gaussian parameter (the mapper's
+step: neither library computes the view matrix's gradient; until session 26 rgs_warp's returned
+the pose twist gradient as well), forward + pose-only backward (gsplat: gradient of the view matrix
+only).  gsplat's forward runs under torch.no_grad(); gsplat
 runs both packed=True (its default) and packed=False, and the faster one per step is the reference.
 
 Three times per step:
@@ -140,7 +141,7 @@ def bench_rgs(scene: dict, grads_np: tuple, device) -> dict:
 
     def fwd_bwd():
         renderer.forward(gmap, CAMERA, T, pose_jacobians=False)
-        renderer.backward(g_color, g_depth)
+        renderer.backward(g_color, g_depth, with_pose=False)
 
     def fwd_pose():
         renderer.forward(gmap, CAMERA, T, pose_jacobians=True)

@@ -353,7 +353,9 @@ class Mapper:
                 before[:n].zero_()
             else:
                 wp.copy(before, grads.opacity_logits, count=n)
-            self.renderer.backward(self._d_color, self._d_depth, None, grads_out=grads, accumulate=v > 0)
+            self.renderer.backward(
+                self._d_color, self._d_depth, None, grads_out=grads, accumulate=v > 0, with_pose=False
+            )
             wp.launch(
                 km.update_statistics,
                 dim=n,

@@ -497,7 +497,8 @@ class Renderer:
         pose_only: bool = False,
         grads_out: GaussianGrads | None = None,
         accumulate: bool = False,
-    ) -> tuple[GaussianGrads | None, wp.array]:
+        with_pose: bool = True,
+    ) -> tuple[GaussianGrads | None, wp.array | None]:
         """Gradients of a loss given its gradients w.r.t. the last ``forward``'s images
         (dL_dcolor (H, W) vec3, dL_ddepth and dL_dalpha (H, W) float; None = zero).
 
@@ -505,16 +506,20 @@ class Renderer:
         xi = (rho, phi) with T_CW <- Exp(xi) T_CW).  Per-Gaussian gradients go to ``grads_out``
         (default: the renderer's own ``self.grads``), overwritten, or added when ``accumulate``;
         the twist gradient is ``self.pose_grad``, likewise overwritten or added to.
-        ``pose_only`` skips writing per-Gaussian parameter gradients (the tracker's path).
+        ``pose_only`` skips writing per-Gaussian parameter gradients (the tracker's path);
+        ``with_pose=False`` skips the twist gradient (the mapper's path: ``self.pose_grad`` is left as
+        it is and None returned for it).
         """
         if self._last is None:
             raise RuntimeError("backward() needs a forward() first")
         gmap, n, cam, bg, have_pose_jac = self._last
-        if not accumulate:
+        with_pose = with_pose or pose_only
+        pose_grad = self.pose_grad if with_pose else None
+        if with_pose and not accumulate:
             self.pose_grad.zero_()
         grads = None if pose_only else (grads_out or self.grads)
         if n == 0:
-            return grads, self.pose_grad
+            return grads, pose_grad
         image_grads = [
             dL_dcolor,
             self._zero_depth if dL_ddepth is None else dL_ddepth,
@@ -533,13 +538,14 @@ class Renderer:
             project_gaussians_backward,
             dim=[(n + PROJECT_BLOCK - 1) // PROJECT_BLOCK],
             inputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh, gmap.num_sh, n]
-            + [self._view, cam, self._radii, self._conic, self._grad2d, int(pose_only), int(accumulate)],
+            + [self._view, cam, self._radii, self._conic, self._grad2d]
+            + [int(pose_only), int(with_pose), int(accumulate)],
             outputs=[g.means, g.rotations, g.log_scales, g.opacity_logits, g.sh, self.pose_grad],
             block_dim=PROJECT_BLOCK,
             device=self.device,
             record_tape=False,
         )
-        return grads, self.pose_grad
+        return grads, pose_grad
 
     # ---- read-only views of the latest render, for the stages that follow it --------------------
     @property

@@ -518,8 +518,10 @@ def project_gaussians_backward(
     grad2d: wp.array(dtype=vec10),
     # in: what to produce
     pose_only: int,
+    with_pose: int,
     accumulate: int,
-    # out: parameter gradients (skipped when pose_only) and the twist gradient (rho, phi)
+    # out: parameter gradients (skipped when pose_only) and the twist gradient (rho, phi) (skipped
+    # unless with_pose)
     grad_means_out: wp.array(dtype=wp.vec3),
     grad_rotations_out: wp.array(dtype=wp.quat),
     grad_log_scales_out: wp.array(dtype=wp.vec3),
@@ -589,9 +591,10 @@ def project_gaussians_backward(
         # Twist xi = (rho, phi), T_CW <- Exp(xi) T_CW: dX = rho + phi x X, dW = [phi]x W, so
         # dSigma_c = [phi]x Sigma_c - Sigma_c [phi]x and the camera centre moves by -W^T rho
         # (the view direction by +W^T rho).
-        g_phi = wp.cross(X, g_X) + covariance_twist_grad(g_cov_c, cov_c)
-        g_rho = g_X + W @ g_dir
-        g_pose = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
+        if with_pose != 0:
+            g_phi = wp.cross(X, g_X) + covariance_twist_grad(g_cov_c, cov_c)
+            g_rho = g_X + W @ g_dir
+            g_pose = vec6(g_rho[0], g_rho[1], g_rho[2], g_phi[0], g_phi[1], g_phi[2])
 
         if pose_only == 0:
             g_mean = wp.transpose(W) @ g_X + g_dir
@@ -625,11 +628,13 @@ def project_gaussians_backward(
         grad_log_scales_out[i] = g_log_s
         grad_opacity_logits_out[i] = g_logit
 
-    # One atomic per block for the 6-vector shared by all Gaussians.
-    total = block_sum(g_pose)
-    if lane == 0:
-        for c in range(6):
-            wp.atomic_add(grad_pose_out, c, total[c])
+    # One atomic per block for the 6-vector shared by all Gaussians (with_pose is uniform over the
+    # block, so every thread takes the block reduction or none does).
+    if with_pose != 0:
+        total = block_sum(g_pose)
+        if lane == 0:
+            for c in range(6):
+                wp.atomic_add(grad_pose_out, c, total[c])
 
 
 @wp.kernel
