@@ -40,6 +40,7 @@ from rgs_warp.kernels.projection import (
     tile_ranges_from_keys,
 )
 from rgs_warp.kernels.rasterize import (
+    POSE_BLOCK,
     rasterize_pixels,
     rasterize_pixels_backward,
     rasterize_tiles,
@@ -463,10 +464,16 @@ class Renderer:
         common = [self._ranges, self._ids, self._xyod, self._conic, self._color, bg, cam.width, cam.height]
         common.append(cam.tiles_x)
         shape = self._image_shape
-        if backward and self.tiled:
-            kernel = rasterize_tiles_pose_backward if pose_only else rasterize_tiles_backward
+        block_dim = TILE_SIZE * TILE_SIZE
+        if backward and self.tiled and pose_only:
+            kernel = rasterize_tiles_pose_backward
             inputs = common + [self._final_t, self._n_contrib, *grads, self._pose_jac, cam.fx, cam.fy]
-            outputs = [self._grad2d_floats, self.pose_grad]
+            outputs = [self.pose_grad]
+            block_dim = POSE_BLOCK
+        elif backward and self.tiled:
+            kernel = rasterize_tiles_backward
+            inputs = common + [self._final_t, self._n_contrib, *grads]
+            outputs = [self._grad2d_floats]
         elif backward:
             kernel = rasterize_pixels_backward
             inputs = common + [self._final_t, self._n_contrib, *grads]
@@ -481,7 +488,7 @@ class Renderer:
                 dim=[self._ranges.shape[0]],
                 inputs=inputs,
                 outputs=outputs,
-                block_dim=TILE_SIZE * TILE_SIZE,
+                block_dim=block_dim,
                 device=self.device,
                 record_tape=False,
             )

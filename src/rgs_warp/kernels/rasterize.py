@@ -255,126 +255,278 @@ def fold_pose(jac: vec32, g: vec10, fx: float, fy: float):
     return out
 
 
-def _tiles_backward(pose_only: bool):
-    """The tiled compositing adjoint.  General variant: per-Gaussian screen-space gradients, summed per
-    warp with shuffles, one atomic per warp and splat.  Pose-only variant (the tracker's path): each
-    thread folds its splat gradients straight into a twist 6-vector through the per-Gaussian pose
-    Jacobians staged with the batch, the block sums once, one atomic per block and component: no
+@wp.func
+def splat_back(
+    xyod: wp.vec4,
+    con: wp.vec3,
+    col: wp.vec3,
+    px: float,
+    py: float,
+    t_after: float,
+    t_final: float,
+    acc_color: wp.vec3,
+    acc_depth: float,
+    g_color: wp.vec3,
+    g_depth: float,
+    g_alpha: float,
+):
+    """One pixel's step back over one splat of its list: (1 if the splat contributes to the pixel else 0,
+    the transmittance in front of it, what lies behind the splat before it: colour and depth, and the
+    splat's screen-space gradient at the pixel); ``t_after`` is the transmittance behind the splat."""
+    g = vec10()
+    hit = wp.int32(0)
+    t_before = t_after
+    behind_color = acc_color
+    behind_depth = acc_depth
+    alpha, dx, dy = splat_alpha(xyod, con, px, py)
+    if alpha >= ALPHA_MIN:
+        t_before = t_after / (1.0 - alpha)
+        g = splat_grad(
+            xyod, con, col, dx, dy, alpha, t_before, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha
+        )
+        w = alpha * t_before
+        behind_color = acc_color + w * col
+        behind_depth = acc_depth + w * xyod[3]
+        hit = 1
+    return hit, t_before, behind_color, behind_depth, g
+
+
+def _tiles_backward(
+    # in: per-tile [start, end) into the depth-sorted Gaussian ids
+    ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    # in: screen-space Gaussians
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    conic: wp.array(dtype=wp.vec3),
+    color: wp.array(dtype=wp.vec3),
+    # in: image and forward per-pixel state
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    final_t: wp.array2d(dtype=float),
+    n_contrib: wp.array2d(dtype=wp.int32),
+    # in: loss gradients w.r.t. the rendered images
+    grad_color: wp.array2d(dtype=wp.vec3),
+    grad_depth: wp.array2d(dtype=float),
+    grad_alpha: wp.array2d(dtype=float),
+    # out: screen-space gradients per Gaussian, (N, 10), added to (the renderer's vec10 buffer seen as
+    # floats, zeroed beforehand)
+    grad2d_out: wp.array2d(dtype=float),
+):
+    """The general tiled compositing adjoint: one thread a pixel; each splat's per-pixel gradients summed
+    over the warp with shuffles, ten atomics per warp and splat."""
+    tile, lane = wp.tid()
+    ty = tile // tiles_x
+    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    py_i = ty * TILE_SIZE + lane // TILE_SIZE
+    inside = px_i < width and py_i < height
+    px = float(px_i)
+    py = float(py_i)
+    start = ranges[tile, 0]
+
+    last = wp.int32(0)
+    T = wp.float32(1.0)
+    g_color = wp.vec3(0.0)
+    g_depth = wp.float32(0.0)
+    g_alpha = wp.float32(0.0)
+    if inside:
+        last = n_contrib[py_i, px_i]
+        T = final_t[py_i, px_i]
+        g_color = grad_color[py_i, px_i]
+        g_depth = grad_depth[py_i, px_i]
+        g_alpha = grad_alpha[py_i, px_i]
+    t_final = T
+    acc_color = T * background
+    acc_depth = wp.float32(0.0)
+
+    block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
+    n_batches = (block_last + BLOCK - 1) // BLOCK
+    for bb in range(n_batches):
+        b = n_batches - 1 - bb
+        batch_start = start + b * BLOCK
+        ids = wp.tile_load(sorted_ids, shape=BLOCK, offset=batch_start, storage="shared")
+        s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(BLOCK,), storage="shared")
+        s_conic = wp.tile_load_indexed(conic, ids, shape=(BLOCK,), storage="shared")
+        s_color = wp.tile_load_indexed(color, ids, shape=(BLOCK,), storage="shared")
+        count = wp.min(BLOCK, block_last - b * BLOCK)
+        for kk in range(count):
+            k = count - 1 - kk
+            g = vec10()
+            hit = wp.int32(0)
+            if b * BLOCK + k < last:
+                hit, T, acc_color, acc_depth, g = splat_back(
+                    wp.tile_extract(s_xyod, k),
+                    wp.tile_extract(s_conic, k),
+                    wp.tile_extract(s_color, k),
+                    px,
+                    py,
+                    T,
+                    t_final,
+                    acc_color,
+                    acc_depth,
+                    g_color,
+                    g_depth,
+                    g_alpha,
+                )
+            if warp_any(hit) != 0:
+                total = warp_reduce_scatter(g, lane)
+                slot = scatter_slot(lane)
+                i = wp.tile_extract(ids, k)
+                if slot < 0:
+                    for c in range(10):
+                        wp.atomic_add(grad2d_out, i, c, total[c])
+                elif slot < 10:
+                    wp.atomic_add(grad2d_out, i, slot, total[0])
+
+
+# 80 -> 64 registers, 4 blocks per SM: 4-6 % faster on an H100 with the warp reduce-scatter, despite
+# 56 bytes of spills (experiments/results/raster.md; with the older reduction the cap slowed it).
+rasterize_tiles_backward = wp.Kernel(
+    _tiles_backward, key="rasterize_tiles_backward", options={"launch_bounds": (BLOCK, 4)}
+)
+
+# The pose-only backward runs two pixels a thread (rows r and r + 8 of the tile): a splat's data is read
+# from shared memory once for both, and since the twist gradient is linear in the screen-space one, the
+# two pixels' gradients are summed before the fold through the splat's pose Jacobian (32 floats, about
+# 40 multiply-adds), which one thread a pixel did for every pixel.
+POSE_BLOCK = BLOCK // 2
+
+
+def _tiles_pose_backward(
+    # in: per-tile [start, end) into the depth-sorted Gaussian ids
+    ranges: wp.array2d(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    # in: screen-space Gaussians
+    xy_opacity_depth: wp.array(dtype=wp.vec4),
+    conic: wp.array(dtype=wp.vec3),
+    color: wp.array(dtype=wp.vec3),
+    # in: image and forward per-pixel state
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    final_t: wp.array2d(dtype=float),
+    n_contrib: wp.array2d(dtype=wp.int32),
+    # in: loss gradients w.r.t. the rendered images
+    grad_color: wp.array2d(dtype=wp.vec3),
+    grad_depth: wp.array2d(dtype=float),
+    grad_alpha: wp.array2d(dtype=float),
+    # in: per-Gaussian pose Jacobians, focal lengths
+    pose_jac: wp.array(dtype=vec32),
+    fx: float,
+    fy: float,
+    # out: the twist gradient (rho, phi), added to
+    grad_pose_out: wp.array(dtype=float),
+):
+    """The tracker's tiled compositing adjoint (POSE_BLOCK threads a tile, two pixels each): each thread
+    folds its pixels' splat gradients straight into a twist 6-vector through the per-Gaussian pose
+    Jacobians staged with the batch; the block sums once, one atomic per block and component: no
     per-Gaussian atomics or buffers."""
+    tile, lane = wp.tid()
+    ty = tile // tiles_x
+    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    py_a = ty * TILE_SIZE + lane // TILE_SIZE
+    py_b = py_a + TILE_SIZE // 2
+    px = float(px_i)
+    start = ranges[tile, 0]
 
-    def kernel(
-        # in: per-tile [start, end) into the depth-sorted Gaussian ids
-        ranges: wp.array2d(dtype=wp.int32),
-        sorted_ids: wp.array(dtype=wp.int32),
-        # in: screen-space Gaussians
-        xy_opacity_depth: wp.array(dtype=wp.vec4),
-        conic: wp.array(dtype=wp.vec3),
-        color: wp.array(dtype=wp.vec3),
-        # in: image and forward per-pixel state
-        background: wp.vec3,
-        width: int,
-        height: int,
-        tiles_x: int,
-        final_t: wp.array2d(dtype=float),
-        n_contrib: wp.array2d(dtype=wp.int32),
-        # in: loss gradients w.r.t. the rendered images
-        grad_color: wp.array2d(dtype=wp.vec3),
-        grad_depth: wp.array2d(dtype=float),
-        grad_alpha: wp.array2d(dtype=float),
-        # in (pose-only variant): per-Gaussian pose Jacobians, focal lengths
-        pose_jac: wp.array(dtype=vec32),
-        fx: float,
-        fy: float,
-        # out: screen-space gradients per Gaussian, (N, 10) (general variant, zeroed beforehand: the
-        # renderer's vec10 buffer seen as floats) or the twist gradient (pose-only variant, added to)
-        grad2d_out: wp.array2d(dtype=float),
-        grad_pose_out: wp.array(dtype=float),
-    ):
-        tile, lane = wp.tid()
-        ty = tile // tiles_x
-        px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
-        py_i = ty * TILE_SIZE + lane // TILE_SIZE
-        inside = px_i < width and py_i < height
-        px = float(px_i)
-        py = float(py_i)
-        start = ranges[tile, 0]
+    last_a = wp.int32(0)
+    T_a = wp.float32(1.0)
+    g_color_a = wp.vec3(0.0)
+    g_depth_a = wp.float32(0.0)
+    g_alpha_a = wp.float32(0.0)
+    if px_i < width and py_a < height:
+        last_a = n_contrib[py_a, px_i]
+        T_a = final_t[py_a, px_i]
+        g_color_a = grad_color[py_a, px_i]
+        g_depth_a = grad_depth[py_a, px_i]
+        g_alpha_a = grad_alpha[py_a, px_i]
+    last_b = wp.int32(0)
+    T_b = wp.float32(1.0)
+    g_color_b = wp.vec3(0.0)
+    g_depth_b = wp.float32(0.0)
+    g_alpha_b = wp.float32(0.0)
+    if px_i < width and py_b < height:
+        last_b = n_contrib[py_b, px_i]
+        T_b = final_t[py_b, px_i]
+        g_color_b = grad_color[py_b, px_i]
+        g_depth_b = grad_depth[py_b, px_i]
+        g_alpha_b = grad_alpha[py_b, px_i]
+    t_final_a = T_a
+    t_final_b = T_b
+    acc_color_a = T_a * background
+    acc_color_b = T_b * background
+    acc_depth_a = wp.float32(0.0)
+    acc_depth_b = wp.float32(0.0)
+    g_pose = vec6()
 
-        last = wp.int32(0)
-        T = wp.float32(1.0)
-        g_color = wp.vec3(0.0)
-        g_depth = wp.float32(0.0)
-        g_alpha = wp.float32(0.0)
-        if inside:
-            last = n_contrib[py_i, px_i]
-            T = final_t[py_i, px_i]
-            g_color = grad_color[py_i, px_i]
-            g_depth = grad_depth[py_i, px_i]
-            g_alpha = grad_alpha[py_i, px_i]
-        t_final = T
-        acc_color = T * background
-        acc_depth = wp.float32(0.0)
-        g_pose = vec6()
-
-        block_last = wp.tile_extract(wp.tile_max(wp.tile(last)), 0)
-        n_batches = (block_last + BLOCK - 1) // BLOCK
-        for bb in range(n_batches):
-            b = n_batches - 1 - bb
-            batch_start = start + b * BLOCK
-            ids = wp.tile_load(sorted_ids, shape=BLOCK, offset=batch_start, storage="shared")
-            s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(BLOCK,), storage="shared")
-            s_conic = wp.tile_load_indexed(conic, ids, shape=(BLOCK,), storage="shared")
-            s_color = wp.tile_load_indexed(color, ids, shape=(BLOCK,), storage="shared")
-            if wp.static(pose_only):
-                s_jac = wp.tile_load_indexed(pose_jac, ids, shape=(BLOCK,), storage="shared")
-            count = wp.min(BLOCK, block_last - b * BLOCK)
-            for kk in range(count):
-                k = count - 1 - kk
+    block_last = wp.tile_extract(wp.tile_max(wp.tile(wp.max(last_a, last_b))), 0)
+    n_batches = (block_last + POSE_BLOCK - 1) // POSE_BLOCK
+    for bb in range(n_batches):
+        b = n_batches - 1 - bb
+        batch_start = start + b * POSE_BLOCK
+        ids = wp.tile_load(sorted_ids, shape=POSE_BLOCK, offset=batch_start, storage="shared")
+        s_xyod = wp.tile_load_indexed(xy_opacity_depth, ids, shape=(POSE_BLOCK,), storage="shared")
+        s_conic = wp.tile_load_indexed(conic, ids, shape=(POSE_BLOCK,), storage="shared")
+        s_color = wp.tile_load_indexed(color, ids, shape=(POSE_BLOCK,), storage="shared")
+        s_jac = wp.tile_load_indexed(pose_jac, ids, shape=(POSE_BLOCK,), storage="shared")
+        count = wp.min(POSE_BLOCK, block_last - b * POSE_BLOCK)
+        for kk in range(count):
+            k = count - 1 - kk
+            j = b * POSE_BLOCK + k
+            if j < last_a or j < last_b:
+                xyod = wp.tile_extract(s_xyod, k)
+                con = wp.tile_extract(s_conic, k)
+                col = wp.tile_extract(s_color, k)
                 g = vec10()
                 hit = wp.int32(0)
-                if b * BLOCK + k < last:
-                    xyod = wp.tile_extract(s_xyod, k)
-                    con = wp.tile_extract(s_conic, k)
-                    alpha, dx, dy = splat_alpha(xyod, con, px, py)
-                    if alpha >= ALPHA_MIN:
-                        T = T / (1.0 - alpha)
-                        col = wp.tile_extract(s_color, k)
-                        g = splat_grad(
-                            xyod, con, col, dx, dy, alpha, T, t_final, acc_color, acc_depth, g_color, g_depth, g_alpha
-                        )
-                        w = alpha * T
-                        acc_color += w * col
-                        acc_depth += w * xyod[3]
-                        hit = 1
-                        if wp.static(pose_only):
-                            g_pose += fold_pose(wp.tile_extract(s_jac, k), g, fx, fy)
-                if wp.static(not pose_only):
-                    if warp_any(hit) != 0:
-                        total = warp_reduce_scatter(g, lane)
-                        slot = scatter_slot(lane)
-                        i = wp.tile_extract(ids, k)
-                        if slot < 0:
-                            for c in range(10):
-                                wp.atomic_add(grad2d_out, i, c, total[c])
-                        elif slot < 10:
-                            wp.atomic_add(grad2d_out, i, slot, total[0])
+                if j < last_a:
+                    hit, T_a, acc_color_a, acc_depth_a, g = splat_back(
+                        xyod,
+                        con,
+                        col,
+                        px,
+                        float(py_a),
+                        T_a,
+                        t_final_a,
+                        acc_color_a,
+                        acc_depth_a,
+                        g_color_a,
+                        g_depth_a,
+                        g_alpha_a,
+                    )
+                if j < last_b:
+                    hit_b, T_b, acc_color_b, acc_depth_b, g_b = splat_back(
+                        xyod,
+                        con,
+                        col,
+                        px,
+                        float(py_b),
+                        T_b,
+                        t_final_b,
+                        acc_color_b,
+                        acc_depth_b,
+                        g_color_b,
+                        g_depth_b,
+                        g_alpha_b,
+                    )
+                    g = g + g_b
+                    hit = hit | hit_b
+                if hit != 0:
+                    g_pose += fold_pose(wp.tile_extract(s_jac, k), g, fx, fy)
 
-        if wp.static(pose_only):
-            pose_total = block_sum(g_pose)
-            if lane == 0:
-                for c in range(6):
-                    wp.atomic_add(grad_pose_out, c, pose_total[c])
-
-    if pose_only:
-        # Capping registers (102 -> 80) so that 3 blocks fit per SM instead of 2: 15 % faster on an H100
-        # despite a few spills.
-        return wp.Kernel(kernel, key="rasterize_tiles_pose_backward", options={"launch_bounds": (BLOCK, 3)})
-    # 80 -> 64 registers, 4 blocks per SM: 4-6 % faster on an H100 with the warp reduce-scatter, despite
-    # 56 bytes of spills (experiments/results/raster.md; with the older reduction the cap slowed it).
-    return wp.Kernel(kernel, key="rasterize_tiles_backward", options={"launch_bounds": (BLOCK, 4)})
+    pose_total = block_sum(g_pose)
+    if lane == 0:
+        for c in range(6):
+            wp.atomic_add(grad_pose_out, c, pose_total[c])
 
 
-rasterize_tiles_backward = _tiles_backward(pose_only=False)
-rasterize_tiles_pose_backward = _tiles_backward(pose_only=True)
+rasterize_tiles_pose_backward = wp.Kernel(
+    _tiles_pose_backward,
+    key="rasterize_tiles_pose_backward",
+    options={"launch_bounds": (POSE_BLOCK, 4)},
+)
 
 
 @wp.kernel
