@@ -5,9 +5,8 @@ fixed when a module loads (give each variant its own WARP_CACHE_PATH):
     python experiments/bench/raster_variants.py [--no-fast-math] [--min-blocks N] [--sizes 300000 1000000]
 
 ``--no-fast-math``: the rasterize module compiled without fast math (approximate exp and division, its
-default, as gsplat builds with -use_fast_math); ``--min-blocks N``: ``__launch_bounds__(threads, N)`` on
-the tiled kernels (256 threads a block, the pose-only backward 128), which caps their registers so that N
-blocks fit on an SM (0: as in the module).
+default, as gsplat builds with -use_fast_math); ``--min-blocks N``: ``__launch_bounds__(256, N)`` on the
+tiled kernels, which caps their registers so that N blocks fit on an SM (0: as in the module).
 """
 
 from __future__ import annotations
@@ -58,8 +57,7 @@ def main() -> None:
         wp.set_module_options({"fast_math": False}, module=rasterize)
     if args.min_blocks:
         for kernel in TILED:
-            threads = kernel.options.get("launch_bounds", (256, 0))[0]  # the pose-only kernel: 128
-            kernel.options["launch_bounds"] = (threads, args.min_blocks)
+            kernel.options["launch_bounds"] = (256, args.min_blocks)
     rng = np.random.default_rng(1)
     g_color = wp.array(rng.normal(size=(CAMERA.height, CAMERA.width, 3)).astype(np.float32), dtype=wp.vec3)
     g_depth = wp.array(rng.normal(size=(CAMERA.height, CAMERA.width)).astype(np.float32))

@@ -40,7 +40,6 @@ from rgs_warp.kernels.projection import (
     tile_ranges_from_keys,
 )
 from rgs_warp.kernels.rasterize import (
-    POSE_BLOCK,
     rasterize_pixels,
     rasterize_pixels_backward,
     rasterize_tiles,
@@ -464,12 +463,10 @@ class Renderer:
         common = [self._ranges, self._ids, self._xyod, self._conic, self._color, bg, cam.width, cam.height]
         common.append(cam.tiles_x)
         shape = self._image_shape
-        block_dim = TILE_SIZE * TILE_SIZE
         if backward and self.tiled and pose_only:
             kernel = rasterize_tiles_pose_backward
             inputs = common + [self._final_t, self._n_contrib, *grads, self._pose_jac, cam.fx, cam.fy]
             outputs = [self.pose_grad]
-            block_dim = POSE_BLOCK
         elif backward and self.tiled:
             kernel = rasterize_tiles_backward
             inputs = common + [self._final_t, self._n_contrib, *grads]
@@ -488,7 +485,7 @@ class Renderer:
                 dim=[self._ranges.shape[0]],
                 inputs=inputs,
                 outputs=outputs,
-                block_dim=block_dim,
+                block_dim=TILE_SIZE * TILE_SIZE,
                 device=self.device,
                 record_tape=False,
             )
