@@ -201,6 +201,20 @@ def test_prefetch_iteration_equals_indexing(shared_data):
         assert frames[i].index == i
 
 
+@pytest.mark.parametrize("prefetch", [0, 3])
+def test_frames_reads_any_indices_in_order(shared_data, prefetch):
+    """``frames(indices)`` (the evaluation's scored frames and keyframes) gives ``ds[i]`` for each index in
+    the given order, repeats included, read ahead or not."""
+    ds = SevenScenesDataset(shared_data / "7scenes-redkitchen", stride=50, prefetch=prefetch)
+    order = [7, 0, 9, 3, 3, 1]
+    frames = list(ds.frames(order))
+    assert [f.index for f in frames] == order
+    for f, i in zip(frames, order, strict=True):
+        np.testing.assert_array_equal(f.rgb, ds[i].rgb)
+        np.testing.assert_array_equal(f.depth, ds[i].depth)
+    assert list(ds.frames([])) == []
+
+
 def _make_tum(tmp_path, shared_data, n=3, dt_depth=0.01):
     root = tmp_path / "rgbd_dataset_freiburg1_test"
     (root / "rgb").mkdir(parents=True)

@@ -19,6 +19,7 @@ from rgs_warp.eval import (
     ms_ssim,
     photometric_metrics,
     psnr,
+    psnr_raw_and_compensated,
     ssim,
     ssim_3dgs,
     write_report,
@@ -294,12 +295,23 @@ def test_the_metrics_on_a_torch_device_are_the_hosts(frames):
         assert psnr(x, y, "cpu") == pytest.approx(psnr(x, y), abs=1e-10)
     assert psnr(a, a, "cpu") == float("inf")
     alpha = np.ones(a.shape[:2])
-    host = photometric_metrics([b, noisy], [a, a], alphas=[alpha, alpha])
-    on_torch = photometric_metrics([b, noisy], [a, a], alphas=[alpha, alpha], device="cpu")
-    assert host.keys() == on_torch.keys()
-    for key, value in host.items():
-        if isinstance(value, float):
-            assert on_torch[key] == pytest.approx(value, abs=1e-10), key
+    partial = np.where(np.arange(a.shape[1]) < 200, 0.9, 0.1) * np.ones((a.shape[0], 1))  # 200 of 320 columns
+    # float32 renders, as a run gives them (copied to the device as they are, cast there)
+    dark, bright = (np.clip(k * x, 0, 1).astype(np.float32) for k, x in ((0.7, b), (1.2, noisy)))
+    for alphas, tracked in [([alpha, alpha], None), ([partial, alpha], [(1.3, 0.02), (0.9, -0.01)])]:
+        host = photometric_metrics([dark, bright], [a, a], alphas=alphas, tracked_exposures=tracked)
+        on_torch = photometric_metrics([dark, bright], [a, a], alphas=alphas, tracked_exposures=tracked, device="cpu")
+        assert host.keys() == on_torch.keys()
+        for key, value in host.items():
+            if isinstance(value, float):
+                assert on_torch[key] == pytest.approx(value, abs=1e-10), key
+        assert abs(host["exposure_gain"] - 1.0) > 0.05  # the fit is exercised
+    raw, compensated = psnr_raw_and_compensated(dark, a, partial)
+    assert (raw, compensated) == pytest.approx(psnr_raw_and_compensated(dark, a, partial, "cpu"), abs=1e-10)
+    g, bias = fit_exposure(dark, a, partial)
+    assert raw == pytest.approx(psnr(dark, a), abs=1e-12)
+    assert compensated == pytest.approx(psnr(np.clip(g * dark.astype(np.float64) + bias, 0, 1), a), abs=1e-12)
+    assert compensated > raw + 1.0
     assert metric_device("cpu") is None  # a CPU run keeps the host code
 
 

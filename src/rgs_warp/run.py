@@ -45,7 +45,7 @@ from rgs_warp.eval import (
     metric_device,
     photometric_metrics,
     plot_trajectory_topview,
-    psnr,
+    psnr_raw_and_compensated,
     write_frame_scores,
     write_report,
 )
@@ -381,6 +381,12 @@ def _is_stream(ds) -> bool:
     return not hasattr(ds, "__getitem__")
 
 
+def read_frames(ds, indices):
+    """``ds[i]`` for each of ``indices``, read ahead in background threads where ``ds`` can
+    (``RGBDDataset.frames``; a stream's ``KeptFrames`` cannot)."""
+    return ds.frames(indices) if hasattr(ds, "frames") else (ds[int(i)] for i in indices)
+
+
 class KeptFrames:
     """The frames of a stream that a run's evaluation reads again (``ds[i]``), kept as they pass."""
 
@@ -417,7 +423,7 @@ def _run_frames(
     if stream is not None:
         frames, kept = stream, KeptFrames(ds.camera)
     else:
-        frames = iter(ds) if state.next_frame == 0 else (ds[i] for i in range(state.next_frame, len(ds)))
+        frames = read_frames(ds, range(state.next_frame, len(ds)))
         kept = None
     playback = Playback(cfg.dataset.playback_fps) if cfg.dataset.playback_fps > 0 else None
     # a stream cannot be read again to resume; a played sequence is run as a live stream, whose
@@ -920,8 +926,7 @@ def evaluate_run(
     # photometric metrics: every eval.every-th frame, keyframes excluded (§3), rendered at the estimate
     idx = eval_frame_indices(n, slam.keyframe_indices, cfg.eval.every)
     renders, refs, alphas, depths, ref_depths = [], [], [], [], []
-    for i in idx:
-        frame = ds[int(i)]
+    for i, frame in zip(idx, read_frames(ds, idx), strict=True):
         res = slam.render(est[i])
         renders.append(np.clip(res.color.numpy(), 0.0, 1.0))
         refs.append(frame.rgb)
@@ -932,8 +937,8 @@ def evaluate_run(
             ref_depths.append(frame.depth)
     if renders:
         alexnet = cfg.eval.lpips_alexnet_path or cached_alexnet_path()
-        lpips = LPIPS(alexnet, cfg.eval.lpips_linear_path or None)
         on = metric_device(slam.device)
+        lpips = LPIPS(alexnet, cfg.eval.lpips_linear_path or None, device=on or "cpu")
         tracked = None
         if exposures is not None and len(exposures) >= n:
             tracked = [tuple(exposures[int(i)] or (1.0, 0.0)) for i in idx]
@@ -998,11 +1003,10 @@ def keyframe_fit(ds, slam: SLAM, est: np.ndarray, device: str | None = None) -> 
     ``keyframe_psnr_compensated_db``), and each keyframe's (frame, raw, compensated); ``device``: the
     torch device of ``psnr``."""
     scores = []
-    for i in slam.keyframe_indices:
+    for i, frame in zip(slam.keyframe_indices, read_frames(ds, slam.keyframe_indices), strict=True):
         res = slam.render(est[i])
-        render, ref = np.clip(res.color.numpy(), 0.0, 1.0), ds[int(i)].rgb
-        compensated = compensate_exposure(render, ref, res.alpha.numpy())
-        scores.append((int(i), psnr(render, ref, device), psnr(compensated, ref, device)))
+        render = np.clip(res.color.numpy(), 0.0, 1.0)
+        scores.append((int(i), *psnr_raw_and_compensated(render, frame.rgb, res.alpha.numpy(), device)))
     raw, comp = (float(np.mean([s[k] for s in scores])) for k in (1, 2))
     return {"keyframe_psnr_db": raw, "keyframe_psnr_compensated_db": comp}, scores
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warnings
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -243,8 +243,14 @@ class RGBDDataset:
         return frame
 
     def __iter__(self) -> Iterator[Frame]:
+        return self.frames(range(len(self)))
+
+    def frames(self, indices: Iterable[int]) -> Iterator[Frame]:
+        """``self[i]`` for each of ``indices`` in order, the next ``prefetch`` read ahead by background
+        threads (the evaluation's scored frames and keyframes, a resumed run's rest)."""
+        indices = [int(i) for i in indices]
         if self.prefetch == 0:
-            for i in range(len(self)):
+            for i in indices:
                 yield self[i]
             return
         with ThreadPoolExecutor(
@@ -252,13 +258,13 @@ class RGBDDataset:
         ) as pool:
             pending: deque = deque()
             nxt = 0
-            while nxt < len(self) and len(pending) <= self.prefetch:
-                pending.append(pool.submit(self.__getitem__, nxt))
+            while nxt < len(indices) and len(pending) <= self.prefetch:
+                pending.append(pool.submit(self.__getitem__, indices[nxt]))
                 nxt += 1
             while pending:
                 frame = pending.popleft().result()
-                if nxt < len(self):
-                    pending.append(pool.submit(self.__getitem__, nxt))
+                if nxt < len(indices):
+                    pending.append(pool.submit(self.__getitem__, indices[nxt]))
                     nxt += 1
                 yield frame
 

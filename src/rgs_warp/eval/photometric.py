@@ -28,43 +28,52 @@ SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 
 
+def _check_shapes(img: np.ndarray, ref: np.ndarray) -> None:
+    if np.shape(img) != np.shape(ref):
+        raise ValueError(f"image shape {np.shape(img)} differs from reference shape {np.shape(ref)}")
+    if np.ndim(img) not in (2, 3):
+        raise ValueError(f"expected HxW or HxWxC images, got shape {np.shape(img)}")
+
+
 def _check_pair(img: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    img = np.asarray(img, dtype=np.float64)
-    ref = np.asarray(ref, dtype=np.float64)
-    if img.shape != ref.shape:
-        raise ValueError(f"image shape {img.shape} differs from reference shape {ref.shape}")
-    if img.ndim not in (2, 3):
-        raise ValueError(f"expected HxW or HxWxC images, got shape {img.shape}")
-    return img, ref
+    _check_shapes(img, ref)
+    return np.asarray(img, dtype=np.float64), np.asarray(ref, dtype=np.float64)
 
 
 def psnr(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> float:
     """Peak signal-to-noise ratio in dB of images in [0, 1] (peak 1), MSE over all pixels and
     channels; ``inf`` for identical images.  ``device``: a torch device to compute it on."""
+    if device is not None:
+        _check_shapes(img, ref)
+        return _psnr_torch(_to_torch(img, device), _to_torch(ref, device))
     img, ref = _check_pair(img, ref)
-    if device is None:
-        mse = float(np.mean((img - ref) ** 2))
-    else:
-        x, y = _to_torch(img, device), _to_torch(ref, device)
-        mse = float(((x - y) ** 2).mean())
+    mse = float(np.mean((img - ref) ** 2))
     return float("inf") if mse == 0.0 else -10.0 * np.log10(mse)
 
 
 def _to_torch(img: np.ndarray, device: str):
-    """An HxW(xC) float64 image as a 1xCxHxW torch tensor on ``device``."""
+    """An HxW(xC) image as a 1xCxHxW float64 torch tensor on ``device``: copied there as it is (a float32
+    render or frame moves half the bytes of a float64 one, and needs no transposed copy on the host),
+    then cast and laid out on the device."""
     import torch
 
-    return torch.from_numpy(np.ascontiguousarray(np.atleast_3d(img).transpose(2, 0, 1))).to(device)[None]
+    t = torch.from_numpy(np.ascontiguousarray(np.atleast_3d(img))).to(device)
+    return t.to(torch.float64).permute(2, 0, 1).contiguous()[None]
 
 
-def _ssim_torch(img: np.ndarray, ref: np.ndarray, device: str, pad: int) -> float:
+def _psnr_torch(x, y) -> float:
+    mse = float(((x - y) ** 2).mean())
+    return float("inf") if mse == 0.0 else -10.0 * np.log10(mse)
+
+
+def _ssim_torch(x, y, pad: int) -> float:
     """``ssim`` (``pad`` 0: the valid region) or ``ssim_3dgs`` (``pad`` = the window's radius: zero
-    padding) with torch on ``device``, in float64: the five local moments of all channels blurred
+    padding) of two ``_to_torch`` images, in float64: the five local moments of all channels blurred
     together by one grouped separable convolution."""
     import torch
     import torch.nn.functional as F
 
-    x, y = _to_torch(img, device), _to_torch(ref, device)
+    device = x.device
     c = x.shape[1]
     moments = torch.cat([x, y, x * x, y * y, x * y], dim=1)
     k = moments.shape[1]
@@ -95,11 +104,12 @@ def _filter_valid(x: np.ndarray, window: np.ndarray) -> np.ndarray:
 def ssim(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> float:
     """Mean SSIM of images in [0, 1] (HxW or HxWxC; channels averaged); see the module docstring.
     ``device``: a torch device to compute it on."""
-    img, ref = _check_pair(img, ref)
-    if min(img.shape[:2]) < SSIM_WINDOW:
-        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {img.shape[:2]}")
+    _check_shapes(img, ref)
+    if min(np.shape(img)[:2]) < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {np.shape(img)[:2]}")
     if device is not None:
-        return _ssim_torch(img, ref, device, pad=0)
+        return _ssim_torch(_to_torch(img, device), _to_torch(ref, device), pad=0)
+    img, ref = _check_pair(img, ref)
     window = _gaussian_window_1d()
     mu_x, mu_y = _filter_valid(img, window), _filter_valid(ref, window)
     var_x = _filter_valid(img * img, window) - mu_x**2
@@ -115,9 +125,10 @@ def ssim_3dgs(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> fl
     and constants as ``ssim``, but 'same' filtering with zero padding, so every pixel counts in the
     mean and the border's statistics take zeros in (it reads a little lower near the border).
     ``device``: a torch device to compute it on."""
-    img, ref = _check_pair(img, ref)
     if device is not None:
-        return _ssim_torch(img, ref, device, pad=(SSIM_WINDOW - 1) // 2)
+        _check_shapes(img, ref)
+        return _ssim_torch(_to_torch(img, device), _to_torch(ref, device), pad=(SSIM_WINDOW - 1) // 2)
+    img, ref = _check_pair(img, ref)
     window = _gaussian_window_1d()
 
     def same(x: np.ndarray) -> np.ndarray:
@@ -138,13 +149,16 @@ def ms_ssim(img: np.ndarray, ref: np.ndarray, device: str | None = None) -> floa
     """Multi-scale SSIM (Wang et al. 2003) with pytorch-msssim's defaults, data range 1: what SplaTAM
     reports as "SSIM".  None for images smaller than ``MS_SSIM_MIN_SIDE`` on their shorter side.
     In float32, as pytorch-msssim is used; on torch's CPU unless ``device``."""
+    _check_shapes(img, ref)
+    if min(np.shape(img)[:2]) < MS_SSIM_MIN_SIDE:
+        return None
+    return _ms_ssim_torch(_to_torch(img, device or "cpu"), _to_torch(ref, device or "cpu"))
+
+
+def _ms_ssim_torch(x, y) -> float:
     from pytorch_msssim import ms_ssim as _ms_ssim
 
-    img, ref = _check_pair(img, ref)
-    if min(img.shape[:2]) < MS_SSIM_MIN_SIDE:
-        return None
-    x, y = (_to_torch(a, device or "cpu").float() for a in (img, ref))
-    return float(_ms_ssim(x, y, data_range=1.0, size_average=True))
+    return float(_ms_ssim(x.float(), y.float(), data_range=1.0, size_average=True))
 
 
 def depth_l1_cm(depth_m: np.ndarray, ref_m: np.ndarray) -> float:
@@ -170,12 +184,24 @@ def fit_exposure(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray | None =
     render, ref = _check_pair(render, ref)
     covered = np.ones(render.shape[:2], bool) if alpha is None else np.asarray(alpha) >= EXPOSURE_MIN_ALPHA
     x, y = render[covered].reshape(-1), ref[covered].reshape(-1)
-    n = float(x.size)
-    sx, sy, sxx, sxy = x.sum(), y.sum(), (x * x).sum(), (x * y).sum()
+    return _affine_fit(float(x.size), x.sum(), y.sum(), (x * x).sum(), (x * y).sum())
+
+
+def _affine_fit(n: float, sx, sy, sxx, sxy) -> tuple[float, float]:
+    """The least-squares gain and bias of ``fit_exposure`` from the sums of x, y, x^2 and xy over n values."""
+    sx, sy, sxx, sxy = (float(v) for v in (sx, sy, sxx, sxy))
     det = n * sxx - sx * sx
     if n < 2 or det <= 1e-12 * n * n:
         return 1.0, 0.0
     return float((n * sxy - sx * sy) / det), float((sxx * sy - sx * sxy) / det)
+
+
+def _fit_exposure_torch(x, y, alpha: np.ndarray | None) -> tuple[float, float]:
+    """``fit_exposure`` of two ``_to_torch`` images (the sums in float64 on their device)."""
+    if alpha is not None:
+        covered = _to_torch(np.asarray(alpha) >= EXPOSURE_MIN_ALPHA, x.device).bool().expand_as(x)
+        x, y = x[covered], y[covered]
+    return _affine_fit(float(x.numel()), x.sum(), y.sum(), (x * x).sum(), (x * y).sum())
 
 
 def compensate_exposure(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:
@@ -328,6 +354,60 @@ class LPIPS:
         return distance
 
 
+def frame_scores(
+    render: np.ndarray,
+    ref: np.ndarray,
+    alpha: np.ndarray | None = None,
+    tracked: tuple[float, float] | None = None,
+    device: str | None = None,
+) -> dict:
+    """One scored frame's numbers for ``photometric_metrics``: ``psnr`` and ``ssim`` of the raw render,
+    ``psnr_compensated`` and ``ssim_compensated`` at the frame's fitted exposure (``fit_exposure`` where
+    ``alpha`` >= 0.5) and its ``gain``, ``psnr_tracked`` and ``ssim_tracked`` at the ``tracked`` (g, b) (None
+    without), ``ssim_3dgs`` and ``ms_ssim``.  ``device``: a torch device (``metric_device``), where each image
+    is copied once and every score computed (the host's numbers to rounding)."""
+    _check_shapes(render, ref)
+    if device is None:
+        x, y = _check_pair(render, ref)
+        g, b = fit_exposure(x, y, alpha)
+        compensated = np.clip(g * x + b, 0.0, 1.0)
+        row = {"gain": g, "psnr": psnr(x, y), "ssim": ssim(x, y), "ssim_3dgs": ssim_3dgs(x, y)}
+        row.update(psnr_compensated=psnr(compensated, y), ssim_compensated=ssim(compensated, y))
+        row["ms_ssim"] = ms_ssim(x, y)
+        if tracked is not None:
+            at_tracked = np.clip(tracked[0] * x + tracked[1], 0.0, 1.0)
+            row.update(psnr_tracked=psnr(at_tracked, y), ssim_tracked=ssim(at_tracked, y))
+        return row
+    if min(np.shape(render)[:2]) < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {np.shape(render)[:2]}")
+    x, y = _to_torch(render, device), _to_torch(ref, device)
+    g, b = _fit_exposure_torch(x, y, alpha)
+    compensated = (g * x + b).clamp(0.0, 1.0)
+    radius = (SSIM_WINDOW - 1) // 2
+    row = {"gain": g, "psnr": _psnr_torch(x, y), "ssim": _ssim_torch(x, y, 0), "ssim_3dgs": _ssim_torch(x, y, radius)}
+    row.update(psnr_compensated=_psnr_torch(compensated, y), ssim_compensated=_ssim_torch(compensated, y, 0))
+    row["ms_ssim"] = _ms_ssim_torch(x, y) if min(np.shape(render)[:2]) >= MS_SSIM_MIN_SIDE else None
+    if tracked is not None:
+        at_tracked = (tracked[0] * x + tracked[1]).clamp(0.0, 1.0)
+        row.update(psnr_tracked=_psnr_torch(at_tracked, y), ssim_tracked=_ssim_torch(at_tracked, y, 0))
+    return row
+
+
+def psnr_raw_and_compensated(
+    render: np.ndarray, ref: np.ndarray, alpha: np.ndarray | None = None, device: str | None = None
+) -> tuple[float, float]:
+    """PSNR of ``render`` against ``ref`` as it is and at the frame's fitted exposure (``fit_exposure``
+    where ``alpha`` >= 0.5); ``device``: a torch device, each image copied there once."""
+    _check_shapes(render, ref)
+    if device is None:
+        x, y = _check_pair(render, ref)
+        g, b = fit_exposure(x, y, alpha)
+        return psnr(x, y), psnr(np.clip(g * x + b, 0.0, 1.0), y)
+    x, y = _to_torch(render, device), _to_torch(ref, device)
+    g, b = _fit_exposure_torch(x, y, alpha)
+    return _psnr_torch(x, y), _psnr_torch((g * x + b).clamp(0.0, 1.0), y)
+
+
 def photometric_metrics(
     renders: Sequence[np.ndarray],
     refs: Sequence[np.ndarray],
@@ -354,42 +434,33 @@ def photometric_metrics(
     if len(renders) != len(refs) or not renders:
         raise ValueError(f"need matching non-empty render/reference lists, got {len(renders)}, {len(refs)}")
     alphas = [None] * len(renders) if alphas is None else alphas
-    exposures = [fit_exposure(x, y, a) for x, y, a in zip(renders, refs, alphas, strict=True)]
-    compensated = [
-        np.clip(g * np.asarray(x, np.float64) + b, 0, 1) for x, (g, b) in zip(renders, exposures, strict=True)
-    ]
-    d = device
+    if tracked_exposures is not None and len(tracked_exposures) != len(renders):
+        raise ValueError(f"need one tracked exposure per render, got {len(tracked_exposures)} for {len(renders)}")
+    tracked = [None] * len(renders) if tracked_exposures is None else tracked_exposures
+    scores = [frame_scores(x, y, a, t, device) for x, y, a, t in zip(renders, refs, alphas, tracked, strict=True)]
 
-    def each(metric, images) -> list[float]:
-        return [metric(x, y, d) for x, y in zip(images, refs, strict=True)]
+    def mean(key: str) -> float:
+        return float(np.mean([row[key] for row in scores]))
 
-    def mean(metric, images) -> float:
-        return float(np.mean(each(metric, images)))
-
-    frame_psnr, frame_psnr_compensated = each(psnr, renders), each(psnr, compensated)
     out: dict = {
         "n_frames": len(renders),
-        "psnr_db": float(np.mean(frame_psnr)),
-        "ssim": mean(ssim, renders),
-        "psnr_compensated_db": float(np.mean(frame_psnr_compensated)),
-        "ssim_compensated": mean(ssim, compensated),
-        "exposure_gain": float(np.mean([g for g, _ in exposures])),
+        "psnr_db": mean("psnr"),
+        "ssim": mean("ssim"),
+        "psnr_compensated_db": mean("psnr_compensated"),
+        "ssim_compensated": mean("ssim_compensated"),
+        "exposure_gain": mean("gain"),
     }
     if frame_psnr_out is not None:
-        frame_psnr_out.extend(zip(frame_psnr, frame_psnr_compensated, strict=True))
+        frame_psnr_out.extend((row["psnr"], row["psnr_compensated"]) for row in scores)
     if tracked_exposures is None:
         out["psnr_tracked_exposure_db"] = out["ssim_tracked_exposure"] = None
         out["psnr_tracked_exposure_db_na_reason"] = "no tracked exposures given"
         out["ssim_tracked_exposure_na_reason"] = "no tracked exposures given"
     else:
-        if len(tracked_exposures) != len(renders):
-            raise ValueError(f"need one tracked exposure per render, got {len(tracked_exposures)} for {len(renders)}")
-        pairs = zip(renders, tracked_exposures, strict=True)
-        at_tracked = [np.clip(g * np.asarray(x, np.float64) + b, 0, 1) for x, (g, b) in pairs]
-        out["psnr_tracked_exposure_db"] = mean(psnr, at_tracked)
-        out["ssim_tracked_exposure"] = mean(ssim, at_tracked)
-    out["ssim_3dgs"] = mean(ssim_3dgs, renders)
-    multi = [ms_ssim(x, y, d) for x, y in zip(renders, refs, strict=True)]
+        out["psnr_tracked_exposure_db"] = mean("psnr_tracked")
+        out["ssim_tracked_exposure"] = mean("ssim_tracked")
+    out["ssim_3dgs"] = mean("ssim_3dgs")
+    multi = [row["ms_ssim"] for row in scores]
     out["ms_ssim"] = None if None in multi else float(np.mean(multi))
     if out["ms_ssim"] is None:
         out["ms_ssim_na_reason"] = f"MS-SSIM needs images of at least {MS_SSIM_MIN_SIDE} px on the shorter side"
