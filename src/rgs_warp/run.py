@@ -1001,7 +1001,7 @@ def keyframe_fit(ds, slam: SLAM, est: np.ndarray, device: str | None = None) -> 
     """How well the map fits what it was trained on: the mean PSNR of the renders at every keyframe's
     pose against its frame, raw and exposure-compensated (``keyframe_psnr_db``,
     ``keyframe_psnr_compensated_db``), and each keyframe's (frame, raw, compensated); ``device``: the
-    torch device of ``psnr``."""
+    torch device of the scores (``psnr_raw_and_compensated``)."""
     scores = []
     for i, frame in zip(slam.keyframe_indices, read_frames(ds, slam.keyframe_indices), strict=True):
         res = slam.render(est[i])
