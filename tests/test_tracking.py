@@ -722,6 +722,18 @@ def test_relocalize_takes_the_candidate_that_holds_and_restores_the_model_when_n
     assert float(result.alpha.numpy().mean()) > 0.5  # the chosen pose's render, not the last try's
 
 
+def assert_same_steps(a, b, device, context=None) -> None:
+    """Two trackers' results for one frame are those of the same steps: bit for bit on the CPU; on a GPU
+    the float atomics of the pose-gradient reductions add in a varying order, so replays and eager steps
+    (or two runs) agree to rounding, not bit for bit."""
+    if wp.get_device(device).is_cpu:
+        assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain, context
+        return
+    dt, dr = pose_error(a.T_WC, b.T_WC)
+    assert dt < 1e-5 and dr < 1e-3, (context, dt, dr)  # m, deg
+    assert a.loss == pytest.approx(b.loss, rel=1e-4) and a.gain == pytest.approx(b.gain, rel=1e-4), context
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("tile_stride", "direct_levels"), [(1, 0), (2, 0), (2, 2)])
 def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, direct_levels):
@@ -751,7 +763,7 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
         a, b = eager.track(rgb, depth, m, T0), graphed.track(rgb, depth, m, T0)
         assert not a.lost and not b.lost, (i, a.reason, b.reason)
         if i < 7:
-            assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain, i
+            assert_same_steps(a, b, device, i)
             assert m is smaller or pose_error(b.T_WC, poses[i])[0] < 1e-3, i  # (smaller: holes)
     # 1-3: one sizing step, capture + replay, replay, replay; 4-5 (smaller): sizing step, capture +
     # replay, replay; 6: replay (kept); 7: the replay overflows, the frame runs eagerly (whose first
@@ -787,7 +799,7 @@ def test_prepare_captures_the_next_frames_graphs_and_changes_nothing(device, sce
     a, b = inline.track(rgb, depth, gmap, T0), prepared.track(rgb, depth, gmap, T0)
     assert prepared.graph_counts == {"eager": 0, "captured": 1, "replayed": 1, "overflowed": 0}
     assert inline.graph_counts["captured"] == 1  # captured inside its track
-    assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain
+    assert_same_steps(a, b, device)
     assert pose_error(b.T_WC, poses[2])[0] < 1e-3
     eager = Tracker(TrackingConfig(graph="off"), cam, device)
     eager.load_frame(rgb, depth)
