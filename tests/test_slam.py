@@ -52,6 +52,7 @@ def test_small_run_end_to_end(finished_run):
     # the frame loop's waits and the final save (written in a thread while the run was evaluated)
     times = metrics["time_s"]
     assert times["save_s"] > 0 and min(times[k] for k in ("input_wait_s", "checkpoints_s", "checkpoint_writes_s")) >= 0
+    assert times["evaluation_s"] > 0  # the evaluation's own seconds (its renders and scores)
     _check_convergence(run_dir, cfg, metrics)
     # Thresholds a broken pipeline cannot meet: the camera travels 0.47 m and turns, and an estimate
     # standing still at the first pose scores 16.2 cm (SE(3)-aligned RMSE).  Measured on CPU at this

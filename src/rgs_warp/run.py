@@ -864,7 +864,9 @@ def evaluate_run(
     tracked exposure; ``loop_s``: more seconds for ``time_s`` (the frame loop's waits); ``save``: the
     run's final save, written meanwhile: waited for (its ``SaveError`` raised) before the report, its
     seconds ``time_s.save_s``; ``playback``: ``Playback.summary()`` of a run played at
-    ``dataset.playback_fps``."""
+    ``dataset.playback_fps``.  ``time_s.evaluation_s``: this evaluation's seconds, up to the report (the
+    final save's wait not included)."""
+    t_start = time.perf_counter()
     _, est = slam.trajectory()
     n = len(est)
     metrics: dict = {
@@ -965,6 +967,7 @@ def evaluate_run(
         metrics["photometric_na_reason"] = "no non-keyframe frame to score"
     metrics.update(mesh_section(cfg, ds, slam, run_dir))
     metrics["time_s"].update(loop_s or {})
+    metrics["time_s"]["evaluation_s"] = time.perf_counter() - t_start
     if save is not None:
         save.write()
         metrics["time_s"]["save_s"] = save.seconds
@@ -1122,7 +1125,11 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
             f"camera    {playback['fps']:g} Hz: behind it by {playback['lag_ms_last']:.0f} ms at the last frame, "
             f"{playback['lag_ms_p50']:.0f} ms at the median{skipped}"
         )
-    print(f"report    {run_dir / 'metrics.md'}")
+    evaluation_s = (metrics.get("time_s") or {}).get("evaluation_s")
+    if evaluation_s is not None:
+        print(f"report    {run_dir / 'metrics.md'} (evaluated in {evaluation_s:.1f} s)")
+    else:
+        print(f"report    {run_dir / 'metrics.md'}")
     if playback and not playback["kept_pace"]:
         print(
             f"warning: the run fell {playback['lag_ms_last'] / 1e3:.2f} s behind a {playback['fps']:g} Hz camera; "
