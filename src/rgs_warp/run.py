@@ -36,6 +36,7 @@ from rgs_warp.config import (
     save_config,
 )
 from rgs_warp.datasets import DatasetError, generates_scene, open_dataset
+from rgs_warp.datasets.base import RGBDDataset
 from rgs_warp.eval import (
     LPIPS,
     ate_keyframes_and_all,
@@ -382,9 +383,9 @@ def _is_stream(ds) -> bool:
 
 
 def read_frames(ds, indices):
-    """``ds[i]`` for each of ``indices``, read ahead in background threads where ``ds`` can
-    (``RGBDDataset.frames``; a stream's ``KeptFrames`` cannot)."""
-    return ds.frames(indices) if hasattr(ds, "frames") else (ds[int(i)] for i in indices)
+    """``ds[i]`` for each of ``indices``, read ahead in background threads where ``ds`` is a dataset
+    (``RGBDDataset.frames``; a stream's ``KeptFrames`` holds the frames already)."""
+    return ds.frames(indices) if isinstance(ds, RGBDDataset) else (ds[int(i)] for i in indices)
 
 
 class KeptFrames:
