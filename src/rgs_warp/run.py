@@ -393,13 +393,13 @@ class KeptFrames:
 
     def __init__(self, camera):
         self.camera = camera
-        self.frames: dict[int, object] = {}
+        self._by_index: dict[int, object] = {}
 
     def keep(self, index: int, frame) -> None:
-        self.frames[index] = frame
+        self._by_index[index] = frame
 
     def __getitem__(self, i: int):
-        return self.frames[i]
+        return self._by_index[i]
 
 
 def _run_frames(
