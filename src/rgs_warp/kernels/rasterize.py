@@ -291,6 +291,39 @@ def splat_back(
     return hit, t_before, behind_color, behind_depth, g
 
 
+@wp.func
+def backward_pixel(
+    tile: int,
+    lane: int,
+    tiles_x: int,
+    width: int,
+    height: int,
+    n_contrib: wp.array2d(dtype=wp.int32),
+    final_t: wp.array2d(dtype=float),
+    grad_color: wp.array2d(dtype=wp.vec3),
+    grad_depth: wp.array2d(dtype=float),
+    grad_alpha: wp.array2d(dtype=float),
+):
+    """A backward thread's pixel (lane ``lane`` of tile ``tile``) and its state from the forward and the
+    loss: (px, py, entries up to its last contributor, final transmittance, dL/dcolour, dL/ddepth,
+    dL/dalpha); a pixel outside the image has no entries and no gradient."""
+    ty = tile // tiles_x
+    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
+    py_i = ty * TILE_SIZE + lane // TILE_SIZE
+    last = wp.int32(0)
+    T = wp.float32(1.0)
+    g_color = wp.vec3(0.0)
+    g_depth = wp.float32(0.0)
+    g_alpha = wp.float32(0.0)
+    if px_i < width and py_i < height:
+        last = n_contrib[py_i, px_i]
+        T = final_t[py_i, px_i]
+        g_color = grad_color[py_i, px_i]
+        g_depth = grad_depth[py_i, px_i]
+        g_alpha = grad_alpha[py_i, px_i]
+    return float(px_i), float(py_i), last, T, g_color, g_depth, g_alpha
+
+
 def _tiles_backward(
     # in: per-tile [start, end) into the depth-sorted Gaussian ids
     ranges: wp.array2d(dtype=wp.int32),
@@ -317,25 +350,10 @@ def _tiles_backward(
     """The general tiled compositing adjoint: one thread a pixel; each splat's per-pixel gradients summed
     over the warp with shuffles, ten atomics per warp and splat."""
     tile, lane = wp.tid()
-    ty = tile // tiles_x
-    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
-    py_i = ty * TILE_SIZE + lane // TILE_SIZE
-    inside = px_i < width and py_i < height
-    px = float(px_i)
-    py = float(py_i)
     start = ranges[tile, 0]
-
-    last = wp.int32(0)
-    T = wp.float32(1.0)
-    g_color = wp.vec3(0.0)
-    g_depth = wp.float32(0.0)
-    g_alpha = wp.float32(0.0)
-    if inside:
-        last = n_contrib[py_i, px_i]
-        T = final_t[py_i, px_i]
-        g_color = grad_color[py_i, px_i]
-        g_depth = grad_depth[py_i, px_i]
-        g_alpha = grad_alpha[py_i, px_i]
+    px, py, last, T, g_color, g_depth, g_alpha = backward_pixel(
+        tile, lane, tiles_x, width, height, n_contrib, final_t, grad_color, grad_depth, grad_alpha
+    )
     t_final = T
     acc_color = T * background
     acc_depth = wp.float32(0.0)
@@ -417,25 +435,10 @@ def _tiles_pose_backward(
     twist 6-vector through the per-Gaussian pose Jacobians staged with the batch; the block sums once, one
     atomic per block and component: no per-Gaussian atomics or buffers."""
     tile, lane = wp.tid()
-    ty = tile // tiles_x
-    px_i = (tile - ty * tiles_x) * TILE_SIZE + lane % TILE_SIZE
-    py_i = ty * TILE_SIZE + lane // TILE_SIZE
-    inside = px_i < width and py_i < height
-    px = float(px_i)
-    py = float(py_i)
     start = ranges[tile, 0]
-
-    last = wp.int32(0)
-    T = wp.float32(1.0)
-    g_color = wp.vec3(0.0)
-    g_depth = wp.float32(0.0)
-    g_alpha = wp.float32(0.0)
-    if inside:
-        last = n_contrib[py_i, px_i]
-        T = final_t[py_i, px_i]
-        g_color = grad_color[py_i, px_i]
-        g_depth = grad_depth[py_i, px_i]
-        g_alpha = grad_alpha[py_i, px_i]
+    px, py, last, T, g_color, g_depth, g_alpha = backward_pixel(
+        tile, lane, tiles_x, width, height, n_contrib, final_t, grad_color, grad_depth, grad_alpha
+    )
     t_final = T
     acc_color = T * background
     acc_depth = wp.float32(0.0)
