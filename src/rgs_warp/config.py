@@ -383,9 +383,6 @@ class MappingConfig:
     lambda_dssim: float = 0.2  # Table 1: L1 + lambda_dssim (1 - SSIM)
     grad_clip: float = 1.0  # Table 1: global gradient-norm clipping
     depth_weight: float = 1.0  # RGB-D: depth L1 (per metre) against the colour L1 (per channel)
-    # the depth L1's per-pixel weight 1 / (1 + |grad D| / (tau D)) of the observed depth D, as tracking's
-    # depth_slope_tau: lower where the depth changes fast (slants, edges); 0: weight 1
-    depth_slope_tau: float = 0.0
     robust_scale: float = 0.25  # Cauchy scale of the per-pixel weights (mean |residual| per channel); <= 0: off
     # regularizer (§4.5, coefficients fixed for all sequences)
     reg_elongation: float = 1e-2  # weight of relu(log(s_max / s_mid) - log(max_anisotropy))^2
@@ -722,7 +719,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.lambda_dssim": NON_NEGATIVE,
     "mapping.grad_clip": POSITIVE,
     "mapping.depth_weight": NON_NEGATIVE,
-    "mapping.depth_slope_tau": NON_NEGATIVE,
     "mapping.reg_elongation": NON_NEGATIVE,
     "mapping.max_anisotropy": AT_LEAST_1,
     "mapping.reg_opacity": NON_NEGATIVE,

@@ -204,7 +204,7 @@ class Mapper:
             km.mapping_loss,
             dim=blocks,
             inputs=[keyframes.rgb[slot], keyframes.depth[slot], res.color, res.depth, self._exposure, j]
-            + [cfg.robust_scale, use_depth, weight * cfg.depth_weight, cfg.depth_slope_tau, weight, 0, self._step],
+            + [cfg.robust_scale, use_depth, weight * cfg.depth_weight, weight, 0, self._step],
             outputs=[self._x, self._grad_x, self._d_depth, self._loss],
             block_dim=REDUCE_BLOCK,
             device=dev,

@@ -9,7 +9,7 @@ so nothing is read back to the host inside the mapping loop.
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, depth_slope_weight
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
 
 wp.set_module_options({"enable_backward": False})
 
@@ -30,13 +30,12 @@ def mapping_loss(
     rendered: wp.array2d(dtype=wp.vec3),
     rendered_depth: wp.array2d(dtype=wp.float32),
     # in: exposures (g, b) of Eq. 3 of the window's keyframes and this view's position, robust scale,
-    # depth weight and the slope scale of its per-pixel weight (depth_slope_weight)
+    # depth weight
     exposure: wp.array(dtype=wp.vec2),
     view: int,
     robust_scale: float,
     use_depth: int,
     depth_weight: float,
-    depth_slope_tau: float,
     l1_weight: float,
     row: int,
     # the row is row + counter[0] (the mapping step counter, kernels.tracking.advance_step)
@@ -47,13 +46,11 @@ def mapping_loss(
     d_depth_out: wp.array2d(dtype=wp.float32),
     loss_out: wp.array2d(dtype=wp.float64),
 ):
-    # L = 1/N sum_x [ l1 w_r(x) |I - x|_1 + lambda_d w_s(x) |D_hat - D| ] with x = g I_hat + b.  w_r is a
+    # L = 1/N sum_x [ l1 w_r(x) |I - x|_1 + lambda_d |D_hat - D| ] with x = g I_hat + b.  w_r is a
     # Cauchy weight 1 / (1 + (r / c)^2) of the pixel's mean absolute residual r, held constant in the
     # gradient (one IRLS step per iteration): outliers (specularities, moving objects, wrong seeds)
     # pull with at most ~c / 2 instead of their full residual.  The depth is the un-normalised
     # rendered depth sum_i w_i z_i: matching it also drives the opacity of observed surfaces to 1.
-    # w_s (depth_slope_weight) lowers the depth term where the observed depth changes fast: at a depth
-    # edge the pixel's colour mixes both sides while its measured depth is one of them.
     block, lane = wp.tid()
     row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
@@ -81,9 +78,8 @@ def mapping_loss(
             d_obs = observed_depth[y, x]
             if d_obs > 0.0:
                 e = rendered_depth[y, x] - d_obs
-                w_d = depth_weight * depth_slope_weight(observed_depth, x, y, d_obs, depth_slope_tau)
-                loss += w_d * wp.abs(e) * inv_n
-                d_depth = inv_n * w_d * wp.sign(e)
+                loss += depth_weight * wp.abs(e) * inv_n
+                d_depth = inv_n * depth_weight * wp.sign(e)
                 d_ab = wp.vec2(wp.abs(e), 1.0)
         d_depth_out[y, x] = d_depth
         s = wp.vec4(loss, mean_abs, 1.0, 0.0)

@@ -9,7 +9,7 @@ Reductions sum 256 pixels in a block tile, then add one float64 atomic per block
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, depth_slope_weight, rigid_inverse_f32, se3_exp, vec6
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, rigid_inverse_f32, se3_exp, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -213,6 +213,33 @@ def solve_brightness(
         g = history_out[row, H_SY] / history_out[row, H_SX]
     history_out[row, H_GAIN] = g
     history_out[row, H_BIAS] = b
+
+
+@wp.func
+def depth_slope_weight(depth: wp.array2d(dtype=wp.float32), x: int, y: int, d: float, tau: float):
+    """1 / (1 + |grad D| / (tau D)): down-weights the depth residual where the observed depth changes
+    fast across pixels (slanted surfaces, near edges).  There a splat map's depth is biased towards
+    the camera by up to about one pixel's depth step (front-to-back compositing lets the nearer of
+    overlapping splats win; measured in experiments/results/tracking.md), while the photometric term
+    is not.  |grad D| from central differences of the valid neighbours (metres per pixel); tau <= 0:
+    weight 1."""
+    if tau <= 0.0:
+        return 1.0
+    h = depth.shape[0]
+    w = depth.shape[1]
+    gx = float(0.0)
+    gy = float(0.0)
+    if x > 0 and x < w - 1:
+        l = depth[y, x - 1]
+        r = depth[y, x + 1]
+        if l > 0.0 and r > 0.0:
+            gx = 0.5 * (r - l)
+    if y > 0 and y < h - 1:
+        u = depth[y - 1, x]
+        v = depth[y + 1, x]
+        if u > 0.0 and v > 0.0:
+            gy = 0.5 * (v - u)
+    return 1.0 / (1.0 + wp.sqrt(gx * gx + gy * gy) / (tau * d))
 
 
 @wp.kernel
