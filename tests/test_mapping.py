@@ -19,6 +19,18 @@ from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
 
 
+def assert_same_values(a, b, device, err_msg="") -> None:
+    """Captured-graph steps against eager steps: bit for bit on the CPU; on a GPU the float atomics of the
+    renderer's and the reductions' sums add in a varying order, so they agree to rounding (measured on an
+    H200, session 27: 14 steps 2.4e-7 apart in the parameters, 9.3e-10 in the loss sums).  Session 27 also
+    saw, on the H200, the renderer-reallocation test's rotations 1e-3 apart in three Gaussians: more than
+    rounding, not explained yet; this tolerance fails it."""
+    if wp.get_device(device).is_cpu:
+        np.testing.assert_array_equal(a, b, err_msg=err_msg)
+    else:
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5, err_msg=err_msg)
+
+
 def _blocks(shape) -> list[int]:
     return [(shape[0] * shape[1] + km.REDUCE_BLOCK - 1) // km.REDUCE_BLOCK]
 
@@ -360,7 +372,8 @@ def test_views_per_iteration_renders_a_random_subset(device, room, per_iter, per
     cam = room["camera"]
     kf, slots = _keyframes(room, room["frames"], device)
     renderer = Renderer(device)
-    cfg = dataclasses.replace(MappingConfig(), views_per_iter=per_iter)
+    # graph off: a replayed step renders without calling renderer.forward (mapping.graph=auto is on on a GPU)
+    cfg = dataclasses.replace(MappingConfig(), views_per_iter=per_iter, graph="off")
     mapper = Mapper(cfg, cam, _room_map(room, device), device, renderer=renderer)
     rendered, steps = [], []
     forward, map_step = renderer.forward, mapper._map_step
@@ -581,7 +594,7 @@ def test_history_views_are_rendered_in_their_share(device, room):
     np.testing.assert_array_equal(older_kf.exposure, exposures)  # held
     assert not np.array_equal(window_kf.exposure[window[0]], [1.0, 0.0])  # refined
     drawn.clear()
-    off = counting(Mapper(MappingConfig(history=0.0), cam, gmap, device))
+    off = counting(Mapper(MappingConfig(history=0.0, graph="off"), cam, gmap, device))  # replays skip the count
     off.optimize(window_kf, window, 10, history=history)  # history off: the views are ignored
     assert drawn == [False] * 10
 
@@ -653,12 +666,12 @@ def test_mapping_steps_replayed_from_graphs_match_eager_steps(device, room):
     assert r0.graph_steps == {"eager": 0, "captured": 0, "replayed": 0}
     assert sum(r1.graph_steps.values()) == 14 and t0 == t1 == 14
     for name in GaussianMap.PARAMETERS:
-        np.testing.assert_array_equal(p1[name], p0[name], err_msg=name)
+        assert_same_values(p1[name], p0[name], device, err_msg=name)
         for a, b in zip(m1[name], m0[name], strict=True):
-            np.testing.assert_array_equal(a, b, err_msg=name)
+            assert_same_values(a, b, device, err_msg=name)
     for name in c0:
         np.testing.assert_array_equal(c1[name], c0[name], err_msg=name)
-    np.testing.assert_array_equal(r1.loss_history, r0.loss_history)
+    assert_same_values(r1.loss_history, r0.loss_history, device)
 
 
 def test_mapping_graphs_captured_again_when_the_renderer_reallocates(device, room):
@@ -698,9 +711,9 @@ def test_mapping_graphs_captured_again_when_the_renderer_reallocates(device, roo
     on, off = out["on"], out["off"]
     assert on[0].graph_steps["captured"] > len(frames) and on[0].graph_steps["replayed"] > 0  # captured again
     assert on[0].graph_overflows == 0 and on[2] == off[2]
-    np.testing.assert_array_equal(on[0].loss_history, off[0].loss_history)
+    assert_same_values(on[0].loss_history, off[0].loss_history, device)
     for name in GaussianMap.PARAMETERS:
-        np.testing.assert_array_equal(on[1][name], off[1][name], err_msg=name)
+        assert_same_values(on[1][name], off[1][name], device, err_msg=name)
 
 
 def test_count_overflow_counts_renders_beyond_their_capacity(device):

@@ -21,6 +21,7 @@ import pytest
 import warp as wp
 
 from rgs_warp.config import SeedingConfig, load_config
+from rgs_warp.datasets import open_dataset
 from rgs_warp.io.ply import load_ply
 from rgs_warp.io.trajectory import read_tum_trajectory
 from rgs_warp.run import main, make_run_dir, run
@@ -248,6 +249,8 @@ def test_an_unwritable_output_dir_is_one_error_line(tmp_path, capsys):
     (tmp_path / "file").write_text("")
     output_dir = tmp_path / "file" / "runs"
     argv = [*SMALL, "dataset.max_frames=3", "device=cpu", f"output_dir={output_dir}"]
+    open_dataset(load_config(argv))  # the scene generated beforehand: its progress bar is not the error
+    capsys.readouterr()
     assert main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: cannot create the run folder") and str(output_dir) in err[0]
