@@ -21,14 +21,15 @@ from rgs_warp.types import GaussianMap
 
 def assert_same_values(a, b, device, err_msg="") -> None:
     """Captured-graph steps against eager steps: bit for bit on the CPU; on a GPU the float atomics of the
-    renderer's and the reductions' sums add in a varying order, so they agree to rounding (measured on an
-    H200, session 27: 14 steps 2.4e-7 apart in the parameters, 9.3e-10 in the loss sums).  Session 27 also
-    saw, on the H200, the renderer-reallocation test's rotations 1e-3 apart in three Gaussians: more than
-    rounding, not explained yet; this tolerance fails it."""
+    renderer's and the reductions' sums add in a varying order.  Adam divides each gradient by its running
+    magnitude, so where a Gaussian's gradient is near zero a rounding's difference can flip its step: a
+    whole learning rate (1e-3) either way.  Measured on an H200 (session 27): 14 steps 2.4e-7 apart, 16
+    steps three rotations 1e-3 apart; two eager runs of the tracker differ as much as a replay does
+    (experiments/bench/graph_determinism.py)."""
     if wp.get_device(device).is_cpu:
         np.testing.assert_array_equal(a, b, err_msg=err_msg)
     else:
-        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-5, err_msg=err_msg)
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=5e-3, err_msg=err_msg)
 
 
 def _blocks(shape) -> list[int]:

@@ -723,15 +723,17 @@ def test_relocalize_takes_the_candidate_that_holds_and_restores_the_model_when_n
 
 
 def assert_same_steps(a, b, device, context=None) -> None:
-    """Two trackers' results for one frame are those of the same steps: bit for bit on the CPU; on a GPU
-    the float atomics of the pose-gradient reductions add in a varying order, so replays and eager steps
-    (or two runs) agree to rounding, not bit for bit."""
+    """Two trackers' results for one frame are those of the same steps: bit for bit on the CPU.  On a GPU
+    the float atomics of the pose-gradient reductions add in a varying order, and 30 Adam steps carry that
+    far: two eager trackers on one H200 ended frames up to 0.36 mm apart, with last-step losses 50 % apart
+    (about 1e-4 at a pose this close), and a replaying tracker no further from either
+    (experiments/bench/graph_determinism.py, results/perf/h200_graph_determinism_session27.json).  So on a
+    GPU only the poses are compared, to 1 mm: steps that go elsewhere, not a rounding's worth."""
     if wp.get_device(device).is_cpu:
         assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain, context
         return
     dt, dr = pose_error(a.T_WC, b.T_WC)
-    assert dt < 1e-5 and dr < 1e-3, (context, dt, dr)  # m, deg
-    assert a.loss == pytest.approx(b.loss, rel=1e-4) and a.gain == pytest.approx(b.gain, rel=1e-4), context
+    assert dt < 1e-3 and dr < 2e-2, (context, dt, dr)  # m, deg
 
 
 @pytest.mark.slow
