@@ -1,7 +1,7 @@
 """Whole-system speed and memory over a run (issues 19 and 20): per-frame time and GPU memory
 against the frame index, with the accuracy of the same run.
 
-    python experiments/bench/slam_fps.py [--out DIR] [--commit SHA] [--case NAME:override,override ...]
+    python experiments/bench/slam_fps.py [--out DIR] [--commit SHA] [--case NAME:override,override ...] [--jobs N]
 
 Each case is ``rgs_warp.run.run`` on a sequence; its ``log.jsonl`` gives, per frame, the seconds
 (whole frame and tracking), the Gaussians and the GPU memory held (Warp's memory pool).  DIR gets
@@ -11,6 +11,10 @@ half, ATE and PSNR) and ``slam_fps_<case>.png`` (memory, Gaussians and per-frame
 frame index).  The default case is the long one: 2,000 frames of the synthetic office at 640x360
 (the same path as 300 frames, walked more slowly: the map should stop growing once the room is
 seen, and so should memory and time).
+
+``--jobs N`` runs the cases as N processes at a time on the one GPU (each in DIR/cases/NAME, its log
+beside it) and gathers their results into DIR/slam_fps.json with ``"jobs": N``: for screening settings
+by PSNR and ATE, which sharing the GPU leaves alone; their frames/s and latencies then mean nothing.
 """
 
 from __future__ import annotations
@@ -18,7 +22,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -121,11 +127,15 @@ def main(argv=None) -> int:
     ap.add_argument("--commit", default="unknown", help="the commit measured (git on a copied tree may not know)")
     ap.add_argument("--case", action="append", help="name:override,override (repeatable)")
     ap.add_argument("--common", default="", help="overrides applied to every case, comma separated")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run as this many processes at a time (screening)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    cases = args.case or DEFAULT_CASES
+    if args.jobs > 1 and len(cases) > 1:
+        return run_jobs(cases, args, out)
     results = {}
-    for name, overrides, cfg in case_configs(args.case or DEFAULT_CASES, args.common, out):
+    for name, overrides, cfg in case_configs(cases, args.common, out):
         try:
             run_dir, metrics = run(cfg, progress=sys.stderr.isatty())
         except Exception as e:  # record and go on with the next case
@@ -147,6 +157,9 @@ def main(argv=None) -> int:
             "psnr_db": photometric.get("psnr_db"),
             "psnr_compensated_db": photometric.get("psnr_compensated_db"),
             "keyframe_psnr_db": photometric.get("keyframe_psnr_db"),
+            "keyframe_psnr_compensated_db": photometric.get("keyframe_psnr_compensated_db"),
+            "ssim_compensated": photometric.get("ssim_compensated"),
+            "depth_l1_cm": photometric.get("depth_l1_cm"),
             "time_s": metrics.get("time_s"),
             "mapping": metrics.get("mapping"),
             "mapping_iterations": metrics.get("mapping_iterations"),
@@ -160,6 +173,45 @@ def main(argv=None) -> int:
         plot(name, log, out / f"slam_fps_{name}.png", title)
         report = {"commit": args.commit, "gpu": gpu_name(), "results": results}
         (out / "slam_fps.json").write_text(json.dumps(report, indent=2, default=str))
+    for name, r in results.items():
+        print(name, json.dumps(r, default=str))
+    return 0
+
+
+def run_jobs(cases: list[str], args, out: Path) -> int:
+    """Each case in its own process (this script, one case, DIR/cases/NAME), ``args.jobs`` at a time;
+    their results gathered into DIR/slam_fps.json."""
+    pending = list(cases)
+    running: list[tuple[str, subprocess.Popen]] = []
+    names = [case.partition(":")[0] for case in cases]
+    if len(set(names)) != len(names):
+        raise SystemExit(f"case names must differ: {names}")
+    while pending or running:
+        while pending and len(running) < args.jobs:
+            case = pending.pop(0)
+            name = case.partition(":")[0]
+            folder = out / "cases" / name
+            folder.mkdir(parents=True, exist_ok=True)
+            cmd = [sys.executable, __file__, "--out", str(folder), "--commit", args.commit, "--case", case]
+            if args.common:
+                cmd += ["--common", args.common]
+            log = (folder / "log.txt").open("w")
+            running.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)))
+        time.sleep(1.0)
+        for name, proc in [r for r in running if r[1].poll() is not None]:
+            running.remove((name, proc))
+            print(f"{name}: exit {proc.returncode}", file=sys.stderr)
+    results, gpu = {}, "unknown"
+    for name in names:
+        report = out / "cases" / name / "slam_fps.json"
+        if report.exists():
+            data = json.loads(report.read_text())
+            gpu = data.get("gpu", gpu)
+            results.update(data["results"])
+        else:
+            results[name] = {"error": f"no results: see {out / 'cases' / name / 'log.txt'}"}
+    summary = {"commit": args.commit, "gpu": gpu, "jobs": args.jobs, "results": results}
+    (out / "slam_fps.json").write_text(json.dumps(summary, indent=2, default=str))
     for name, r in results.items():
         print(name, json.dumps(r, default=str))
     return 0
