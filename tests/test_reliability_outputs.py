@@ -24,7 +24,7 @@ from rgs_warp.config import SeedingConfig, load_config
 from rgs_warp.datasets import open_dataset
 from rgs_warp.io.ply import load_ply
 from rgs_warp.io.trajectory import read_tum_trajectory
-from rgs_warp.run import main, make_run_dir, run
+from rgs_warp.run import MONO_NOTICE, main, make_run_dir, run
 from rgs_warp.slam import SLAM
 from rgs_warp.types import Camera, GaussianMap
 
@@ -254,6 +254,18 @@ def test_an_unwritable_output_dir_is_one_error_line(tmp_path, capsys):
     assert main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: cannot create the run folder") and str(output_dir) in err[0]
+
+
+def test_a_monocular_run_is_told_that_the_mode_is_not_reliable_yet(tmp_path, capsys):
+    """mode=mono says at its start what it does not do yet (issue 22); an RGB-D run says nothing (the
+    test above: its one line is the error)."""
+    (tmp_path / "file").write_text("")
+    argv = [*SMALL, "mode=mono", "dataset.max_frames=3", "device=cpu", f"output_dir={tmp_path / 'file' / 'runs'}"]
+    open_dataset(load_config(argv))
+    capsys.readouterr()
+    assert main(argv) == 1  # stops at the run folder, after the notice
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0] == MONO_NOTICE and err[1].startswith("error: cannot create the run folder")
 
 
 def test_a_run_failing_at_start_up_leaves_no_folder(tmp_path, capsys):
