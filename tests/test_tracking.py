@@ -727,8 +727,8 @@ def assert_same_steps(a, b, device, context=None) -> None:
     the float atomics of the pose-gradient reductions add in a varying order, and 30 Adam steps carry that
     far: two eager trackers on one H200 ended frames up to 0.36 mm apart, with last-step losses 50 % apart
     (about 1e-4 at a pose this close), and a replaying tracker no further from either
-    (experiments/results/tracking.md, session 27).  So on a
-    GPU only the poses are compared, to 1 mm: steps that go elsewhere, not a rounding's worth."""
+    (experiments/results/tracking.md, session 27).  So on a GPU only the poses are compared, to 1 mm:
+    steps that go elsewhere, not a rounding's worth."""
     if wp.get_device(device).is_cpu:
         assert np.array_equal(a.T_WC, b.T_WC) and a.loss == b.loss and a.gain == b.gain, context
         return

@@ -383,8 +383,8 @@ class MappingConfig:
     lambda_dssim: float = 0.2  # Table 1: L1 + lambda_dssim (1 - SSIM)
     grad_clip: float = 1.0  # Table 1: global gradient-norm clipping
     # RGB-D: depth L1 (per metre) against the colour L1 (per channel).  0.3 (was 1): the colour steers the
-    # Gaussians more (H200, 3 seeds each: office +0.45 dB raw and compensated, ATE 0.41 -> 0.37 cm;
-    # 7-Scenes +0.2 raw / +0.35 compensated, same ATE, depth L1 against Kinect depth 3.9 -> 4.7 cm;
+    # Gaussians more (H200, 4-5 runs each: office +0.45 dB raw and compensated, ATE 0.41 -> 0.37 cm;
+    # 7-Scenes' colour and ATE within their spread, its depth L1 against the Kinect's depth 3.9 -> 4.7 cm;
     # experiments/results/fidelity.md, session 27)
     depth_weight: float = 0.3
     robust_scale: float = 0.25  # Cauchy scale of the per-pixel weights (mean |residual| per channel); <= 0: off
