@@ -22,10 +22,10 @@ from rgs_warp.types import GaussianMap
 def assert_same_values(a, b, device, err_msg="") -> None:
     """Captured-graph steps against eager steps: bit for bit on the CPU; on a GPU the float atomics of the
     renderer's and the reductions' sums add in a varying order.  Adam divides each gradient by its running
-    magnitude, so where a Gaussian's gradient is near zero a rounding's difference can flip its step: a
-    whole learning rate (1e-3) either way.  Measured on an H200 (session 27): 14 steps 2.4e-7 apart, 16
-    steps three rotations 1e-3 apart; two eager runs of the tracker differ as much as a replay does
-    (experiments/results/tracking.md, session 27)."""
+    magnitude, so where a Gaussian's gradient is near zero a rounding's difference can flip its step, a
+    whole learning rate (1e-3) either way (the likely reading of what was measured; not traced).
+    Measured on an H200 (session 27): 14 steps 2.4e-7 apart, 16 steps three rotations 1e-3 apart; two
+    eager runs of the tracker differ as much as a replay does (experiments/results/tracking.md)."""
     if wp.get_device(device).is_cpu:
         np.testing.assert_array_equal(a, b, err_msg=err_msg)
     else:

@@ -182,7 +182,7 @@ def run_jobs(cases: list[str], args, out: Path) -> int:
     """Each case in its own process (this script, one case, DIR/cases/NAME), ``args.jobs`` at a time;
     their results gathered into DIR/slam_fps.json."""
     pending = list(cases)
-    running: list[tuple[str, subprocess.Popen]] = []
+    running: list[tuple[str, subprocess.Popen, object]] = []
     names = [case.partition(":")[0] for case in cases]
     if len(set(names)) != len(names):
         raise SystemExit(f"case names must differ: {names}")
@@ -196,11 +196,12 @@ def run_jobs(cases: list[str], args, out: Path) -> int:
             if args.common:
                 cmd += ["--common", args.common]
             log = (folder / "log.txt").open("w")
-            running.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)))
+            running.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
         time.sleep(1.0)
-        for name, proc in [r for r in running if r[1].poll() is not None]:
-            running.remove((name, proc))
-            print(f"{name}: exit {proc.returncode}", file=sys.stderr)
+        for entry in [r for r in running if r[1].poll() is not None]:
+            running.remove(entry)
+            entry[2].close()
+            print(f"{entry[0]}: exit {entry[1].returncode}", file=sys.stderr)
     results, gpu = {}, "unknown"
     for name in names:
         report = out / "cases" / name / "slam_fps.json"
