@@ -511,21 +511,21 @@ def test_mono_bootstrap_builds_the_first_map_from_two_views(device):
 
 
 @pytest.mark.slow
-def test_keypoint_prior_in_a_mono_run(device):
-    """tracking.keypoint_prior=on in a monocular run: the bootstrap's keyframes give landmarks (the
-    map's depth at their poses), and the frames after it start from a PnP pose where one agrees
-    (``prior_inliers`` > 0) and are tracked on."""
-    cfg = load_config(
-        [*MONO, "dataset.max_frames=12", "tracking.keypoint_prior=on", "tracking.keypoint_min_inliers=12"]
-    )
+def test_keypoint_odometry_starts_the_mono_tracking(device):
+    """Monocular (tracking.keypoint_odometry, on by default): the bootstrap starts the odometry with its two
+    poses, and every frame after it starts tracking from the odometry's pose, which holds landmarks and
+    agrees with enough of them; nothing is lost.  Off, no frame has an odometry result."""
+    cfg = load_config([*MONO, "dataset.max_frames=12"])
     camera, frames = _frames(cfg, 12)
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
     results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
-    assert slam.pose_prior is not None and len(slam.pose_prior) > 20
+    assert slam.odometry is not None and len(slam.odometry) > 20
     after = [r for r in results[slam.keyframe_indices[1] + 1 :] if r.tracking is not None]
-    assert after and all(r.prior_inliers is not None for r in after)
-    assert any(r.prior_inliers >= 12 for r in after), [r.prior_inliers for r in after]
+    assert after and all(r.odometry is not None and r.odometry.T_WC is not None for r in after)
+    assert all(r.odometry.inliers >= cfg.keypoints.min_inliers for r in after), [r.odometry.inliers for r in after]
     assert not any(r.lost for r in after), [r.lost_reason for r in after]
+    off = SLAM(load_config([*MONO, "dataset.max_frames=12", "tracking.keypoint_odometry=false"]), camera, device=device)
+    assert off.odometry is None
 
 
 @pytest.mark.slow

@@ -188,16 +188,12 @@ class TrackingConfig:
     # captured again when they change: one launch instead of about 15 per step.  auto: on on CUDA
     # devices, off on the CPU (where launches cost little); on / off force it.
     graph: str = "auto"
-    # Keypoint pose prior (pose_prior.py, issue 22): ORB keypoints of the last keypoint_keyframes
-    # keyframes lifted to 3-D with the map's depth; each frame's PnP pose against them (RANSAC, at least
-    # keypoint_min_inliers agreeing matches) is where tracking starts instead of the constant-velocity
-    # prediction.  on / auto (on in mode=mono) / off.  Off by default until measured on the GPU: on the
-    # CPU (room0) PnP recovers a 16-deg turn to 0.2 deg at 640x360 but only to 1-2 deg and 1-7 cm at
-    # 160x90, where keypoints are too coarse to pin the translation (docs/decisions.md).
-    keypoint_prior: str = "off"
-    keypoint_features: int = 1000
-    keypoint_keyframes: int = 3
-    keypoint_min_inliers: int = 30
+    # Monocular: the keypoint odometry (keypoint_odometry.py, its settings in the `keypoints` section; issue
+    # 22) gives each frame's tracking its starting pose: KLT tracks, PnP against landmarks triangulated over
+    # its own keyframes, and a local bundle adjustment with older keyframes held, which keeps the scale that
+    # photometric tracking against the monocular map loses (on its own 0.64 cm Sim(3) ATE over the office's
+    # first 150 frames at 1200x680; experiments/results/mono.md).  Not used in RGB-D.
+    keypoint_odometry: bool = True
 
 
 @dataclass
@@ -484,6 +480,57 @@ class BootstrapConfig:
 
 
 @dataclass
+class KeypointsConfig:
+    """Monocular keypoint odometry (``rgs_warp.keypoint_odometry``; mode=mono).  Defaults as measured in
+    experiments/results/mono.md, "Keypoint front end with a local bundle adjustment" (office, first 150
+    frames: 0.64 cm Sim(3) ATE at 1200x680, 1.12 cm at 640x360).  Pixel values are for 640 px of image
+    width and scale with the width (not below half)."""
+
+    # Tracks.  Shi-Tomasi corners kept (at 640 px width) and their least distance: the measured setting;
+    # new corners every frame once fewer than redetect_fraction of them are tracked, so that new tracks
+    # have parallax by the next keyframe (with kf_min_landmarks: 4.9 -> 1.4 cm, mono.md)
+    max_features: int = 600
+    min_distance_px: float = 12.0
+    redetect_fraction: float = 0.8
+    # KLT's forward-backward limit; 2 px instead changed little (4.3 -> 4.5 cm, mono.md)
+    fb_px: float = 0.5
+    # Pose.  PnP RANSAC's inlier limit, and the fewest inliers for a pose (else rotation-only)
+    pnp_px: float = 2.0
+    min_inliers: int = 15
+    # A landmark track whose reprojection after the frame's pose exceeds this is dropped (it slides on a
+    # stripe or an occlusion edge); 0: the pnp_px limit only, measured worse (6.3 against 4.3 cm, mono.md)
+    residual_px: float = 1.5
+    # A PnP pose further than this from the motion model's prediction is refused (rotation-only instead):
+    # max_dev_deg of rotation, or a camera centre off by more than max_dev_step times the predicted step
+    # plus max_dev_depth times the median scene depth
+    max_dev_deg: float = 5.0
+    max_dev_step: float = 4.0
+    max_dev_depth: float = 0.01
+    rotation_min_tracks: int = 20  # fewer tracks than this for a rotation-only pose: the frame is lost
+    # Landmarks: a track seen in >= 2 keyframes is triangulated from all of them once its rays span
+    # min_parallax_deg, kept when every reprojection is within max_reproj_px (0.7-1.0 deg did not help
+    # at frames 205-235 of 300, mono.md)
+    min_parallax_deg: float = 1.5
+    max_reproj_px: float = 2.0
+    # Keyframes: when fewer than kf_tracked_fraction of the last keyframe's tracks remain, fewer than
+    # kf_landmark_fraction of its usable landmarks or fewer than kf_min_landmarks, when the median
+    # parallax to it exceeds kf_parallax_deg, or the pose was rotation-only; at least kf_min_gap frames
+    # apart
+    kf_tracked_fraction: float = 0.7
+    kf_landmark_fraction: float = 0.6
+    kf_min_landmarks: int = 100
+    kf_parallax_deg: float = 2.0
+    kf_min_gap: int = 1
+    # Local BA over the last ba_window keyframes' poses and their landmarks (0: none; without it the
+    # scale drifted 0.82 -> 1.57 over 150 frames, 5.8 cm, mono.md), with up to ba_held_max older keyframes
+    # that see them held (gauge and scale); Huber loss of ba_huber_px, at most ba_iters evaluations
+    ba_window: int = 8
+    ba_held_max: int = 12
+    ba_huber_px: float = 1.0
+    ba_iters: int = 30
+
+
+@dataclass
 class EvalConfig:
     every: int = 5  # §3: photometric metrics on every 5th frame, keyframes excluded
     # convergence.json: mean PSNR of the window keyframes every this many mapping iterations during
@@ -537,6 +584,7 @@ class Config:
     mapping: MappingConfig = field(default_factory=MappingConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     bootstrap: BootstrapConfig = field(default_factory=BootstrapConfig)
+    keypoints: KeypointsConfig = field(default_factory=KeypointsConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     export: ExportConfig = field(default_factory=ExportConfig)
 
@@ -562,7 +610,6 @@ CHOICES = {
     "tracking.graph": ("auto", "on", "off"),
     "mapping.graph": ("auto", "on", "off"),
     "tracking.colour_per_opacity": ("auto", "on", "off"),
-    "tracking.keypoint_prior": ("auto", "on", "off"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 
@@ -761,6 +808,28 @@ CONSTRAINTS: dict[str, Bound] = {
     "bootstrap.max_reproj_px": POSITIVE,
     "bootstrap.min_point_parallax_deg": NON_NEGATIVE,
     "bootstrap.max_wait_frames": AT_LEAST_1,
+    "keypoints.max_features": AT_LEAST_1,
+    "keypoints.min_distance_px": POSITIVE,
+    "keypoints.redetect_fraction": FRACTION,
+    "keypoints.fb_px": POSITIVE,
+    "keypoints.pnp_px": POSITIVE,
+    "keypoints.min_inliers": Bound(lo=6),  # the LM refinement on the inliers needs six
+    "keypoints.residual_px": NON_NEGATIVE,  # 0 = the pnp_px limit
+    "keypoints.max_dev_deg": POSITIVE,
+    "keypoints.max_dev_step": NON_NEGATIVE,
+    "keypoints.max_dev_depth": NON_NEGATIVE,
+    "keypoints.rotation_min_tracks": Bound(lo=3),  # Kabsch needs three bearings
+    "keypoints.min_parallax_deg": NON_NEGATIVE,
+    "keypoints.max_reproj_px": POSITIVE,
+    "keypoints.kf_tracked_fraction": FRACTION,
+    "keypoints.kf_landmark_fraction": FRACTION,
+    "keypoints.kf_min_landmarks": NON_NEGATIVE,
+    "keypoints.kf_parallax_deg": POSITIVE,
+    "keypoints.kf_min_gap": AT_LEAST_1,
+    "keypoints.ba_window": NON_NEGATIVE,  # 0 = no local BA
+    "keypoints.ba_held_max": Bound(lo=2),  # two held keyframes fix the gauge and the scale
+    "keypoints.ba_huber_px": POSITIVE,
+    "keypoints.ba_iters": AT_LEAST_1,
     "eval.every": AT_LEAST_1,
     "eval.convergence_every": NON_NEGATIVE,
 }

@@ -571,8 +571,11 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     if result.lost:  # tracking lost, or the frame's input unusable (then not tracked)
         entry.update(lost=True, lost_reason=result.lost_reason)
         state.lost.append((result.index, result.lost_reason))
-    if result.prior_inliers is not None:
-        entry["prior_inliers"] = result.prior_inliers
+    odometry = result.odometry
+    if odometry is not None:  # monocular: where tracking started (keypoint_odometry.py)
+        entry["odometry_inliers"] = odometry.inliers
+        if odometry.T_WC is None or odometry.rotation_only:
+            entry["odometry"] = odometry.reason or ("lost" if odometry.T_WC is None else "rotation only")
     for key in ("nonfinite_rgb", "nonfinite_depth"):
         if getattr(result, key):
             entry[key] = getattr(result, key)

@@ -30,10 +30,10 @@ from rgs_warp.config import Config, check_config, check_image_size, resolve_devi
 from rgs_warp.exposure import KeyframeExposure
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
 from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeDecision, KeyframeHistory, KeyframeSelector
+from rgs_warp.keypoint_odometry import KeypointOdometry, OdometryResult
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper, MappingResult
 from rgs_warp.matching import DenseMatcher
-from rgs_warp.pose_prior import PosePrior
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
 from rgs_warp.slam.storage import SlamSnapshot, load_slam, snapshot_slam
@@ -71,9 +71,9 @@ class FrameResult:
     # (filled from the nearest finite pixel, without depth) and depth values that were not (set to 0)
     nonfinite_rgb: int = 0
     nonfinite_depth: int = 0
-    # the keypoint pose prior (tracking.keypoint_prior): its RANSAC inliers where tracking started from
-    # its pose, 0 where it found none (tracking then started from the prediction), None when off
-    prior_inliers: int | None = None
+    # monocular, tracking.keypoint_odometry: the odometry's result for the frame (where tracking started),
+    # None when it is off, in the bootstrap, and in RGB-D
+    odometry: OdometryResult | None = None
 
 
 class SLAM:
@@ -97,11 +97,10 @@ class SLAM:
         # tracking's own renderer; asynchronous mapping also renders the published map with it
         self._tracking_renderer = Renderer(dev)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=self._tracking_renderer)
-        prior = cfg.tracking.keypoint_prior
-        self.pose_prior = None
-        if prior == "on" or (prior == "auto" and self.mode == "mono"):
-            t = cfg.tracking
-            self.pose_prior = PosePrior(camera, t.keypoint_features, t.keypoint_keyframes, t.keypoint_min_inliers)
+        # monocular: started by the bootstrap (its two poses), then where each frame's tracking starts
+        self.odometry = None
+        if self.mode == "mono" and cfg.tracking.keypoint_odometry:
+            self.odometry = KeypointOdometry(cfg.keypoints, camera)
         relocalize = cfg.tracking.relocalize
         self.relocalize = relocalize == "on" or (relocalize == "auto" and self.mode == "mono")
         tc = self.tracker.track_camera
@@ -239,12 +238,15 @@ class SLAM:
             self.tracker.reset(T, self.poses[-1])  # the motion model goes on from the given poses
             exposure, pose_ok = self.tracker.exposure(tmap, T), True
             decision = self.selector.should_add(self.tracker.alpha, T, depth=self.tracker.depth)
+            if self.odometry is not None:  # its tracks go on through the frames whose pose is given
+                self._odometry_pose(rgb, T)
         else:
             tr0 = time.perf_counter()
             before = self.tracker.state_dict()
-            prior_inliers = None
-            if self.pose_prior is not None and T_init_WC is None:
-                T_init_WC, prior_inliers = self._prior_pose(rgb)
+            odometry = None
+            if self.odometry is not None:  # every frame, for its tracks; a start given by the caller wins
+                odometry = self._odometry_pose(rgb, self.tracker.predict() if T_init_WC is None else T_init_WC)
+                T_init_WC = odometry.T_WC if T_init_WC is None else T_init_WC
             tracking = self.tracker.track(rgb, depth, tmap, T_init_WC)
             if tracking.lost and self.relocalize and len(self.keyframes):
                 tracking = self._relocalized(rgb, depth, tmap, tracking, before)
@@ -262,7 +264,7 @@ class SLAM:
             is_kf, reason = False, "not mapped: tracked motion inconsistent"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         if tracking is not None:
-            result.prior_inliers = prior_inliers
+            result.odometry = odometry
         self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
             self.selector.accept(T)
@@ -448,29 +450,14 @@ class SLAM:
         self.convergence += self.mapper.convergence(
             self.keyframes, window, result.mapping, i, "init" if init else "keyframe"
         )
-        self._add_landmarks(slot)
         if self.publisher is not None:
             self._publish()
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
 
-    def _prior_pose(self, rgb) -> tuple[np.ndarray | None, int]:
-        """Where tracking starts this frame by the keypoint prior: (its pose, its inliers), or (None, 0)
-        for the constant-velocity prediction."""
-        predicted = self.tracker.predict()
-        if predicted is None:
-            return None, 0
+    def _odometry_pose(self, rgb, T_pred_WC: np.ndarray | None) -> OdometryResult:
+        """The keypoint odometry's pose of this frame (where tracking starts) from ``T_pred_WC``."""
         host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
-        prior = self.pose_prior.pose(host, predicted)
-        return (prior.T_WC, prior.inliers) if prior.T_WC is not None else (None, 0)
-
-    def _add_landmarks(self, slot: int) -> None:
-        """The keypoint prior's landmarks of keyframe ``slot``: its keypoints lifted with the map's
-        depth rendered at its pose (after its mapping)."""
-        if self.pose_prior is None:
-            return
-        T = self.keyframes.poses[slot].copy()
-        res = self.renderer.forward(self.map, self.camera, T)
-        self.pose_prior.add_keyframe(self.keyframes.rgb[slot].numpy(), res.depth.numpy(), res.alpha.numpy(), T)
+        return self.odometry.track(host, T_pred_WC)
 
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
         """The keyframes older than ``window`` that mapping may render (``mapping.history``): the
@@ -565,8 +552,12 @@ class SLAM:
         result.mapping = self.mapper.optimize(self.keyframes, window, cfg.mapping.init_iters, psnr_every, [slot0])
         self.stats["mapping_s"] += time.perf_counter() - tm
         self.convergence += self.mapper.convergence(self.keyframes, window, result.mapping, i, "init")
-        for slot in window:
-            self._add_landmarks(slot)
+        starts = [None] * len(frames)  # where the frames that waited start tracking: the odometry's poses
+        if self.odometry is not None:
+            if boot is not None:
+                starts = self.odometry.start([f[0] for f in frames], T0, result.T_WC)
+            else:  # a plane at an assumed depth gives the odometry no second pose to start from
+                self.odometry = None
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
         for j in retrack:
             if frames[j][0] is None:  # its input was unusable: the last good pose
@@ -574,7 +565,7 @@ class SLAM:
                 self.poses[j] = self.poses[j - 1].copy()
                 continue
             tr0 = time.perf_counter()
-            tracking = self.tracker.track(frames[j][0], None, self.map)
+            tracking = self.tracker.track(frames[j][0], None, self.map, starts[j] if j < i else None)
             self.stats["tracking_s"] += time.perf_counter() - tr0
             T = self.poses[j - 1].copy() if tracking.diverged else tracking.T_WC
             if j < i:
