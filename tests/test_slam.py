@@ -511,14 +511,20 @@ def test_mono_bootstrap_builds_the_first_map_from_two_views(device):
 
 
 @pytest.mark.slow
-def test_keypoint_odometry_starts_the_mono_tracking(device):
+def test_keypoint_odometry_starts_the_mono_tracking(device, tmp_path):
     """Monocular (tracking.keypoint_odometry, on by default): the bootstrap starts the odometry with its two
     poses, and every frame after it starts tracking from the odometry's pose, which holds landmarks and
-    agrees with enough of them; nothing is lost.  Off, no frame has an odometry result."""
-    cfg = load_config([*MONO, "dataset.max_frames=12"])
-    camera, frames = _frames(cfg, 12)
+    agrees with enough of them; nothing is lost.  A saved run resumes without it (its tracks are not
+    saved), tracking on.  Off, no frame has an odometry result."""
+    cfg = load_config([*MONO, "dataset.max_frames=13"])
+    camera, frames = _frames(cfg, 13)
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
-    results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames[:12]]
+    slam.save(tmp_path / "saved")
+    resumed = SLAM.load(tmp_path / "saved", device=device)
+    assert resumed.odometry is None
+    last = resumed.process(frames[12].rgb, None, frames[12].timestamp)
+    assert last.tracking is not None and last.odometry is None and not last.lost, last.lost_reason
     assert slam.odometry is not None and len(slam.odometry) > 20
     after = [r for r in results[slam.keyframe_indices[1] + 1 :] if r.tracking is not None]
     assert after and all(r.odometry is not None and r.odometry.T_WC is not None for r in after)

@@ -221,6 +221,9 @@ def load_slam(cls, directory: str | Path, device=None):
         slam.mapper.total_iters = int(data["mapping_iters"])
     if slam.keyframe_indices and slam.bootstrap is not None:  # a monocular map: its bootstrap is done
         slam.bootstrap, slam._init_window_end = None, 0
+        # the keypoint odometry's tracks and landmarks are not saved (they follow the frames, which a
+        # saved run no longer has): the resumed frames start tracking from the constant-velocity prediction
+        slam.odometry = None
     if (directory / "state.npz").is_file():
         _load_state(slam, directory / "state.npz")
         return slam
