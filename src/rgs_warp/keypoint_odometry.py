@@ -9,7 +9,8 @@ Host only (NumPy / OpenCV / SciPy), float64:
   from the motion model's prediction (landmarks at their projection, other tracks moved by the rotation);
 - pose: PnP (AP3P RANSAC) and the prediction compete by inliers, Levenberg-Marquardt on the inliers;
   landmark tracks that do not fit the pose are dropped (they slide).  Too few inliers, or a pose far
-  from the prediction: the rotation alone from all tracks, the translation the motion model's; with
+  from the prediction: the rotation alone from all tracks, the centre from the epipolar planes to the
+  last keyframe, the landmarks left and the motion model's step length; with
   too few tracks even for that the frame is lost and leaves no trace;
 - keyframes by tracked fraction, usable landmarks and parallax; landmarks triangulated from all of a
   track's keyframe observations;
@@ -48,6 +49,11 @@ BA_MIN_LANDMARKS = 10
 PNP_RANSAC_ITERS = 200
 PNP_REFINEMENTS = 3  # LM on the inliers, inliers re-selected after each
 KABSCH_TRIMS = 3  # rotation-only: Kabsch, dropping tracks beyond 3x the median angle, 3 times
+# A rotation-only frame's centre: the weight of the motion model's centre against epipolar rows of
+# unit bearings (about the parallax in radians, 0.01-0.05) and landmark rows (about 1): it only fills
+# what those leave free
+CENTRE_PRIOR_WEIGHT = 1e-4
+CENTRE_TRIMS = 3  # rotation-only centre: rows beyond 3x their kind's median residual dropped, 3 times
 MIN_DEPTH = 1e-6  # projection denominators are clamped here (a point behind the camera)
 
 
@@ -340,8 +346,23 @@ class KeypointOdometry:
         R = self._rotation(prev_uv)
         if R is None:
             return None, "lost", 0, reason + f"; fewer than {cfg.rotation_min_tracks} tracks for a rotation"
-        T = _rigid(R, -R @ _centre(T_pred))
+        T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj, uv))
         return T, "rotation", int(agreeing(T).sum()), reason
+
+    def _centre_given_rotation(self, R: np.ndarray, c_pred: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """The camera centre of a rotation-only frame: the landmarks still tracked and the epipolar planes
+        of the tracks seen at the last keyframe fix it where they can, the motion model's centre the rest
+        (the baseline's length where no landmark is left).  The motion model's centre alone keeps its
+        direction for every later frame: the keyframes made from it triangulate nothing and the odometry
+        never leaves rotation-only (frames 218-299 of the office, mono.md, "Holding the 300-frame path")."""
+        k = len(self._kf_T) - 1
+        T_kf = self._kf_T[k]
+        at_kf = {t: obs[-1][1] for t in self._ids.tolist() if (obs := self._obs.get(t)) and obs[-1][0] == k}
+        now = [j for j, t in enumerate(self._ids.tolist()) if t in at_kf]
+        b_kf = self._bearings(np.array([at_kf[t] for t in self._ids[now].tolist()]).reshape(-1, 2)) @ T_kf[:3, :3]
+        b_now = self._bearings(self._pts[now].astype(np.float64).reshape(-1, 2)) @ R
+        b_obj = self._bearings(uv) @ R
+        return _centre_from_bearings(_centre(T_kf), b_kf, b_now, obj, b_obj, c_pred)
 
     def _rotation(self, prev_uv: dict) -> np.ndarray | None:
         """The rotation from the previous frame (Kabsch on the bearings of the tracks seen in both),
@@ -490,6 +511,43 @@ def _rescaled_to_baseline(
         c = c0 + s * (_centre(T) - c0)
         out[j, :3, 3] = -T[:3, :3] @ c
     return out, c0 + s * (X - c0)
+
+
+def _centre_from_bearings(
+    c_kf: np.ndarray, b_kf: np.ndarray, b_now: np.ndarray, X: np.ndarray, b_X: np.ndarray, c_prior: np.ndarray
+) -> np.ndarray:
+    """A camera centre of known rotation by linear least squares: world bearings b_now (n, 3) of points
+    seen along b_kf from the keyframe centre c_kf (the baseline lies in each pair's epipolar plane:
+    (b_kf x b_now) . (c - c_kf) = 0, a row weighted by the pair's parallax), world bearings b_X of the
+    landmarks X (m, 3) (b_X x (X - c) = 0), and c_prior with a weight small against both (it decides
+    only what they leave free; without two landmarks c_prior's distance from c_kf is the baseline's
+    length).  Pairs and landmarks beyond 3x their kind's median residual are dropped, CENTRE_TRIMS times."""
+    n = np.cross(b_kf, b_now)
+    S = _skew(b_X)
+    A = np.concatenate([n, S.reshape(-1, 3), CENTRE_PRIOR_WEIGHT * np.eye(3)])
+    b = np.concatenate([n @ c_kf, np.einsum("nij,nj->ni", S, X).ravel(), CENTRE_PRIOR_WEIGHT * c_prior])
+    # a landmark's two independent rows of its three are dropped together with it
+    group = np.concatenate([np.arange(len(n)), len(n) + np.repeat(np.arange(len(X)), 3), [-1, -1, -1]])
+    data = group >= 0
+    # the two kinds of rows differ in units (epipolar rows scale with the parallax): a median each
+    epipolar = np.arange(len(n) + len(X)) < len(n)
+    keep = np.ones(len(A), bool)
+    for _ in range(CENTRE_TRIMS):
+        c = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+        worst = np.zeros(len(n) + len(X))
+        np.maximum.at(worst, group[data], np.abs(A @ c - b)[data])
+        ok = np.ones(len(worst), bool)
+        for kind in (epipolar, ~epipolar):
+            if kind.any():
+                ok[kind] = worst[kind] <= 3 * np.median(worst[kind])
+        keep = ~data | ok[np.maximum(group, 0)]
+    c = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+    if len(X) >= 2:
+        return c
+    # without landmarks the prior's projection onto the baseline shortens every step and the steps shrink
+    # to nothing over a few frames: the prior's baseline length along the direction found
+    step = np.linalg.norm(c - c_kf)
+    return c if step < 1e-12 else c_kf + (c - c_kf) * np.linalg.norm(c_prior - c_kf) / step
 
 
 def _grey(rgb: np.ndarray) -> np.ndarray:
