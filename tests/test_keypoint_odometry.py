@@ -235,6 +235,11 @@ def test_start_and_track_keep_the_given_gauge_and_scale(room):
     true_path = np.linalg.norm(np.diff(gt[START:, :3, 3], axis=0), axis=1).sum()
     assert abs(path / true_path / s - 1) < 0.05, path / true_path
     assert 1 <= keyframes < len(images) - START - 1  # keyframes made, but not every frame
+    # what it holds is bounded: as of its last keyframe, the tracks it followed and the landmarks a BA can
+    # still use (seen in the window)
+    alive, oldest = odometry._kf_tracks, len(odometry._kf_T) - odometry.cfg.ba_window
+    assert all(t in alive or (t in odometry._landmarks and obs[-1][0] >= oldest) for t, obs in odometry._obs.items())
+    assert set(odometry._landmarks) <= set(odometry._obs)
 
 
 @pytest.mark.slow

@@ -96,7 +96,6 @@ class KeypointOdometry:
         self._ids = np.zeros(0, np.int64)
         self._obs: dict[int, list[tuple[int, np.ndarray]]] = {}  # track -> [(keyframe, uv)]
         self._landmarks: dict[int, np.ndarray] = {}  # track -> world point
-        self._banned: set[int] = set()  # tracks dropped for good (slid, or BA outliers)
         self._kf_T: list[np.ndarray] = []  # T_CW of each keyframe
         self._kf_frame: list[int] = []
         self._kf_tracks: set[int] = set()  # tracks alive at the last keyframe
@@ -142,6 +141,7 @@ class KeypointOdometry:
         if not self._landmarks:
             raise ValueError("the two start poses triangulate no landmark: too little parallax between them")
         self._local_ba()  # the two-view start refined (measured: mono.md, session 28)
+        self._forget()
         T_last = self._kf_T[1]
         depth = [(T_last[:3, :3] @ X + T_last[:3, 3])[2] for X in self._landmarks.values()]
         self._scene_depth = float(np.median(depth))
@@ -190,6 +190,7 @@ class KeypointOdometry:
         if keyframe:
             self._add_keyframe(img, T)
             self._local_ba()
+            self._forget()
             T = self._kf_T[-1]
         self._recent = [self._recent[-1], (T, len(self._kf_T) - 1 if keyframe else None)]
         self._prev = img
@@ -261,7 +262,6 @@ class KeypointOdometry:
         self._pts, self._ids = self._pts[keep], self._ids[keep]
         for t in tracks.tolist():
             self._landmarks.pop(t, None)
-            self._banned.add(t)
 
     def _usable(self) -> np.ndarray:
         return np.array([t in self._landmarks for t in self._ids.tolist()], bool)
@@ -410,11 +410,24 @@ class KeypointOdometry:
         self._kf_tracks = set(self._ids.tolist())
         self._kf_landmarks = int(self._usable().sum())
 
+    def _forget(self) -> None:
+        """After a keyframe's BA: drop the tracks no longer followed that no BA can use again (no
+        landmark, or a landmark whose newest view is older than the window): KLT never takes a lost
+        track back, so they would only grow the odometry's memory and each BA's search over a long run."""
+        alive = set(self._ids.tolist())
+        oldest = len(self._kf_T) - self.cfg.ba_window
+        gone = [
+            t for t, obs in self._obs.items() if t not in alive and (t not in self._landmarks or obs[-1][0] < oldest)
+        ]
+        for t in gone:
+            del self._obs[t]
+            self._landmarks.pop(t, None)
+
     def _triangulate_tracks(self) -> None:
         cfg = self.cfg
         for t in self._ids.tolist():
             obs = self._obs.get(t, ())
-            if t in self._landmarks or t in self._banned or len(obs) < 2:
+            if t in self._landmarks or len(obs) < 2:
                 continue
             X = _triangulate(
                 np.stack([self._kf_T[k] for k, _ in obs]),
