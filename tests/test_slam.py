@@ -535,6 +535,26 @@ def test_keypoint_odometry_starts_the_mono_tracking(device, tmp_path):
 
 
 @pytest.mark.slow
+def test_an_odometry_that_cannot_start_leaves_the_run_going(device, monkeypatch):
+    """The bootstrap's two poses triangulate no landmark for the odometry (its ValueError): the run goes on
+    without it, the bootstrap frame's reason says why, and the frames after it are tracked."""
+    from rgs_warp.keypoint_odometry import KeypointOdometry
+
+    def refuse(self, images, T_first_WC, T_last_WC):
+        raise ValueError("the two start poses triangulate no landmark")
+
+    monkeypatch.setattr(KeypointOdometry, "start", refuse)
+    cfg = load_config([*MONO, "dataset.max_frames=12"])
+    camera, frames = _frames(cfg, 12)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
+    boot = slam.keyframe_indices[1]
+    assert slam.odometry is None and "keypoint odometry not started" in results[boot].keyframe_reason
+    after = results[boot + 1 :]
+    assert after and all(r.tracking is not None and r.odometry is None for r in after)
+
+
+@pytest.mark.slow
 def test_mono_bootstrap_falls_back_to_a_plane(device):
     cfg = load_config([*MONO, "dataset.max_frames=3", "bootstrap.max_wait_frames=2", f"device={device}"])
     camera, frames = _frames(cfg, 3)

@@ -554,10 +554,13 @@ class SLAM:
         self.convergence += self.mapper.convergence(self.keyframes, window, result.mapping, i, "init")
         starts = [None] * len(frames)  # where the frames that waited start tracking: the odometry's poses
         if self.odometry is not None:
-            if boot is not None:
+            try:  # a plane at an assumed depth gives the odometry no second pose to start from
+                if boot is None:
+                    raise ValueError("the bootstrap fell back to a plane")
                 starts = self.odometry.start([f[0] for f in frames], T0, result.T_WC)
-            else:  # a plane at an assumed depth gives the odometry no second pose to start from
+            except ValueError as e:  # the run goes on, tracking from the constant-velocity prediction
                 self.odometry = None
+                result.keyframe_reason += f"; keypoint odometry not started: {e}"
         self.tracker.reset(T0)  # the frames that waited, tracked against the first map
         for j in retrack:
             if frames[j][0] is None:  # its input was unusable: the last good pose
