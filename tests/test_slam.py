@@ -580,6 +580,20 @@ def test_cli_warns_when_the_mono_bootstrap_falls_back(tmp_path, capsys, device):
     assert ate["all_frames"]["n_poses"] == 4
 
 
+@pytest.mark.slow
+def test_a_mono_run_reports_how_its_odometry_held(tmp_path, device):
+    """metrics.json's tracking section says how the keypoint odometry held up over the frames after the
+    bootstrap (landmarks agreeing, rotation-only and lost frames), and log.jsonl has each frame's count."""
+    argv = [*MONO, "dataset.max_frames=12", f"device={device}", f"output_dir={tmp_path}", "run_name=mono"]
+    assert main(argv) == 0
+    odometry = json.loads((tmp_path / "mono" / "metrics.json").read_text())["tracking"]["odometry"]
+    log = [json.loads(line) for line in (tmp_path / "mono" / "log.jsonl").read_text().splitlines()]
+    counted = [e["odometry_inliers"] for e in log if "odometry_inliers" in e]
+    assert odometry["frames"] == len(counted) > 0
+    assert odometry["inliers_p50"] == float(np.percentile(counted, 50)) >= 15
+    assert odometry["rotation_only_frames"] == 0 and odometry["lost_frames"] == 0
+
+
 WINDOW_RGB = np.array([0.95, 0.95, 0.9], np.float32)
 
 

@@ -242,6 +242,9 @@ class RunState:
     # each tracked frame's Adam steps until its pose stayed put (``TrackingResult.settled_iters``)
     settled_iters: list[int] = field(default_factory=list)
     tracked: int = 0  # frames tracked or lost (the first frame and the monocular bootstrap's waiting ones are not)
+    # monocular: the keypoint odometry's result of each frame it gave tracking's start for: [landmarks
+    # agreeing, rotation only, lost]
+    odometry: list = field(default_factory=list)
     lost: list[tuple[int, str]] = field(default_factory=list)
     elapsed_s: float = 0.0
     checkpoint_keyframes: int = 0
@@ -508,6 +511,15 @@ def _run_frames(
         save.start()
         bar.phase("evaluating")
         tracking = tracking_section(state.tracked, state.lost, state.settled_iters, cfg.tracking.iters)
+        if state.odometry:  # how the monocular front end held up: where it had too few landmarks for PnP
+            inliers, rotation_only, lost = np.array(state.odometry, dtype=float).T
+            tracking["odometry"] = {
+                "frames": len(inliers),
+                "inliers_p10": float(np.percentile(inliers, 10)),
+                "inliers_p50": float(np.percentile(inliers, 50)),
+                "rotation_only_frames": int(rotation_only.sum()),
+                "lost_frames": int(lost.sum()),
+            }
         # frames whose steps this process ran eagerly, captured (after one sizing step) and replayed
         # (tracking.graph; a captured frame is also replayed), and replays
         # that overflowed their graph's intersection buffers (tracked again eagerly)
@@ -574,6 +586,7 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     odometry = result.odometry
     if odometry is not None:  # monocular: where tracking started (keypoint_odometry.py)
         entry["odometry_inliers"] = odometry.inliers
+        state.odometry.append([odometry.inliers, odometry.rotation_only, odometry.T_WC is None])
         if odometry.T_WC is None or odometry.rotation_only:
             entry["odometry"] = odometry.reason or ("lost" if odometry.T_WC is None else "rotation only")
     for key in ("nonfinite_rgb", "nonfinite_depth"):
