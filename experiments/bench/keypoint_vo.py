@@ -12,8 +12,8 @@ Start (the SLAM's monocular bootstrap stands in here):
   ``--boot-deg``; the scale is that baseline's (median depth 1).  No ground truth is used.
 - ``--init gt``: frames 0 and ``--init-frame`` at their true poses (session 16's start).
 
-Both poses go to ``KeypointOdometry.start``, which keeps them (the package never re-estimates the start;
-the session-28 script refined the essential-matrix start's second pose in its first BA).
+Both poses go to ``KeypointOdometry.start``, which keeps the first and the distance between them and
+refines the second in its first BA (as the SLAM's bootstrap poses are treated).
 
 Measures (printed as one JSON line, appended to ``--json`` with the positions): the Sim(3) ATE of the
 online poses (as ``track`` returned them; a lost frame counts with the pose before it), the position
@@ -39,13 +39,9 @@ from rgs_warp import keypoint_odometry
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
 from rgs_warp.eval.ate import ate, umeyama_alignment
-from rgs_warp.keypoint_odometry import KeypointOdometry
+from rgs_warp.keypoint_odometry import KeypointOdometry, _grey
 
 REPORT_FRAMES = (51, 90, 96, 102, 120, 150, 200, 250, 299)
-
-
-def grey(rgb: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(np.clip(rgb * 255 + 0.5, 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
 
 
 def essential_start(frames, K: np.ndarray, width: int, height: int, boot_deg: float, log=print):
@@ -61,7 +57,7 @@ def essential_start(frames, K: np.ndarray, width: int, height: int, boot_deg: fl
         maxLevel=4 if scale > 1.5 else 3,
         criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
     )
-    img0 = grey(frames(0))
+    img0 = _grey(frames(0))
     p0 = cv2.goodFeaturesToTrack(img0, int(600 * px), 0.01, max(int(round(12 * scale)), 5), blockSize=3)
     p0 = cv2.cornerSubPix(img0, p0, (3, 3), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.01))
     p0 = p0.reshape(-1, 2).astype(np.float32)
@@ -69,7 +65,7 @@ def essential_start(frames, K: np.ndarray, width: int, height: int, boot_deg: fl
     i = 0
     while True:
         i += 1
-        img = grey(frames(i))
+        img = _grey(frames(i))
         p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, img, pts, None, **klt)
         back, st2, _ = cv2.calcOpticalFlowPyrLK(img, prev, p1, pts.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **klt)
         ok = (

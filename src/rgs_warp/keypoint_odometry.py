@@ -31,6 +31,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
 from rgs_warp.config import KeypointsConfig
+from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.types import Camera
 
 # The pixel quantities of KeypointsConfig were measured at 640 px of image width; they scale with the
@@ -120,7 +121,10 @@ class KeypointOdometry:
         if len(images) < 2 or images[0] is None or images[-1] is None:
             raise ValueError("start needs at least two frames, the first and the last with images")
         self._clear()
-        T_first, T_last = _inverse(np.asarray(T_first_WC, np.float64)), _inverse(np.asarray(T_last_WC, np.float64))
+        T_first, T_last = (
+            invert_pose(np.asarray(T_first_WC, np.float64)),
+            invert_pose(np.asarray(T_last_WC, np.float64)),
+        )
         prev = _grey(images[0])
         self._detect(prev)
         history: list[tuple[np.ndarray, np.ndarray] | None] = [(self._pts.copy(), self._ids.copy())]
@@ -151,7 +155,7 @@ class KeypointOdometry:
         poses.append(T_last)
         self._recent = [(poses[-2], 0 if len(images) == 2 else None), (T_last, 1)]
         self._prev = prev
-        return [_inverse(T) for T in poses]
+        return [invert_pose(T) for T in poses]
 
     def track(self, rgb: np.ndarray, T_pred_WC: np.ndarray | None = None) -> OdometryResult:
         """The next frame (HxWx3 float32 RGB in [0, 1]); T_pred_WC an optional prediction (else the
@@ -163,9 +167,9 @@ class KeypointOdometry:
         img = _grey(rgb)
         T_prev, T_before = self._recent_pose(-1), self._recent_pose(-2)
         if T_pred_WC is None:
-            T_pred = (T_prev @ _inverse(T_before)) @ T_prev
+            T_pred = (T_prev @ invert_pose(T_before)) @ T_prev
         else:
-            T_pred = _inverse(np.asarray(T_pred_WC, np.float64))
+            T_pred = invert_pose(np.asarray(T_pred_WC, np.float64))
         prev_uv = dict(zip(self._ids.tolist(), self._pts.astype(np.float64), strict=True))
         kept = (self._pts, self._ids)
         self._follow(self._prev, img, self._predicted_flow(T_pred, T_prev))
@@ -194,7 +198,7 @@ class KeypointOdometry:
             T = self._kf_T[-1]
         self._recent = [self._recent[-1], (T, len(self._kf_T) - 1 if keyframe else None)]
         self._prev = img
-        return OdometryResult(_inverse(T), inliers, status == "rotation", keyframe, reason)
+        return OdometryResult(invert_pose(T), inliers, status == "rotation", keyframe, reason)
 
     # ------------------------------------------------------------------------------------- tracks
     def _detect(self, img: np.ndarray) -> None:
@@ -244,7 +248,7 @@ class KeypointOdometry:
         predicted rotation (their depth is unknown)."""
         if len(self._pts) == 0:
             return None
-        H = self.K @ (T_pred @ _inverse(T_prev))[:3, :3] @ np.linalg.inv(self.K)
+        H = self.K @ (T_pred @ invert_pose(T_prev))[:3, :3] @ np.linalg.inv(self.K)
         q = np.c_[self._pts, np.ones(len(self._pts))] @ H.T
         guess = q[:, :2] / q[:, 2:3]
         has = self._usable()
@@ -335,7 +339,7 @@ class KeypointOdometry:
             # a pose far from the motion model is a wrong PnP solution more often than a real jump
             step = np.linalg.norm(_centre(T_prev) - _centre(T_pred))
             dt = np.linalg.norm(_centre(T) - _centre(T_pred))
-            dr = _angle_deg(T[:3, :3] @ T_pred[:3, :3].T)
+            dr = rotation_angle_deg(T[:3, :3] @ T_pred[:3, :3].T)
             if dr > cfg.max_dev_deg or dt > cfg.max_dev_step * step + cfg.max_dev_depth * self._scene_depth:
                 T, reason = None, f"PnP pose {dt:.3g} / {dr:.1f} deg from the motion model's"
         if T is not None:
@@ -568,14 +572,6 @@ def _grey(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.clip(np.asarray(rgb) * 255 + 0.5, 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
 
 
-def _inverse(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
-
-
 def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R
@@ -585,10 +581,6 @@ def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def _centre(T_CW: np.ndarray) -> np.ndarray:
     return -T_CW[:3, :3].T @ T_CW[:3, 3]
-
-
-def _angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
