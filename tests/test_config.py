@@ -3,7 +3,16 @@
 import pytest
 import yaml
 
-from rgs_warp.config import Config, ConfigError, config_from_dict, group_options, help_text, load_config, save_config
+from rgs_warp.config import (
+    Config,
+    ConfigError,
+    config_from_dict,
+    group_options,
+    help_text,
+    load_config,
+    load_saved_config,
+    save_config,
+)
 from rgs_warp.run import main
 
 
@@ -200,3 +209,20 @@ def test_timing_groups():
     assert "timing: live, offline" in help_text()
     with pytest.raises(ConfigError, match="applies to asynchronous mapping only"):
         load_config(["timing=live", "mapping.asynchronous=false"])
+
+
+def test_a_saved_config_without_a_middle_section_is_another_versions_not_a_cut_copy(tmp_path):
+    """A config.yaml cut short lacks its last sections (said: truncated); one lacking a section before
+    others that are there was written by another version (a section added since): said so."""
+    path = tmp_path / "config.yaml"
+    save_config(Config(), path)
+    data = yaml.safe_load(path.read_text())
+    del data["keypoints"]
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"sections keypoints missing \(written by another version"):
+        load_saved_config(path)
+    for name in ("keypoints", "eval", "export"):
+        data.pop(name, None)
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"sections keypoints, eval, export missing \(truncated\?\)"):
+        load_saved_config(path)

@@ -1091,7 +1091,11 @@ def load_saved_config(path: str | Path) -> Config:
     sections = [f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(getattr(Config(), f.name))]
     missing = [name for name in sections if name not in data]
     if missing:
-        raise ConfigError(f"{path}: sections {', '.join(missing)} missing (truncated?)")
+        # a copy cut short lacks the last sections; one lacking a section before others is from another
+        # version of rgs_warp (a section added since)
+        cut = all(name not in data for name in sections[sections.index(missing[0]) :])
+        why = "truncated?" if cut else "written by another version of rgs_warp?"
+        raise ConfigError(f"{path}: sections {', '.join(missing)} missing ({why})")
     try:
         return config_from_dict(data)
     except ConfigError as e:
