@@ -515,11 +515,21 @@ def test_keypoint_odometry_starts_the_mono_tracking(device, tmp_path):
     """Monocular (tracking.keypoint_odometry, on by default): the bootstrap starts the odometry with its two
     poses, and every frame after it starts tracking from the odometry's pose, which holds landmarks and
     agrees with enough of them; nothing is lost.  A saved run resumes without it (its tracks are not
-    saved), tracking on.  Off, no frame has an odometry result."""
+    saved), tracking on.  Off, no frame has an odometry result.  The odometry predicts each pose with its
+    own motion model (not the tracker's), or from the caller's start."""
+    from rgs_warp.geometry import invert_pose
+
     cfg = load_config([*MONO, "dataset.max_frames=13"])
     camera, frames = _frames(cfg, 13)
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
-    results = [slam.process(f.rgb, None, f.timestamp) for f in frames[:12]]
+    predictions = []  # what the odometry is told to predict from: its own motion model unless the caller says
+    track = slam.odometry.track
+    slam.odometry.track = lambda rgb, T_pred_WC=None: predictions.append(T_pred_WC) or track(rgb, T_pred_WC)
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames[:11]]
+    assert predictions and all(p is None for p in predictions)  # not the tracker's photometric prediction
+    given = results[-1].T_WC @ invert_pose(results[-2].T_WC) @ results[-1].T_WC  # e.g. an IMU's
+    results.append(slam.process(frames[11].rgb, None, frames[11].timestamp, T_init_WC=given))
+    np.testing.assert_array_equal(predictions[-1], given)
     slam.save(tmp_path / "saved")
     resumed = SLAM.load(tmp_path / "saved", device=device)
     assert resumed.odometry is None

@@ -11,6 +11,8 @@ Start (the SLAM's monocular bootstrap stands in here):
   (``findEssentialMat`` / ``recoverPose`` on KLT tracks from frame 0) gives a median triangulation angle of
   ``--boot-deg``; the scale is that baseline's (median depth 1).  No ground truth is used.
 - ``--init gt``: frames 0 and ``--init-frame`` at their true poses (session 16's start).
+- ``--init run --run DIR``: the monocular bootstrap of a SLAM run folder (its frames 0 and ``--init-frame``
+  at that run's poses, from its trajectory.txt): the odometry alone from the start the SLAM gave it.
 
 Both poses go to ``KeypointOdometry.start``, which keeps the first and the distance between them and
 refines the second in its first BA (as the SLAM's bootstrap poses are treated).
@@ -31,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -39,6 +42,7 @@ from rgs_warp import keypoint_odometry
 from rgs_warp.config import load_config
 from rgs_warp.datasets import open_dataset
 from rgs_warp.eval.ate import ate, umeyama_alignment
+from rgs_warp.io.trajectory import read_tum_trajectory
 from rgs_warp.keypoint_odometry import KeypointOdometry, _grey
 
 REPORT_FRAMES = (51, 90, 96, 102, 120, 150, 200, 250, 299)
@@ -130,7 +134,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=360)
     ap.add_argument("--frames", type=int, default=150)
-    ap.add_argument("--init", choices=("ess", "gt"), default="ess")
+    ap.add_argument("--init", choices=("ess", "gt", "run"), default="ess")
+    ap.add_argument("--run", default="", help="--init run: a SLAM run folder (trajectory.txt)")
     ap.add_argument("--init-frame", type=int, default=20)
     ap.add_argument("--boot-deg", type=float, default=2.0, help="median triangulation angle for the bootstrap")
     ap.add_argument("--json", default="")
@@ -167,6 +172,9 @@ def main() -> None:
 
     if a.init == "gt":
         k, T_first, T_last = a.init_frame, gt[0], gt[a.init_frame]
+    elif a.init == "run":
+        _, run = read_tum_trajectory(Path(a.run) / "trajectory.txt")
+        k, T_first, T_last = a.init_frame, run[0], run[a.init_frame]
     else:
         k, T_first, T_last = essential_start(rgb, ds.camera.K.astype(np.float64), a.width, a.height, a.boot_deg)
     odometry = KeypointOdometry(cfg.keypoints, ds.camera)

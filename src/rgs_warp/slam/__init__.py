@@ -245,7 +245,10 @@ class SLAM:
             before = self.tracker.state_dict()
             odometry = None
             if self.odometry is not None:  # every frame, for its tracks; a start given by the caller wins
-                odometry = self._odometry_pose(rgb, self.tracker.predict() if T_init_WC is None else T_init_WC)
+                # predicted by its own motion model (its BA-refined poses), not by the tracker's: the
+                # photometric poses' prediction turned its PnP down at fast turns and tripled the office's
+                # error (experiments/results/mono.md, session 29)
+                odometry = self._odometry_pose(rgb, T_init_WC)
                 T_init_WC = odometry.T_WC if T_init_WC is None else T_init_WC
             tracking = self.tracker.track(rgb, depth, tmap, T_init_WC)
             if tracking.lost and self.relocalize and len(self.keyframes):
