@@ -417,3 +417,13 @@ def test_maintainer_prunes_merges_and_compacts_every_column(device):
     _assert_merged(gmap.to_numpy(), 0, _merged_reference(a, dup))
     np.testing.assert_allclose(gmap.to_numpy()["means"][1], gs[2]["mean"], atol=1e-6)
     assert Maintainer(MappingConfig(), CAM, device).maintain(GaussianMap(4, 1, device), T_WC) == (0, 0)
+
+
+def test_maintainer_without_merging_prunes_only(device):
+    """mapping.merge_footprint_px=0: the duplicate pair stays, the transparent Gaussian is pruned."""
+    a = _gaussian(300.0, 200.0, 2.0, opacity=0.6)
+    gs = [a, _gaussian(100.0, 100.0, 2.0, opacity=0.02), _gaussian(300.1, 200.0, 2.004, opacity=0.7)]
+    gmap = _merge_map(gs, device)
+    pruned, merged = Maintainer(MappingConfig(merge_footprint_px=0.0), CAM, device).maintain(gmap, T_WC)
+    assert (pruned, merged) == (1, 0) and len(gmap) == 2
+    np.testing.assert_allclose(gmap.to_numpy()["means"][1], gs[2]["mean"], atol=1e-6)

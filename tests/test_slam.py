@@ -545,6 +545,30 @@ def test_keypoint_odometry_starts_the_mono_tracking(device, tmp_path):
 
 
 @pytest.mark.slow
+def test_frames_take_the_odometry_pose(device):
+    """tracking.odometry_pose: a frame with a PnP pose from the odometry takes it (no photometric tracking,
+    not lost, its result says so); a frame where the odometry has only a rotation is tracked from it."""
+    from rgs_warp.keypoint_odometry import OdometryResult
+
+    cfg = load_config([*MONO, "dataset.max_frames=12", "tracking.odometry_pose=true"])
+    camera, frames = _frames(cfg, 12)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames[:11]]
+    after = results[slam.keyframe_indices[1] + 1 :]
+    assert after and all(r.tracking is None and not r.lost and r.odometry is not None for r in after)
+    assert all(np.array_equal(r.T_WC, r.odometry.T_WC) for r in after)
+    track = slam.odometry.track
+
+    def rotation_only(rgb, T_pred_WC=None):
+        r = track(rgb, T_pred_WC)
+        return OdometryResult(r.T_WC, r.inliers, True, r.keyframe, "made rotation-only")
+
+    slam.odometry.track = rotation_only
+    last = slam.process(frames[11].rgb, None, frames[11].timestamp)
+    assert last.tracking is not None and last.odometry.rotation_only
+
+
+@pytest.mark.slow
 def test_an_odometry_that_cannot_start_leaves_the_run_going(device, monkeypatch):
     """The bootstrap's two poses triangulate no landmark for the odometry (its ValueError): the run goes on
     without it, the bootstrap frame's reason says why, and the frames after it are tracked."""

@@ -194,6 +194,10 @@ class TrackingConfig:
     # photometric tracking against the monocular map loses (on its own 0.64 cm Sim(3) ATE over the office's
     # first 150 frames at 1200x680; experiments/results/mono.md).  Not used in RGB-D.
     keypoint_odometry: bool = True
+    # Monocular with the keypoint odometry: a frame whose odometry pose came from PnP takes it as its pose,
+    # as if given (exposure fitted, keyframe selection, mapping), without photometric tracking, which only
+    # runs where the odometry lost the frame or had only a rotation; false: tracking refines every pose
+    odometry_pose: bool = False
 
 
 @dataclass
@@ -396,7 +400,7 @@ class MappingConfig:
     max_scale_m: float = 0.5  # prune: largest axis standard deviation above this
     min_obs: int = 3  # prune hidden Gaussians only once seen in this many renders ...
     min_visibility_ratio: float = 0.1  # ... of which fewer than this fraction contributed to a pixel
-    merge_footprint_px: float = 0.5  # merge: projected centres and radii closer than this
+    merge_footprint_px: float = 0.5  # merge: projected centres and radii closer than this (0: no merging)
     merge_color_diff: float = 0.05  # ... and colours closer than this (per channel)
     # at most this many Gaussians (bounded memory; 0 = no cap): seedings that would exceed it keep their
     # most confident seeds, and the maintenance drops the least visible Gaussians down to

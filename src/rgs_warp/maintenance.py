@@ -270,17 +270,19 @@ class Maintainer:
             min_obs=cfg.min_obs,
             min_visibility_ratio=cfg.min_visibility_ratio,
         )
-        remove, n_merged = merge_duplicates(
-            gmap,
-            self.camera,
-            T_WC,
-            max_footprint_px=cfg.merge_footprint_px,
-            max_color_diff=cfg.merge_color_diff,
-            exclude=prune,
-            scratch=self._scratch,
-        )
+        remove, merged = prune, 0
+        if cfg.merge_footprint_px > 0:  # 0: no merging
+            remove, n_merged = merge_duplicates(
+                gmap,
+                self.camera,
+                T_WC,
+                max_footprint_px=cfg.merge_footprint_px,
+                max_color_diff=cfg.merge_color_diff,
+                exclude=prune,
+                scratch=self._scratch,
+            )
+            merged = int(n_merged.numpy()[0])
         pruned = PruneStats.read(prune_stats).total
-        merged = int(n_merged.numpy()[0])
         if pruned + merged:
             gmap.remove(remove)
         return pruned + self.cap(gmap), merged

@@ -584,7 +584,7 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
         entry.update(lost=True, lost_reason=result.lost_reason)
         state.lost.append((result.index, result.lost_reason))
     odometry = result.odometry
-    if odometry is not None:  # monocular: where tracking started (keypoint_odometry.py)
+    if odometry is not None:  # monocular: where tracking started, or the pose (keypoint_odometry.py)
         entry["odometry_inliers"] = odometry.inliers
         state.odometry.append([odometry.inliers, odometry.rotation_only, odometry.T_WC is None])
         if odometry.T_WC is None or odometry.rotation_only:

@@ -71,8 +71,9 @@ class FrameResult:
     # (filled from the nearest finite pixel, without depth) and depth values that were not (set to 0)
     nonfinite_rgb: int = 0
     nonfinite_depth: int = 0
-    # monocular, tracking.keypoint_odometry: the odometry's result for the frame (where tracking started),
-    # None when it is off, in the bootstrap, and in RGB-D
+    # monocular, tracking.keypoint_odometry: the odometry's result for the frame (where tracking started, or
+    # the frame's pose with tracking.odometry_pose), None when it is off, in the bootstrap, in frames whose
+    # pose the caller gave, and in RGB-D
     odometry: OdometryResult | None = None
 
 
@@ -226,30 +227,32 @@ class SLAM:
             return self._process_bootstrap(rgb, timestamp, t0, frame)
         if frame.unusable:
             return self._skip(i, frame, T_WC, timestamp, t0)
-        tracking, given = None, T_WC is not None
+        tracking, given, odometry = None, T_WC is not None, None
+        if self.odometry is not None and i > 0 and not given:  # every frame, for its tracks
+            # predicted by its own motion model (its BA-refined poses) unless the caller gives a start, not by
+            # the tracker's: the photometric poses' prediction turned its PnP down at fast turns (office,
+            # 150 frames: 2.5-2.8 cm in the SLAM against 0.78 alone; experiments/results/mono.md, session 29)
+            odometry = self._odometry_pose(rgb, T_init_WC)
+            if self._takes_odometry_pose(odometry, T_init_WC):
+                T_WC = odometry.T_WC
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
             exposure, pose_ok = (1.0, 0.0), True
             decision = self._select_at(tmap, T)  # "first frame"
-        elif given:
+        elif T_WC is not None:
             T = np.array(T_WC, dtype=np.float64)
             self.tracker.load_frame(rgb, depth)  # the frame fill reads it
             self.tracker.reset(T, self.poses[-1])  # the motion model goes on from the given poses
             exposure, pose_ok = self.tracker.exposure(tmap, T), True
             decision = self.selector.should_add(self.tracker.alpha, T, depth=self.tracker.depth)
-            if self.odometry is not None:  # its tracks go on through the frames whose pose is given
+            if self.odometry is not None and given:  # its tracks go on through the frames whose pose is given
                 self._odometry_pose(rgb, T)
         else:
             tr0 = time.perf_counter()
             before = self.tracker.state_dict()
-            odometry = None
-            if self.odometry is not None:  # every frame, for its tracks; a start given by the caller wins
-                # predicted by its own motion model (its BA-refined poses), not by the tracker's: the
-                # photometric poses' prediction turned its PnP down at fast turns and tripled the office's
-                # error (experiments/results/mono.md, session 29)
-                odometry = self._odometry_pose(rgb, T_init_WC)
-                T_init_WC = odometry.T_WC if T_init_WC is None else T_init_WC
+            if odometry is not None and T_init_WC is None:  # tracking starts at the odometry's pose
+                T_init_WC = odometry.T_WC
             tracking = self.tracker.track(rgb, depth, tmap, T_init_WC)
             if tracking.lost and self.relocalize and len(self.keyframes):
                 tracking = self._relocalized(rgb, depth, tmap, tracking, before)
@@ -266,8 +269,7 @@ class SLAM:
         if tracking is not None and tracking.motion_inconsistent:  # a collapsed pose must not seed the map
             is_kf, reason = False, "not mapped: tracked motion inconsistent"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
-        if tracking is not None:
-            result.odometry = odometry
+        result.odometry = odometry
         self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
         if is_kf:
             self.selector.accept(T)
@@ -456,6 +458,16 @@ class SLAM:
         if self.publisher is not None:
             self._publish()
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
+
+    def _takes_odometry_pose(self, odometry: OdometryResult, T_init_WC: np.ndarray | None) -> bool:
+        """tracking.odometry_pose: the frame takes the odometry's PnP pose as its own, without photometric
+        tracking (not where the caller gave a start, the odometry lost the frame or had only a rotation)."""
+        return (
+            self.cfg.tracking.odometry_pose
+            and T_init_WC is None
+            and odometry.T_WC is not None
+            and not odometry.rotation_only
+        )
 
     def _odometry_pose(self, rgb, T_pred_WC: np.ndarray | None) -> OdometryResult:
         """The keypoint odometry's pose of this frame (where tracking starts) from ``T_pred_WC``."""
