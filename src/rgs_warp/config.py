@@ -196,8 +196,11 @@ class TrackingConfig:
     keypoint_odometry: bool = True
     # Monocular with the keypoint odometry: a frame whose odometry pose came from PnP takes it as its pose,
     # as if given (exposure fitted, keyframe selection, mapping), without photometric tracking, which only
-    # runs where the odometry lost the frame or had only a rotation; false: tracking refines every pose
-    odometry_pose: bool = False
+    # runs where the odometry lost the frame or had only a rotation; false: tracking refines every pose.
+    # Photometric tracking against the monocular map pulled the odometry's poses off: H200, office 1200x680,
+    # 150 frames, 1.29 cm Sim(3) ATE in 3 of 3 runs against 2.81-3.54 cm, no frame lost against 6-9, +1-2 dB
+    # (experiments/results/mono.md, session 29)
+    odometry_pose: bool = True
 
 
 @dataclass

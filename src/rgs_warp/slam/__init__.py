@@ -270,7 +270,10 @@ class SLAM:
             is_kf, reason = False, "not mapped: tracked motion inconsistent"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         result.odometry = odometry
-        self._counted(result, frame, tracking.reason if tracking is not None and tracking.lost else "")
+        lost_reason = tracking.reason if tracking is not None and tracking.lost else ""
+        if not lost_reason and self._odometry_unposed(odometry):
+            lost_reason = f"keypoint odometry: {odometry.reason}; the pose is photometric tracking's, from its rotation"
+        self._counted(result, frame, lost_reason)
         if is_kf:
             self.selector.accept(T)
             self.keyframe_indices.append(i)
@@ -467,6 +470,17 @@ class SLAM:
             and T_init_WC is None
             and odometry.T_WC is not None
             and not odometry.rotation_only
+        )
+
+    def _odometry_unposed(self, odometry: OdometryResult | None) -> bool:
+        """tracking.odometry_pose: the odometry gave the frame no PnP pose (lost, or a rotation only, its
+        translation not measured).  Photometric tracking's pose then stands, but the frame counts as lost:
+        tracking against the monocular map did not flag the office's failure at frames 200-250 (H200,
+        session 29), and a failure must not be silent."""
+        return (
+            self.cfg.tracking.odometry_pose
+            and odometry is not None
+            and (odometry.T_WC is None or odometry.rotation_only)
         )
 
     def _odometry_pose(self, rgb, T_pred_WC: np.ndarray | None) -> OdometryResult:
