@@ -572,6 +572,47 @@ def test_frames_take_the_odometry_pose(device):
 
 
 @pytest.mark.slow
+def test_a_collapsing_odometry_pose_is_lost(device):
+    """Monocular, frames taking the odometry's pose: from the third frame after the bootstrap the odometry's
+    poses collapse (each step's translation scaled by 0.05, the rotation kept, as its failure in a turn
+    does): the motion check turns each down; the frame is lost at the motion model's prediction, which the
+    model goes on from, and is not mapped."""
+    from rgs_warp.geometry import invert_pose
+    from rgs_warp.keypoint_odometry import OdometryResult
+
+    cfg = load_config([*MONO, "dataset.max_frames=14"])
+    camera, frames = _frames(cfg, 14)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    track, collapsed = slam.odometry.track, []
+
+    def collapsing(rgb, T_pred_WC=None):
+        r = track(rgb, T_pred_WC)
+        if len(slam.keyframe_indices) < 2 or len(slam.poses) < slam.keyframe_indices[1] + 3:
+            return r
+        step = invert_pose(slam.poses[-1]) @ r.T_WC
+        step[:3, 3] *= 0.05
+        collapsed.append(len(slam.poses))
+        return OdometryResult(slam.poses[-1] @ step, r.inliers, False, r.keyframe)
+
+    slam.odometry.track = collapsing
+    results, predicted = [], {}
+    for f in frames:
+        predicted[len(results)] = slam.tracker.predict()
+        results.append(slam.process(f.rgb, None, f.timestamp))
+    assert len(collapsed) >= 3
+    for i in collapsed:
+        r = results[i]
+        assert r.lost and "keypoint odometry's pose: motion check: the translation collapsed" in r.lost_reason, (
+            i,
+            r.lost_reason,
+        )
+        assert not r.keyframe and r.keyframe_reason.startswith("not mapped") and r.seeded == 0
+        np.testing.assert_allclose(r.T_WC, predicted[i], atol=1e-12)  # the prediction goes on
+    taken = [r for r in results[slam.keyframe_indices[1] + 1 :] if r.index not in collapsed]
+    assert taken and all(r.tracking is None and not r.lost for r in taken)
+
+
+@pytest.mark.slow
 def test_an_odometry_that_cannot_start_leaves_the_run_going(device, monkeypatch):
     """The bootstrap's two poses triangulate no landmark for the odometry (its ValueError): the run goes on
     without it, the bootstrap frame's reason says why, and the frames after it are tracked."""

@@ -271,6 +271,13 @@ class Tracker:
         if T is not None:
             self._poses = (self._poses + [T])[-2:]
 
+    def motion_inconsistency(self, T_WC: np.ndarray) -> str:
+        """Why ``T_WC`` (a pose from elsewhere, e.g. the monocular keypoint odometry's) would fail this
+        tracker's motion check against its last two poses, or "" (also with the check off or fewer poses)."""
+        if not self.motion_check or len(self._poses) < 2:
+            return ""
+        return motion_inconsistency(*self._poses, T_WC, self.cfg, self._motion_steps)
+
     def predict(self) -> np.ndarray | None:
         """Constant-velocity prediction T_k = T_{k-1} T_{k-2}^-1 T_{k-1} (the last relative motion
         repeated in the camera frame); the last pose when only one is known; None before any."""

@@ -227,14 +227,17 @@ class SLAM:
             return self._process_bootstrap(rgb, timestamp, t0, frame)
         if frame.unusable:
             return self._skip(i, frame, T_WC, timestamp, t0)
-        tracking, given, odometry = None, T_WC is not None, None
+        tracking, given, odometry, odometry_motion = None, T_WC is not None, None, ""
         if self.odometry is not None and i > 0 and not given:  # every frame, for its tracks
             # predicted by its own motion model (its BA-refined poses) unless the caller gives a start, not by
             # the tracker's: the photometric poses' prediction turned its PnP down at fast turns (office,
             # 150 frames: 2.5-2.8 cm in the SLAM against 0.78 alone; experiments/results/mono.md, session 29)
             odometry = self._odometry_pose(rgb, T_init_WC)
             if self._takes_odometry_pose(odometry, T_init_WC):
-                T_WC = odometry.T_WC
+                # a pose that jumps or collapses against the motion model is not taken: the frame is lost at
+                # the prediction, which the motion model goes on from (as tracking's motion check does)
+                odometry_motion = self.tracker.motion_inconsistency(odometry.T_WC)
+                T_WC = self.tracker.predict() if odometry_motion else odometry.T_WC
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
@@ -268,11 +271,15 @@ class SLAM:
             is_kf, reason = True, f"initial window ({i + 1}/{self._init_window_end}{', pose given' if given else ''})"
         if tracking is not None and tracking.motion_inconsistent:  # a collapsed pose must not seed the map
             is_kf, reason = False, "not mapped: tracked motion inconsistent"
+        if odometry_motion:
+            is_kf, reason = False, "not mapped: the keypoint odometry's motion inconsistent"
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         result.odometry = odometry
         lost_reason = tracking.reason if tracking is not None and tracking.lost else ""
         if not lost_reason and self._odometry_unposed(odometry):
             lost_reason = f"keypoint odometry: {odometry.reason}; the pose is photometric tracking's, from its rotation"
+        elif odometry_motion:
+            lost_reason = f"keypoint odometry's pose: {odometry_motion}; the frame keeps the prediction"
         self._counted(result, frame, lost_reason)
         if is_kf:
             self.selector.accept(T)
