@@ -229,15 +229,7 @@ class SLAM:
             return self._skip(i, frame, T_WC, timestamp, t0)
         tracking, given, odometry, odometry_motion = None, T_WC is not None, None, ""
         if self.odometry is not None and i > 0 and not given:  # every frame, for its tracks
-            # predicted by its own motion model (its BA-refined poses) unless the caller gives a start, not by
-            # the tracker's: the photometric poses' prediction turned its PnP down at fast turns (office,
-            # 150 frames: 2.5-2.8 cm in the SLAM against 0.78 alone; experiments/results/mono.md, session 29)
-            odometry = self._odometry_pose(rgb, T_init_WC)
-            if self._takes_odometry_pose(odometry, T_init_WC):
-                # a pose that jumps or collapses against the motion model is not taken: the frame is lost at
-                # the prediction, which the motion model goes on from (as tracking's motion check does)
-                odometry_motion = self.tracker.motion_inconsistency(odometry.T_WC)
-                T_WC = self.tracker.predict() if odometry_motion else odometry.T_WC
+            odometry, T_WC, odometry_motion = self._odometry_frame(rgb, T_init_WC)
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
@@ -276,11 +268,7 @@ class SLAM:
         result = FrameResult(i, T, tracking, is_kf, reason, tracking_seconds=time.perf_counter() - t0)
         result.odometry = odometry
         lost_reason = tracking.reason if tracking is not None and tracking.lost else ""
-        if not lost_reason and self._odometry_unposed(odometry):
-            lost_reason = f"keypoint odometry: {odometry.reason}; the pose is photometric tracking's, from its rotation"
-        elif odometry_motion:
-            lost_reason = f"keypoint odometry's pose: {odometry_motion}; the frame keeps the prediction"
-        self._counted(result, frame, lost_reason)
+        self._counted(result, frame, lost_reason or self._odometry_lost_reason(odometry, odometry_motion))
         if is_kf:
             self.selector.accept(T)
             self.keyframe_indices.append(i)
@@ -469,26 +457,40 @@ class SLAM:
             self._publish()
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
 
-    def _takes_odometry_pose(self, odometry: OdometryResult, T_init_WC: np.ndarray | None) -> bool:
-        """tracking.odometry_pose: the frame takes the odometry's PnP pose as its own, without photometric
-        tracking (not where the caller gave a start, the odometry lost the frame or had only a rotation)."""
-        return (
+    def _odometry_frame(self, rgb, T_init_WC: np.ndarray | None) -> tuple[OdometryResult, np.ndarray | None, str]:
+        """The keypoint odometry on this frame: (its result, the frame's pose when it takes the odometry's or
+        None when it is tracked, why the odometry's pose failed the motion check or "").
+
+        The odometry predicts with its own motion model (its BA-refined poses) unless the caller gives a
+        start, not with the tracker's: the photometric poses' prediction turned its PnP down at fast turns
+        (office, 150 frames: 2.5-2.8 cm in the SLAM against 0.78 alone; experiments/results/mono.md, session
+        29).  With tracking.odometry_pose a PnP pose is the frame's, except one that jumps or collapses against
+        the motion model: the frame is then lost at the prediction, which the motion model goes on from (as
+        tracking's motion check does)."""
+        odometry = self._odometry_pose(rgb, T_init_WC)
+        takes = (
             self.cfg.tracking.odometry_pose
             and T_init_WC is None
             and odometry.T_WC is not None
             and not odometry.rotation_only
         )
+        if not takes:
+            return odometry, None, ""
+        motion = self.tracker.motion_inconsistency(odometry.T_WC)
+        return odometry, self.tracker.predict() if motion else odometry.T_WC, motion
 
-    def _odometry_unposed(self, odometry: OdometryResult | None) -> bool:
-        """tracking.odometry_pose: the odometry gave the frame no PnP pose (lost, or a rotation only, its
-        translation not measured).  Photometric tracking's pose then stands, but the frame counts as lost:
-        tracking against the monocular map did not flag the office's failure at frames 200-250 (H200,
-        session 29), and a failure must not be silent."""
-        return (
-            self.cfg.tracking.odometry_pose
-            and odometry is not None
-            and (odometry.T_WC is None or odometry.rotation_only)
-        )
+    def _odometry_lost_reason(self, odometry: OdometryResult | None, motion: str) -> str:
+        """Why a frame that tracking did not lose counts as lost for the odometry (tracking.odometry_pose), or
+        "": its pose failed the motion check, or the odometry gave the frame no PnP pose (lost, or a rotation
+        only, its translation not measured: photometric tracking's pose stands, but tracking against the
+        monocular map did not flag the office's failure at frames 200-250, H200, session 29, and a failure
+        must not be silent)."""
+        if motion:
+            return f"keypoint odometry's pose: {motion}; the frame keeps the prediction"
+        unposed = odometry is not None and (odometry.T_WC is None or odometry.rotation_only)
+        if self.cfg.tracking.odometry_pose and unposed:
+            return f"keypoint odometry: {odometry.reason}; the pose is photometric tracking's, from its rotation"
+        return ""
 
     def _odometry_pose(self, rgb, T_pred_WC: np.ndarray | None) -> OdometryResult:
         """The keypoint odometry's pose of this frame (where tracking starts) from ``T_pred_WC``."""
