@@ -189,10 +189,10 @@ class TrackingConfig:
     # devices, off on the CPU (where launches cost little); on / off force it.
     graph: str = "auto"
     # Monocular: the keypoint odometry (keypoint_odometry.py, its settings in the `keypoints` section; issue
-    # 22) gives each frame's tracking its starting pose: KLT tracks, PnP against landmarks triangulated over
-    # its own keyframes, and a local bundle adjustment with older keyframes held, which keeps the scale that
-    # photometric tracking against the monocular map loses (on its own 0.64 cm Sim(3) ATE over the office's
-    # first 150 frames at 1200x680; experiments/results/mono.md).  Not used in RGB-D.
+    # 22) gives each frame its pose (odometry_pose, below) or tracking's start: KLT tracks, PnP against
+    # landmarks triangulated over its own keyframes, and a local bundle adjustment with older keyframes held,
+    # which keeps the scale that photometric tracking against the monocular map loses (on its own 0.40 cm
+    # Sim(3) ATE over the office's first 150 frames at 1200x680; experiments/results/mono.md).  Not in RGB-D.
     keypoint_odometry: bool = True
     # Monocular with the keypoint odometry: a frame whose odometry pose came from PnP takes it as its pose,
     # as if given (exposure fitted, keyframe selection, mapping), without photometric tracking, which only
