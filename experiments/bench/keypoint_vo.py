@@ -1,4 +1,5 @@
-"""Measure the monocular keypoint odometry (``rgs_warp.keypoint_odometry``, issue 22) on the synthetic office.
+"""Measure the monocular keypoint odometry (``rgs_warp.keypoint_odometry``, issue 22) on the synthetic office
+(or any sequence with poses: ``--dataset 7scenes/redkitchen --path ../shared/data/7scenes-redkitchen``).
 
 The odometry itself is the package's ``KeypointOdometry`` (its parameters the config's ``keypoints``
 section, overridable here as ``keypoints.KEY=VALUE``); this harness only gives it a start, runs it over
@@ -19,7 +20,7 @@ refines the second in its first BA (as the SLAM's bootstrap poses are treated).
 
 Measures (printed as one JSON line, appended to ``--json`` with the positions): the Sim(3) ATE of the
 online poses (as ``track`` returned them; a lost frame counts with the pose before it), the position
-error after that fit at frames 51/90/96/102/120/150/200/250/299, the Sim(3) scale of each 50-frame
+error after that fit at frames 51/90/96/102/120/150/200/250/299/400/499, the Sim(3) scale of each 50-frame
 window relative to the whole fit (the scale drift), lost and rotation-only frames, keyframes, the
 seconds of each local BA (timed around the package's ``_bundle_adjust``) and the frames per second.
 
@@ -45,7 +46,7 @@ from rgs_warp.eval.ate import ate, umeyama_alignment
 from rgs_warp.io.trajectory import read_tum_trajectory
 from rgs_warp.keypoint_odometry import KeypointOdometry, _grey
 
-REPORT_FRAMES = (51, 90, 96, 102, 120, 150, 200, 250, 299)
+REPORT_FRAMES = (51, 90, 96, 102, 120, 150, 200, 250, 299, 400, 499)
 
 
 def essential_start(frames, K: np.ndarray, width: int, height: int, boot_deg: float, log=print):
@@ -131,8 +132,10 @@ def evaluate(est_WC: np.ndarray, gt: np.ndarray, first: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=360)
+    ap.add_argument("--dataset", default="synthetic/office0_replica_size", help="a dataset config")
+    ap.add_argument("--path", default="", help="dataset.path of a recorded sequence")
+    ap.add_argument("--width", type=int, default=640, help="synthetic datasets only")
+    ap.add_argument("--height", type=int, default=360, help="synthetic datasets only")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--init", choices=("ess", "gt", "run"), default="ess")
     ap.add_argument("--run", default="", help="--init run: a SLAM run folder (trajectory.txt)")
@@ -143,16 +146,11 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*", help="keypoints.KEY=VALUE")
     a = ap.parse_args()
 
-    cfg = load_config(
-        [
-            "dataset=synthetic/office0_replica_size",
-            f"dataset.width={a.width}",
-            f"dataset.height={a.height}",
-            f"dataset.max_frames={a.frames}",
-            *a.overrides,
-        ]
-    )
+    size = [f"dataset.width={a.width}", f"dataset.height={a.height}"] if a.dataset.startswith("synthetic/") else []
+    path = [f"dataset.path={a.path}"] if a.path else []
+    cfg = load_config([f"dataset={a.dataset}", *size, *path, f"dataset.max_frames={a.frames}", *a.overrides])
     ds = open_dataset(cfg, device="cpu")
+    width, height = ds.camera.width, ds.camera.height
     n = min(a.frames, len(ds))
     gt = np.array([ds[i].pose_gt for i in range(n)], np.float64)
 
@@ -176,7 +174,7 @@ def main() -> None:
         _, run = read_tum_trajectory(Path(a.run) / "trajectory.txt")
         k, T_first, T_last = a.init_frame, run[0], run[a.init_frame]
     else:
-        k, T_first, T_last = essential_start(rgb, ds.camera.K.astype(np.float64), a.width, a.height, a.boot_deg)
+        k, T_first, T_last = essential_start(rgb, ds.camera.K.astype(np.float64), width, height, a.boot_deg)
     odometry = KeypointOdometry(cfg.keypoints, ds.camera)
     t_start = time.perf_counter()
     poses = odometry.start([rgb(i) for i in range(k + 1)], T_first, T_last)
@@ -201,7 +199,8 @@ def main() -> None:
     tracked = n - k - 1
     out = dict(
         tag=a.tag,
-        size=f"{a.width}x{a.height}",
+        dataset=a.dataset,
+        size=f"{width}x{height}",
         frames=n,
         init=a.init,
         start_frame=k,
