@@ -531,7 +531,10 @@ class KeypointsConfig:
     kf_min_gap: int = 1
     # Local BA over the last ba_window keyframes' poses and their landmarks (0: none; without it the
     # scale drifted 0.82 -> 1.57 over 150 frames, 5.8 cm, mono.md), with up to ba_held_max older keyframes
-    # that see them held (gauge and scale); Huber loss of ba_huber_px, at most ba_iters evaluations
+    # that see them held (gauge and scale); Huber loss of ba_huber_px, at most ba_iters evaluations.  The
+    # synthetic office wants it tight (1 px; 2-3 px: 150 frames 1.13 -> 1.3 cm at 640x360, 0.78 -> 0.84 at
+    # 1200x680 from the SLAM's start); the real 7-Scenes frames wide (its config: 2.5 px, 20.3 -> 8.8 cm over
+    # 500 frames from the SLAM's start; 2 and 3 alike, 1.5 worse; experiments/results/mono.md, session 29)
     ba_window: int = 8
     ba_held_max: int = 12
     ba_huber_px: float = 1.0
