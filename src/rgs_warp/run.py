@@ -242,8 +242,8 @@ class RunState:
     # each tracked frame's Adam steps until its pose stayed put (``TrackingResult.settled_iters``)
     settled_iters: list[int] = field(default_factory=list)
     tracked: int = 0  # frames tracked or lost (the first frame and the monocular bootstrap's waiting ones are not)
-    # monocular: the keypoint odometry's result of each frame it gave tracking's start for: [landmarks
-    # agreeing, rotation only, lost]
+    # monocular: the keypoint odometry's result of each frame it gave a pose or tracking's start for:
+    # [landmarks agreeing, rotation only, lost]
     odometry: list = field(default_factory=list)
     lost: list[tuple[int, str]] = field(default_factory=list)
     elapsed_s: float = 0.0
