@@ -263,3 +263,42 @@ def test_noise_or_black_frame_is_lost_or_rotation_only_without_a_jump(room):
         result = odometry.track(images[i])
         assert result.T_WC is not None, (i, result.reason)
         assert np.linalg.norm(result.T_WC[:3, 3] - s * gt[i, :3, 3]) < 0.02 * s, i
+
+
+@pytest.mark.slow
+def test_moved_odometry_goes_on_in_the_moved_world(room):
+    """move_to puts the frame last tracked at a given pose by moving the odometry's whole world (landmarks,
+    keyframes, motion model) rigidly: the frames after are the unmoved run's poses in the moved world
+    (the caller turned a pose down and goes on from its own).  The move: 25 deg about a tilted axis and
+    0.4 m, at frame 30, after the keyframes and BAs of frames 21-30.  Not to rounding: the BA's steps are
+    not invariant to the world's frame (translation steps on T_CW about the world's origin), so it ends
+    elsewhere within its tolerances: poses within 0.6 mm and landmarks 1.9 mm at the median (3.6 cm at
+    most, 1-4 m away); with the identity as the move 0.5 mm and 0.08 mm.  A landmark or keyframe left
+    unmoved is 0.4 m off."""
+    from rgs_warp.geometry import invert_pose
+
+    _, _, images, _ = room
+    reference, _ = _started(room, 1.0)
+    moved, _ = _started(room, 1.0)
+    C = np.eye(4)
+    C[:3, :3] = _rodrigues(np.radians(25.0) * np.array([[0.3, 0.9, 0.3]]) / np.linalg.norm([0.3, 0.9, 0.3]))[0]
+    C[:3, 3] = [0.4, -0.1, 0.2]
+    at = 30
+    for i in range(START + 1, len(images)):
+        a, b = reference.track(images[i]), moved.track(images[i])
+        assert a.T_WC is not None and b.T_WC is not None, i
+        if i < at:
+            np.testing.assert_allclose(b.T_WC, a.T_WC, atol=1e-12)
+        elif i == at:
+            moved.move_to(C @ b.T_WC)
+            np.testing.assert_allclose(invert_pose(moved._recent_pose(-1)), C @ a.T_WC, atol=1e-12)
+        else:
+            np.testing.assert_allclose(b.T_WC, C @ a.T_WC, atol=1e-3)
+    both = set(moved._landmarks) & set(reference._landmarks)  # a track at a gate's edge may go either way
+    assert len(both) > 0.98 * max(len(moved), len(reference)), (len(both), len(moved), len(reference))
+    error = [
+        np.linalg.norm(moved._landmarks[t] - C[:3, :3] @ X - C[:3, 3])
+        for t, X in reference._landmarks.items()
+        if t in both
+    ]
+    assert np.median(error) < 0.005 and max(error) < 0.1, (np.median(error), max(error))

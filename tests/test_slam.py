@@ -613,6 +613,41 @@ def test_a_collapsing_odometry_pose_is_lost(device):
 
 
 @pytest.mark.slow
+def test_an_odometry_jump_loses_one_frame_and_the_odometry_goes_on_from_the_prediction(device):
+    """Monocular, frames taking the odometry's pose: at the third frame after the bootstrap the odometry's
+    whole world jumps 30 cm (as a local BA that moves its gauge does; the camera moves 3 cm a frame here).
+    That frame fails the motion check and is lost at the prediction; the odometry is moved there, so the
+    frames after take its poses again (not lost) and the trajectory has no jump.  Left where it was, every
+    later frame jumped from the prediction as well and was lost (7-Scenes, session 30: frames 230-286)."""
+    cfg = load_config([*MONO, "dataset.max_frames=14"])
+    camera, frames = _frames(cfg, 14)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    track, jumped = slam.odometry.track, []
+
+    def jumping(rgb, T_pred_WC=None):
+        r = track(rgb, T_pred_WC)
+        if jumped or len(slam.keyframe_indices) < 2 or len(slam.poses) < slam.keyframe_indices[1] + 3:
+            return r
+        T = r.T_WC.copy()
+        T[:3, 3] += [0.3, 0.0, 0.0]
+        slam.odometry.move_to(T)  # the odometry's world and this frame's pose, 30 cm off
+        jumped.append(len(slam.poses))
+        return OdometryResult(T, r.inliers, False, r.keyframe)
+
+    from rgs_warp.keypoint_odometry import OdometryResult
+
+    slam.odometry.track = jumping
+    results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
+    assert len(jumped) == 1
+    j = jumped[0]
+    assert results[j].lost and "keypoint odometry's pose: motion check: the pose jumped" in results[j].lost_reason
+    after = results[j + 1 :]
+    assert len(after) >= 3 and all(r.tracking is None and not r.lost for r in after), [r.lost_reason for r in after]
+    steps = np.linalg.norm(np.diff([r.T_WC[:3, 3] for r in results[j - 2 :]], axis=0), axis=1)
+    assert steps.max() < 0.08, steps  # the camera moves 3 cm a frame; the jump was 30 cm
+
+
+@pytest.mark.slow
 def test_an_odometry_that_cannot_start_leaves_the_run_going(device, monkeypatch):
     """The bootstrap's two poses triangulate no landmark for the odometry (its ValueError): the run goes on
     without it, the bootstrap frame's reason says why, and the frames after it are tracked."""

@@ -200,6 +200,23 @@ class KeypointOdometry:
         self._prev = img
         return OdometryResult(invert_pose(T), inliers, status == "rotation", keyframe, reason)
 
+    def move_to(self, T_WC: np.ndarray, T_prev_WC: np.ndarray | None = None) -> None:
+        """The frame last tracked is at T_WC in the caller's world (the caller turned its pose down): the
+        odometry's world moves rigidly to put it there (landmarks, keyframe poses, motion model), so the
+        frames after go on from T_WC with the odometry's own steps instead of from the pose turned down.
+        T_prev_WC: the caller's pose of the frame before, the motion model's velocity (else the odometry's,
+        which would repeat the step turned down)."""
+        if self._prev is None:
+            raise RuntimeError("KeypointOdometry.move_to before start")
+        C = np.asarray(T_WC, np.float64) @ self._recent_pose(-1)  # the odometry's world -> the caller's
+        C_inv = invert_pose(C)
+        self._kf_T = [T @ C_inv for T in self._kf_T]
+        R, t = C[:3, :3], C[:3, 3]
+        self._landmarks = {k: R @ X + t for k, X in self._landmarks.items()}
+        self._recent = [(T @ C_inv, kf) for T, kf in self._recent]
+        if T_prev_WC is not None:
+            self._recent[0] = (invert_pose(np.asarray(T_prev_WC, np.float64)), None)
+
     # ------------------------------------------------------------------------------------- tracks
     def _detect(self, img: np.ndarray) -> None:
         want = self._max_features - len(self._pts)

@@ -466,7 +466,7 @@ class SLAM:
         (office, 150 frames: 2.5-2.8 cm in the SLAM against 0.78 alone; experiments/results/mono.md, session
         29).  With tracking.odometry_pose a PnP pose is the frame's, except one that jumps or collapses against
         the motion model: the frame is then lost at the prediction, which the motion model goes on from (as
-        tracking's motion check does)."""
+        tracking's motion check does), and the odometry is moved there (``KeypointOdometry.move_to``)."""
         odometry = self._odometry_pose(rgb, T_init_WC)
         takes = (
             self.cfg.tracking.odometry_pose
@@ -477,7 +477,13 @@ class SLAM:
         if not takes:
             return odometry, None, ""
         motion = self.tracker.motion_inconsistency(odometry.T_WC)
-        return odometry, self.tracker.predict() if motion else odometry.T_WC, motion
+        if not motion:
+            return odometry, odometry.T_WC, ""
+        T_pred = self.tracker.predict()
+        # the odometry goes on from the prediction: left where it was, each later frame jumped from the
+        # prediction too (7-Scenes, H200, session 30: one jump lost frames 230-286)
+        self.odometry.move_to(T_pred, self.poses[-1])
+        return odometry, T_pred, motion
 
     def _odometry_lost_reason(self, odometry: OdometryResult | None, motion: str) -> str:
         """Why a frame that tracking did not lose counts as lost for the odometry (tracking.odometry_pose), or
