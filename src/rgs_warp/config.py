@@ -518,10 +518,6 @@ class KeypointsConfig:
     max_dev_step: float = 4.0
     max_dev_depth: float = 0.01
     rotation_min_tracks: int = 20  # fewer tracks than this for a rotation-only pose: the frame is lost
-    # the PnP pose refined with the epipolar constraints of the tracks that are no landmark (against their
-    # first keyframe view), their Sampson distances weighted by this against the landmarks' reprojections;
-    # 0 = off
-    epipolar_weight: float = 0.0
     # Landmarks: a track seen in >= 2 keyframes is triangulated from all of them once its rays span
     # min_parallax_deg, kept when every reprojection is within max_reproj_px (0.7-1.0 deg did not help
     # at frames 205-235 of 300, mono.md)
@@ -837,7 +833,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "keypoints.max_dev_step": NON_NEGATIVE,
     "keypoints.max_dev_depth": NON_NEGATIVE,
     "keypoints.rotation_min_tracks": Bound(lo=3),  # Kabsch needs three bearings
-    "keypoints.epipolar_weight": NON_NEGATIVE,
     "keypoints.min_parallax_deg": NON_NEGATIVE,
     "keypoints.max_reproj_px": POSITIVE,
     "keypoints.kf_tracked_fraction": FRACTION,

@@ -55,7 +55,6 @@ KABSCH_TRIMS = 3  # rotation-only: Kabsch, dropping tracks beyond 3x the median 
 # unit bearings (about the parallax in radians, 0.01-0.05) and landmark rows (about 1): it only fills
 # what those leave free
 CENTRE_PRIOR_WEIGHT = 1e-4
-EPIPOLAR_MIN_PX = 3.0  # epipolar refinement: pairs with less disparity after the rotation left out
 CENTRE_TRIMS = 3  # rotation-only centre: rows beyond 3x their kind's median residual dropped, 3 times
 MIN_DEPTH = 1e-6  # projection denominators are clamped here (a point behind the camera)
 
@@ -353,12 +352,13 @@ class KeypointOdometry:
                 T = best
             else:
                 reason = f"{int(inl.sum())} of {len(obj)} landmarks agree on a pose, fewer than {cfg.min_inliers}"
-        if T is not None and cfg.epipolar_weight > 0:
-            T_epi = self._with_epipolar(T, obj[agreeing(T)], uv[agreeing(T)])
-            T = T_epi if self._deviation(T_epi, T_pred, T_prev) is None else T
-        if T is not None and (dev := self._deviation(T, T_pred, T_prev)) is not None:
+        if T is not None:
             # a pose far from the motion model is a wrong PnP solution more often than a real jump
-            T, reason = None, f"PnP pose {dev[0]:.3g} / {dev[1]:.1f} deg from the motion model's"
+            step = np.linalg.norm(_centre(T_prev) - _centre(T_pred))
+            dt = np.linalg.norm(_centre(T) - _centre(T_pred))
+            dr = rotation_angle_deg(T[:3, :3] @ T_pred[:3, :3].T)
+            if dr > cfg.max_dev_deg or dt > cfg.max_dev_step * step + cfg.max_dev_depth * self._scene_depth:
+                T, reason = None, f"PnP pose {dt:.3g} / {dr:.1f} deg from the motion model's"
         if T is not None:
             # landmark tracks that do not fit the pose slide (stripes, occlusion edges): drop them
             r = np.linalg.norm(_project(self.K, T, obj)[0] - uv, axis=1)
@@ -370,69 +370,6 @@ class KeypointOdometry:
             return None, "lost", 0, reason + f"; fewer than {cfg.rotation_min_tracks} tracks for a rotation"
         T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj, uv))
         return T, "rotation", int(agreeing(T).sum()), reason
-
-    def _deviation(self, T: np.ndarray, T_pred: np.ndarray, T_prev: np.ndarray) -> tuple[float, float] | None:
-        """(centre distance, rotation in degrees) of T from the motion model's T_pred when beyond its limits
-        (max_dev_deg; max_dev_step x the predicted step + max_dev_depth x the scene depth), else None."""
-        cfg = self.cfg
-        step = np.linalg.norm(_centre(T_prev) - _centre(T_pred))
-        dt = float(np.linalg.norm(_centre(T) - _centre(T_pred)))
-        dr = rotation_angle_deg(T[:3, :3] @ T_pred[:3, :3].T)
-        if dr > cfg.max_dev_deg or dt > cfg.max_dev_step * step + cfg.max_dev_depth * self._scene_depth:
-            return dt, dr
-        return None
-
-    def _with_epipolar(self, T: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """The PnP pose refined with the epipolar constraints of the tracks that are no landmark, each
-        against its first keyframe view (the longest baseline it has): landmark reprojections and Sampson
-        distances in pixels, Huber at pnp_px.  Landmarks crowded in one part of the image leave rotation
-        and translation trading off (the office's turn); tracks over the whole image pin the rotation and
-        the direction of travel, the landmarks the length."""
-        cfg = self.cfg
-        ref_T, ref_uv, cur_uv = [], [], []
-        for j, t in enumerate(self._ids.tolist()):
-            obs = self._obs.get(t)
-            if t in self._landmarks or not obs:
-                continue
-            ref_T.append(obs[0][0])
-            ref_uv.append(obs[0][1])
-            cur_uv.append(self._pts[j])
-        if len(ref_T) < cfg.rotation_min_tracks:
-            return T
-        K_inv = np.linalg.inv(self.K)
-        x_ref = np.c_[np.array(ref_uv, np.float64), np.ones(len(ref_uv))] @ K_inv.T
-        x_cur = np.c_[np.array(cur_uv, np.float64), np.ones(len(cur_uv))] @ K_inv.T
-        kf = np.array(ref_T)
-        R_ref = np.stack([self._kf_T[k][:3, :3] for k in kf])
-        t_ref = np.stack([self._kf_T[k][:3, 3] for k in kf])
-        # only pairs whose disparity after the rotation is measurable tell the direction of travel
-        rotated = np.einsum("ij,nkj,nk->ni", T[:3, :3], R_ref, x_ref) @ self.K.T
-        disparity = np.linalg.norm(rotated[:, :2] / rotated[:, 2:3] - np.array(cur_uv, np.float64), axis=1)
-        sel = disparity >= EPIPOLAR_MIN_PX * self._px
-        if sel.sum() < cfg.rotation_min_tracks:
-            return T
-        x_ref, x_cur, R_ref, t_ref = x_ref[sel], x_cur[sel], R_ref[sel], t_ref[sel]
-        f = 0.5 * (self.K[0, 0] + self.K[1, 1])
-        w_epi = cfg.epipolar_weight
-        R0, t0 = T[:3, :3], T[:3, 3]
-
-        def pose(x):
-            return _rodrigues(x[None, :3])[0] @ R0, t0 + x[3:]
-
-        def residuals(x):
-            R, t = pose(x)
-            rl = (_project(self.K, _rigid(R, t), obj)[0] - uv).ravel()
-            R_rel = np.einsum("ij,nkj->nik", R, R_ref)  # R R_ref^T
-            t_rel = t[None] - np.einsum("nij,nj->ni", R_rel, t_ref)
-            Ex = np.cross(t_rel, np.einsum("nij,nj->ni", R_rel, x_ref))  # [t]x R x_ref
-            Etx = -np.einsum("nji,nj->ni", R_rel, np.cross(t_rel, x_cur))  # E^T x_cur = -R^T [t]x x_cur
-            num = np.sum(x_cur * Ex, axis=1)
-            den = np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2) + 1e-12
-            return np.concatenate([rl, w_epi * f * num / den])
-
-        fit = least_squares(residuals, np.zeros(6), loss="huber", f_scale=cfg.pnp_px * self._px, max_nfev=50)
-        R, t = pose(fit.x)
-        return _rigid(R, t)
 
     def _centre_given_rotation(self, R: np.ndarray, c_pred: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """The camera centre of a rotation-only frame: the landmarks still tracked and the epipolar planes
