@@ -331,3 +331,33 @@ def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
     print_summary(tmp_path, metrics)
     out, err = capsys.readouterr()
     assert "behind it by 10 ms" in out and "skipped" not in out and "fell" not in err
+
+
+@pytest.mark.slow
+def test_a_keyframes_seeds_are_published_before_its_mapping(device):
+    """``mapping.publish_seeds``: when a keyframe's window mapping starts, tracking's published map already
+    holds the keyframe's seeds (as many Gaussians as the working map); without it, the map published
+    before them (fewer), until the mapping ends."""
+    from rgs_warp import SLAM, open_dataset
+
+    argv = [*OVERRIDES, "dataset.max_frames=14", "mapping.asynchronous=true", f"device={device}"]
+    seen = {}
+    for publish in (False, True):
+        cfg = load_config([*argv, f"mapping.publish_seeds={str(publish).lower()}"])
+        ds = open_dataset(cfg, device=device)
+        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+        optimize, sizes = slam.mapper.optimize, []
+
+        def recording(*args, slam=slam, optimize=optimize, sizes=sizes, **kwargs):
+            with slam.publisher.read() as published:
+                sizes.append((len(published), len(slam.map)))
+            return optimize(*args, **kwargs)
+
+        slam.mapper.optimize = recording
+        results = [slam.process(f.rgb, f.depth, f.timestamp) for f in ds]
+        slam.finish()
+        later = [r for r in results[cfg.mapping.init_window :] if r.keyframe and r.seeded > 0]
+        assert later, "no keyframe after the initial window seeded anything"
+        seen[publish] = sizes[cfg.mapping.init_window :]  # the initial window's mappings come first
+    assert seen[True] and all(p == w for p, w in seen[True]), seen[True]
+    assert seen[False] and any(p < w for p, w in seen[False]), seen[False]

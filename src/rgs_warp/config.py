@@ -340,6 +340,11 @@ class MappingConfig:
     # 2 keeps the office's map and 7-Scenes' pace on the faster machines (2 of 4); 3 loses that pace
     # again.  0: no bound
     fill_queue: int = 2
+    # asynchronous: a keyframe's seeds (its own and the frame fills' that join the map with it) are
+    # published as soon as they are in the map, before its window's mapping, so tracking sees the new
+    # surface without waiting for that (the live office: about 10 frames).  The extra version costs the
+    # next tracked frame its graphs' capture (a new map size)
+    publish_seeds: bool = False
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
     # does not wait for it; 0: every keyframe gets `iters`

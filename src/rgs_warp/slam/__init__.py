@@ -426,6 +426,8 @@ class SLAM:
         first = int(kf.frame_ids[slot]) == self.keyframe_indices[0]
         result.seeded = self._seed(slot, matches=cfg.method == "rgs" or first)
         self.stats["seeding_s"] += time.perf_counter() - t0
+        if cfg.mapping.publish_seeds and i >= self._init_window_end:
+            self._publish()  # tracking sees the keyframe's surface before its window is mapped
         self._pause()
         t0 = time.perf_counter()
         init = i < self._init_window_end
