@@ -343,7 +343,9 @@ class MappingConfig:
     # asynchronous: a keyframe's seeds (its own and the frame fills' that join the map with it) are
     # published as soon as they are in the map, before its window's mapping, so tracking sees the new
     # surface without waiting for that (the live office: about 10 frames).  The extra version costs the
-    # next tracked frame its graphs' capture (a new map size)
+    # next tracked frame its graphs' capture (a new map size).  H200, timing=live, 2 runs each (perf.md,
+    # session 30): the office at 30 Hz 0.36-0.38 cm against 0.38-0.40 and +0.3-0.8 dB compensated, pace
+    # kept; 7-Scenes at 60 Hz 4.46-4.49 against 4.11-4.23 cm: off until measured further
     publish_seeds: bool = False
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
