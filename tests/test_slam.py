@@ -619,6 +619,8 @@ def test_an_odometry_jump_loses_one_frame_and_the_odometry_goes_on_from_the_pred
     That frame fails the motion check and is lost at the prediction; the odometry is moved there, so the
     frames after take its poses again (not lost) and the trajectory has no jump.  Left where it was, every
     later frame jumped from the prediction as well and was lost (7-Scenes, session 30: frames 230-286)."""
+    from rgs_warp.keypoint_odometry import OdometryResult
+
     cfg = load_config([*MONO, "dataset.max_frames=14"])
     camera, frames = _frames(cfg, 14)
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
@@ -633,8 +635,6 @@ def test_an_odometry_jump_loses_one_frame_and_the_odometry_goes_on_from_the_pred
         slam.odometry.move_to(T)  # the odometry's world and this frame's pose, 30 cm off
         jumped.append(len(slam.poses))
         return OdometryResult(T, r.inliers, False, r.keyframe)
-
-    from rgs_warp.keypoint_odometry import OdometryResult
 
     slam.odometry.track = jumping
     results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
