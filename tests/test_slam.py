@@ -571,6 +571,24 @@ def test_frames_take_the_odometry_pose(device):
     assert last.lost and "made rotation-only" in last.lost_reason  # its translation was not measured
 
 
+def _altered_odometry(device, alter):
+    """A monocular SLAM over 14 office frames whose odometry results pass through ``alter(slam, result)``
+    from the third frame after the bootstrap on (before: as they are); returns the SLAM and the frames."""
+    cfg = load_config([*MONO, "dataset.max_frames=14"])
+    camera, frames = _frames(cfg, 14)
+    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
+    track = slam.odometry.track
+
+    def altered(rgb, T_pred_WC=None):
+        r = track(rgb, T_pred_WC)
+        if len(slam.keyframe_indices) < 2 or len(slam.poses) < slam.keyframe_indices[1] + 3:
+            return r
+        return alter(slam, r)
+
+    slam.odometry.track = altered
+    return slam, frames
+
+
 @pytest.mark.slow
 def test_a_collapsing_odometry_pose_is_lost(device):
     """Monocular, frames taking the odometry's pose: from the third frame after the bootstrap the odometry's
@@ -580,21 +598,15 @@ def test_a_collapsing_odometry_pose_is_lost(device):
     from rgs_warp.geometry import invert_pose
     from rgs_warp.keypoint_odometry import OdometryResult
 
-    cfg = load_config([*MONO, "dataset.max_frames=14"])
-    camera, frames = _frames(cfg, 14)
-    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
-    track, collapsed = slam.odometry.track, []
+    collapsed = []
 
-    def collapsing(rgb, T_pred_WC=None):
-        r = track(rgb, T_pred_WC)
-        if len(slam.keyframe_indices) < 2 or len(slam.poses) < slam.keyframe_indices[1] + 3:
-            return r
+    def collapsing(slam, r):
         step = invert_pose(slam.poses[-1]) @ r.T_WC
         step[:3, 3] *= 0.05
         collapsed.append(len(slam.poses))
         return OdometryResult(slam.poses[-1] @ step, r.inliers, False, r.keyframe)
 
-    slam.odometry.track = collapsing
+    slam, frames = _altered_odometry(device, collapsing)
     results, predicted = [], {}
     for f in frames:
         predicted[len(results)] = slam.tracker.predict()
@@ -621,14 +633,10 @@ def test_an_odometry_jump_loses_one_frame_and_the_odometry_goes_on_from_the_pred
     later frame jumped from the prediction as well and was lost (7-Scenes, session 30: frames 230-286)."""
     from rgs_warp.keypoint_odometry import OdometryResult
 
-    cfg = load_config([*MONO, "dataset.max_frames=14"])
-    camera, frames = _frames(cfg, 14)
-    slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
-    track, jumped = slam.odometry.track, []
+    jumped = []
 
-    def jumping(rgb, T_pred_WC=None):
-        r = track(rgb, T_pred_WC)
-        if jumped or len(slam.keyframe_indices) < 2 or len(slam.poses) < slam.keyframe_indices[1] + 3:
+    def jumping(slam, r):
+        if jumped:
             return r
         T = r.T_WC.copy()
         T[:3, 3] += [0.3, 0.0, 0.0]
@@ -636,7 +644,7 @@ def test_an_odometry_jump_loses_one_frame_and_the_odometry_goes_on_from_the_pred
         jumped.append(len(slam.poses))
         return OdometryResult(T, r.inliers, False, r.keyframe)
 
-    slam.odometry.track = jumping
+    slam, frames = _altered_odometry(device, jumping)
     results = [slam.process(f.rgb, None, f.timestamp) for f in frames]
     assert len(jumped) == 1
     j = jumped[0]
