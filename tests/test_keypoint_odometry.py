@@ -1,6 +1,8 @@
 """The monocular keypoint odometry (issue 22): its local BA and multi-view triangulation against exact
 synthetic geometry, and start + track on a rendered room against the ground truth."""
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -202,6 +204,34 @@ def _started(room, s):
     return odometry, poses
 
 
+def test_moved_odometry_predicts_the_callers_step(room):
+    """move_to(T_WC, T_prev_WC): the odometry's own motion model then repeats the caller's step from
+    T_prev_WC to T_WC (the prediction the SLAM took for the frame it turned down), not the step the odometry
+    had made to the pose turned down; without T_prev_WC it repeats the odometry's own step, moved."""
+    from rgs_warp.geometry import invert_pose
+
+    _, _, images, _ = room
+    odometry, _ = _started(room, 1.0)
+    for i in range(START + 1, START + 4):
+        assert odometry.track(images[i]).T_WC is not None, i
+    own_prev, own_last = invert_pose(odometry._recent_pose(-2)), invert_pose(odometry._recent_pose(-1))
+    assert np.linalg.norm(own_last[:3, 3] - own_prev[:3, 3]) > 1e-3  # the odometry's own step, not a standstill
+    T_WC = own_last.copy()
+    T_WC[:3, 3] += [0.05, -0.02, 0.03]  # the caller's pose of the frame last tracked
+    T_prev_WC = own_last.copy()
+    T_prev_WC[:3, 3] += [0.01, 0.0, 0.0]  # and of the frame before: a step unlike the odometry's
+    moved = copy.deepcopy(odometry)
+    moved.move_to(T_WC, T_prev_WC)
+    expected = T_WC @ invert_pose(T_prev_WC) @ T_WC
+    np.testing.assert_allclose(invert_pose(moved._motion_prediction()), expected, atol=1e-9)
+    # without the caller's previous pose: the odometry's own step, carried into the caller's world
+    C = T_WC @ invert_pose(own_last)
+    moved = copy.deepcopy(odometry)
+    moved.move_to(T_WC)
+    expected = C @ own_last @ invert_pose(own_prev) @ own_last
+    np.testing.assert_allclose(invert_pose(moved._motion_prediction()), expected, atol=1e-9)
+
+
 @pytest.mark.slow
 def test_start_and_track_keep_the_given_gauge_and_scale(room):
     """Started from the true poses of frames 0 and 20 with their translations scaled by s = 3: the first
@@ -270,11 +300,12 @@ def test_moved_odometry_goes_on_in_the_moved_world(room):
     """move_to puts the frame last tracked at a given pose by moving the odometry's whole world (landmarks,
     keyframes, motion model) rigidly: the frames after are the unmoved run's poses in the moved world
     (the caller turned a pose down and goes on from its own).  The move: 25 deg about a tilted axis and
-    0.4 m, at frame 30, after the keyframes and BAs of frames 21-30.  Not to rounding: the BA's steps are
-    not invariant to the world's frame (translation steps on T_CW about the world's origin), so it ends
-    elsewhere within its tolerances: poses within 0.6 mm and landmarks 1.9 mm at the median (3.6 cm at
-    most, 1-4 m away); with the identity as the move 0.5 mm and 0.08 mm.  A landmark or keyframe left
-    unmoved is 0.4 m off."""
+    0.4 m, at frame 30, after the keyframes and BAs of frames 21-30.  Not to rounding: PnP, the
+    triangulation and the BA solve about the cameras (not the world's origin), but the BA's trust region
+    scales the landmarks' world coordinates, which the move rotates, so it ends elsewhere within its
+    tolerances: poses within 1.9 mm (0.7 mm from frame 46) and landmarks 0.8 mm at the median (3.5 cm at
+    most, 1-4 m away; opencv 4.14, scipy 1.17).  Solved about the world's origin (3 m away) the runs
+    parted by 6.6 mm and 1.3 cm.  A landmark or keyframe left unmoved is 0.4 m off."""
     from rgs_warp.geometry import invert_pose
 
     _, _, images, _ = room
@@ -293,7 +324,7 @@ def test_moved_odometry_goes_on_in_the_moved_world(room):
             moved.move_to(C @ b.T_WC)
             np.testing.assert_allclose(invert_pose(moved._recent_pose(-1)), C @ a.T_WC, atol=1e-12)
         else:
-            np.testing.assert_allclose(b.T_WC, C @ a.T_WC, atol=1e-3)
+            np.testing.assert_allclose(b.T_WC, C @ a.T_WC, atol=3e-3)
     both = set(moved._landmarks) & set(reference._landmarks)  # a track at a gate's edge may go either way
     assert len(both) > 0.98 * max(len(moved), len(reference)), (len(both), len(moved), len(reference))
     error = [

@@ -165,9 +165,9 @@ class KeypointOdometry:
             raise RuntimeError("KeypointOdometry.track before start")
         cfg = self.cfg
         img = _grey(rgb)
-        T_prev, T_before = self._recent_pose(-1), self._recent_pose(-2)
+        T_prev = self._recent_pose(-1)
         if T_pred_WC is None:
-            T_pred = (T_prev @ invert_pose(T_before)) @ T_prev
+            T_pred = self._motion_prediction()
         else:
             T_pred = invert_pose(np.asarray(T_pred_WC, np.float64))
         prev_uv = dict(zip(self._ids.tolist(), self._pts.astype(np.float64), strict=True))
@@ -199,6 +199,11 @@ class KeypointOdometry:
         self._recent = [self._recent[-1], (T, len(self._kf_T) - 1 if keyframe else None)]
         self._prev = img
         return OdometryResult(invert_pose(T), inliers, status == "rotation", keyframe, reason)
+
+    def _motion_prediction(self) -> np.ndarray:
+        """T_CW of the next frame by the constant-velocity model: the last step repeated."""
+        T_prev, T_before = self._recent_pose(-1), self._recent_pose(-2)
+        return (T_prev @ invert_pose(T_before)) @ T_prev
 
     def move_to(self, T_WC: np.ndarray, T_prev_WC: np.ndarray | None = None) -> None:
         """The frame last tracked is at T_WC in the caller's world (the caller turned its pose down): the
@@ -300,7 +305,8 @@ class KeypointOdometry:
         sel = np.array([t in self._landmarks for t in ids.tolist()], bool)
         if sel.sum() < 6:
             return T_before
-        obj = np.array([self._landmarks[t] for t in ids[sel].tolist()])
+        origin = _centre(T_before)  # PnP about the camera, not a world origin metres away
+        obj = np.array([self._landmarks[t] for t in ids[sel].tolist()]) - origin
         ok, rv, tv, _ = cv2.solvePnPRansac(
             obj,
             uv[sel].astype(np.float64),
@@ -309,13 +315,16 @@ class KeypointOdometry:
             reprojectionError=self.cfg.pnp_px * self._px,
             flags=cv2.SOLVEPNP_AP3P,
         )
-        return _rigid(cv2.Rodrigues(rv)[0], tv) if ok else T_before
+        return _shifted(_rigid(cv2.Rodrigues(rv)[0], tv)[None], -origin)[0] if ok else T_before
 
     def _estimate_pose(self, T_pred, T_prev, prev_uv) -> tuple[np.ndarray | None, str, int, str]:
         """(T_CW, 'ok' | 'rotation' | 'lost', landmarks agreeing, reason)."""
         cfg = self.cfg
         use = self._usable()
-        obj = np.array([self._landmarks[t] for t in self._ids[use].tolist()]).reshape(-1, 3)
+        # PnP about the last camera's centre, not a world origin metres away (conditioning; the poses then do
+        # not depend on where the world's origin is): landmarks and poses in that frame, the pose moved back
+        origin = _centre(T_prev)
+        obj = np.array([self._landmarks[t] for t in self._ids[use].tolist()]).reshape(-1, 3) - origin
         uv = self._pts[use].astype(np.float64)
         limit = cfg.pnp_px * self._px
 
@@ -325,7 +334,7 @@ class KeypointOdometry:
 
         T, reason = None, f"{len(obj)} landmarks tracked, fewer than {cfg.min_inliers}"
         if len(obj) >= cfg.min_inliers:
-            candidates = [T_pred]
+            candidates = [_shifted(T_pred[None], origin)[0]]
             ok, rv, tv, _ = cv2.solvePnPRansac(
                 obj,
                 uv,
@@ -349,7 +358,7 @@ class KeypointOdometry:
                 best = _rigid(cv2.Rodrigues(rv)[0], tv)
                 inl = agreeing(best)
             if inl.sum() >= cfg.min_inliers:
-                T = best
+                T = _shifted(best[None], -origin)[0]
             else:
                 reason = f"{int(inl.sum())} of {len(obj)} landmarks agree on a pose, fewer than {cfg.min_inliers}"
         if T is not None:
@@ -361,14 +370,14 @@ class KeypointOdometry:
                 T, reason = None, f"PnP pose {dt:.3g} / {dr:.1f} deg from the motion model's"
         if T is not None:
             # landmark tracks that do not fit the pose slide (stripes, occlusion edges): drop them
-            r = np.linalg.norm(_project(self.K, T, obj)[0] - uv, axis=1)
+            r = np.linalg.norm(_project(self.K, T, obj + origin)[0] - uv, axis=1)
             cut = cfg.residual_px * self._px if cfg.residual_px > 0 else limit
             self._drop_tracks(self._ids[use][r > cut])
             return T, "ok", int((r <= cut).sum()), ""
         R = self._rotation(prev_uv)
         if R is None:
             return None, "lost", 0, reason + f"; fewer than {cfg.rotation_min_tracks} tracks for a rotation"
-        T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj, uv))
+        T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj + origin, uv))
         return T, "rotation", int(agreeing(T).sum()), reason
 
     def _centre_given_rotation(self, R: np.ndarray, c_pred: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -596,6 +605,18 @@ def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def _centres(T_CW: np.ndarray) -> np.ndarray:
+    """The camera centres of world-to-camera poses (n, 4, 4): (n, 3)."""
+    return -np.einsum("nji,nj->ni", T_CW[:, :3, :3], T_CW[:, :3, 3])
+
+
+def _shifted(T_CW: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """World-to-camera poses (n, 4, 4) for a world whose origin is moved to ``origin`` (X' = X - origin)."""
+    out = T_CW.copy()
+    out[:, :3, 3] += np.einsum("nij,j->ni", T_CW[:, :3, :3], origin)
+    return out
+
+
 def _centre(T_CW: np.ndarray) -> np.ndarray:
     return -T_CW[:3, :3].T @ T_CW[:3, 3]
 
@@ -651,12 +672,15 @@ def _triangulate(
     cos_min = np.cos(np.radians(min_parallax_deg))
     if np.min(rays @ rays[-1]) > cos_min and np.min(rays @ rays[0]) > cos_min:
         return None
-    P = T_CW[:, :3]
+    # solved about the cameras' mean centre: the homogeneous DLT is not invariant to where the world's
+    # origin is, and a world metres from the cameras conditions it poorly
+    origin = _centres(T_CW).mean(axis=0)
+    P = _shifted(T_CW, origin)[:, :3]
     A = np.concatenate([x[:, :1] * P[:, 2] - P[:, 0], x[:, 1:2] * P[:, 2] - P[:, 1]])
     Xh = np.linalg.svd(A)[2][-1]
     if abs(Xh[3]) < 1e-12:
         return None
-    X = Xh[:3] / Xh[3]
+    X = Xh[:3] / Xh[3] + origin
     for T, u in zip(T_CW, uv, strict=True):
         p, z = _project(K, T, X[None])
         if z[0] <= 0 or np.linalg.norm(p[0] - u) > max_reproj_px:
@@ -744,8 +768,11 @@ def _bundle_adjust(
     the cameras T_CW (m, 4, 4) move, the others are held; X (l, 3) the landmarks; observation i is
     landmark land[i] at pixel uv[i] in camera cam[i].  Returns the free cameras' T_CW, the landmarks and
     the residuals (n, 2) after it."""
-    problem = _Reprojection(T_CW, n_free, len(X), cam, land, uv, K)
-    x0 = np.concatenate([np.zeros(6 * n_free), X.ravel()])
+    # solved about the free cameras' mean centre (the steps rotate each camera about the origin, and
+    # translate it, so a world metres away couples rotation and translation), then moved back
+    origin = _centres(T_CW[:n_free]).mean(axis=0)
+    problem = _Reprojection(_shifted(T_CW, origin), n_free, len(X), cam, land, uv, K)
+    x0 = np.concatenate([np.zeros(6 * n_free), (X - origin).ravel()])
     fit = least_squares(
         problem.residuals,
         x0,
@@ -759,5 +786,5 @@ def _bundle_adjust(
         xtol=1e-8,
     )
     R, t, X_out = problem.unpack(fit.x)
-    T_free = np.stack([_rigid(R[j], t[j]) for j in range(n_free)])
-    return T_free, X_out, fit.fun.reshape(-1, 2)
+    T_free = _shifted(np.stack([_rigid(R[j], t[j]) for j in range(n_free)]), -origin)
+    return T_free, X_out + origin, fit.fun.reshape(-1, 2)
