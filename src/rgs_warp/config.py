@@ -501,8 +501,9 @@ class KeypointsConfig:
     """Monocular keypoint odometry (``rgs_warp.keypoint_odometry``; mode=mono).  Defaults as measured in
     experiments/results/mono.md, "Keypoint front end with a local bundle adjustment" (office, first 150
     frames, its own two-view start: 0.40 cm Sim(3) ATE at 1200x680, 1.13 cm at 640x360; 300 frames at
-    640x360: 16.3 cm).  Pixel values are for 640 px of image width and scale with the width (not below
-    half)."""
+    640x360: 16.3 cm; on session 31's package versions, solving about the cameras: 2.75 cm over 150 frames
+    at 640x360 and 20-23 cm over 300 from four starts: the result hangs on float-level differences).  Pixel
+    values are for 640 px of image width and scale with the width (not below half)."""
 
     # Tracks.  Shi-Tomasi corners kept (at 640 px width) and their least distance: the measured setting;
     # new corners every frame once fewer than redetect_fraction of them are tracked, so that new tracks
