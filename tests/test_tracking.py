@@ -764,6 +764,8 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
         T0 = perturbed(poses[i], 0.01, 1.0, seed=i)
         a, b = eager.track(rgb, depth, m, T0), graphed.track(rgb, depth, m, T0)
         assert not a.lost and not b.lost, (i, a.reason, b.reason)
+        assert a.steps == "eager"
+        assert b.steps == {1: "captured", 4: "captured", 7: "overflowed"}.get(i, "replayed"), (i, b.steps)
         if i < 7:
             assert_same_steps(a, b, device, i)
             assert m is smaller or pose_error(b.T_WC, poses[i])[0] < 1e-3, i  # (smaller: holes)

@@ -575,6 +575,8 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
     if tracking is not None:
         entry.update(loss=tracking.loss, lost=tracking.lost, gain=tracking.gain, bias=tracking.bias)
         entry["settled_iters"] = tracking.settled_iters
+        if tracking.steps in ("captured", "overflowed"):  # a new map version's graphs, a replay run again
+            entry["steps"] = tracking.steps
         entry["valid_ratio"] = round(tracking.valid_ratio, 4)  # the map's coverage of the frame
         state.frame_losses.append(tracking.loss)
         state.settled_iters.append(tracking.settled_iters)

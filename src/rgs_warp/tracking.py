@@ -75,6 +75,10 @@ class TrackingResult:
     diverged: bool = False
     motion_inconsistent: bool = False
     settled_iters: int = 0
+    # how the frame's steps ran (``Tracker._steps``): "replayed" from captured graphs, "captured" (a new map
+    # version: a sizing step, the captures, then the replay), "eager" (no graphs), "overflowed" (a replay
+    # that overflowed, run again eagerly); "" where no steps ran
+    steps: str = ""
 
 
 # Converged: over the last quarter of the steps Adam's |m_hat| / sqrt(v_hat) (1 = the gradient keeps its
@@ -306,8 +310,10 @@ class Tracker:
             raise ValueError("no start pose: pass T_init_WC for the first frame (or call reset(T_WC))")
         self.load_frame(rgb, depth)
         self._begin(T_init)
-        self._steps(gmap, use_depth, T_init)
-        return self._finish(T_init)
+        steps = self._steps(gmap, use_depth, T_init)
+        result = self._finish(T_init)
+        result.steps = steps
+        return result
 
     def relocalize(
         self, rgb, depth, gmap: GaussianMap, candidates: list[np.ndarray], state_before: dict
@@ -477,7 +483,7 @@ class Tracker:
         wp.copy(self._T_CW_start, self._T_CW)
         wp.copy(self._T_WC_start, self._T_WC)
 
-    def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> None:
+    def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> str:
         """The frame's direct alignment (``_align``, with ``tracking.direct_levels``) and ``iters`` Adam
         steps, launched one by one, or replayed from captured graphs: the alignment's, one
         of a step on part of the tiles, replayed ``iters - 1`` times, and one of the last step, each
@@ -494,14 +500,16 @@ class Tracker:
         (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
         p99: experiments/results/perf.md).  A replay whose renders needed more intersections than the
         graph has room for is discarded with its graph, and the frame's steps run again eagerly from
-        the start pose."""
+        the start pose.  Returns how the steps ran (``TrackingResult.steps``)."""
         if not self.use_graph or len(gmap) == 0:
             self._eager_steps(gmap, use_depth)
-            return
+            return "eager"
         key = self._graph_key(gmap, use_depth)
         entry = self._graphs.get(key)
+        kind = "replayed"
         if entry is None:
             key, entry = self._capture(gmap, use_depth)
+            kind = "captured"
         align, (*steps, last), capacity = entry
         self._step.zero_()
         if align is not None:
@@ -515,6 +523,8 @@ class Tracker:
             self._graphs.pop(key, None)
             self._begin(T_init_WC)
             self._eager_steps(gmap, use_depth)
+            return "overflowed"
+        return kind
 
     def _capture(self, gmap: GaussianMap, use_depth: bool) -> tuple[tuple, tuple]:
         """Size the renderer with one eager step from the start pose (put back after it), then capture
