@@ -345,7 +345,7 @@ class MappingConfig:
     # surface without waiting for that (the live office: about 10 frames).  The extra version costs the
     # next tracked frame its graphs' capture (a new map size).  H200, timing=live, 2 runs each (perf.md,
     # sessions 30-31): the office at 30 Hz 0.35-0.40 cm against 0.39-0.43 and +0.5 dB compensated, pace
-    # kept (3 runs each); 7-Scenes at 60 Hz loses a quarter of its tracking rate and falls seconds behind: off
+    # kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs: off
     publish_seeds: bool = False
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
