@@ -232,6 +232,39 @@ def test_moved_odometry_predicts_the_callers_step(room):
     np.testing.assert_allclose(invert_pose(moved._motion_prediction()), expected, atol=1e-9)
 
 
+def test_a_rotation_only_pose_counts_the_landmarks_that_agree_with_it(room):
+    """With PnP refused (``min_inliers`` out of reach) the frame's pose is rotation-only; the landmarks it
+    reports as agreeing are those its pose projects within ``pnp_px`` of their tracks, counted in the world
+    the pose is in (the world here is 3-4 m from the cameras, and PnP solves about the camera: counted in
+    the camera's frame against world poses, none agreed)."""
+    from dataclasses import replace
+
+    from rgs_warp.keypoint_odometry import _project
+
+    _, _, images, _ = room
+    odometry, _ = _started(room, 1.0)
+    for i in range(START + 1, START + 4):
+        assert odometry.track(images[i]).T_WC is not None, i
+    odometry.cfg = replace(odometry.cfg, min_inliers=10**6)
+    estimate, counted = odometry._estimate_pose, []
+
+    def recorded(*args):
+        T, status, inliers, reason = estimate(*args)
+        use = odometry._usable()
+        obj = np.array([odometry._landmarks[t] for t in odometry._ids[use].tolist()])
+        p, z = _project(odometry.K, T, obj)
+        limit = odometry.cfg.pnp_px * odometry._px
+        counted.append(
+            (status, inliers, int(((np.linalg.norm(p - odometry._pts[use], axis=1) < limit) & (z > 0)).sum()))
+        )
+        return T, status, inliers, reason
+
+    odometry._estimate_pose = recorded
+    assert odometry.track(images[START + 4]).rotation_only
+    ((status, inliers, agree),) = counted
+    assert status == "rotation" and agree > 20 and inliers == agree, counted
+
+
 @pytest.mark.slow
 def test_start_and_track_keep_the_given_gauge_and_scale(room):
     """Started from the true poses of frames 0 and 20 with their translations scaled by s = 3: the first

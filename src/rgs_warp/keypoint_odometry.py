@@ -378,7 +378,7 @@ class KeypointOdometry:
         if R is None:
             return None, "lost", 0, reason + f"; fewer than {cfg.rotation_min_tracks} tracks for a rotation"
         T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj + origin, uv))
-        return T, "rotation", int(agreeing(T).sum()), reason
+        return T, "rotation", int(agreeing(_shifted(T[None], origin)[0]).sum()), reason
 
     def _centre_given_rotation(self, R: np.ndarray, c_pred: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """The camera centre of a rotation-only frame: the landmarks still tracked and the epipolar planes
