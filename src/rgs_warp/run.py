@@ -1056,9 +1056,9 @@ def save_side_by_side(
 
 # what a monocular run is told at its start (README, "Where it stands"; issue 22)
 MONO_NOTICE = (
-    "note: mode=mono is not reliable yet: on the synthetic office it tracks the first 150 frames to 1.3 cm "
-    "(Sim(3) ATE; RGB-D 0.4 cm) and loses the scale later (20-40 cm over 300 frames), and on 7-Scenes its "
-    "scale drifts (24 cm; RGB-D 4.4); frames it flags lost are counted at the end and named in log.jsonl "
+    "note: mode=mono is not reliable yet: on the synthetic office it tracks the first 150 frames to 1.3-1.5 cm "
+    "(Sim(3) ATE; RGB-D 0.4 cm) and loses the scale later (about 20 cm over 300 frames), and on 7-Scenes its "
+    "scale drifts (8.6-8.8 cm; RGB-D 4.4); frames it flags lost are counted at the end and named in log.jsonl "
     "(experiments/results/mono.md)"
 )
 
