@@ -361,3 +361,52 @@ def test_a_keyframes_seeds_are_published_before_its_mapping(device):
         seen[publish] = sizes[cfg.mapping.init_window :]  # the initial window's mappings come first
     assert seen[True] and all(p == w for p, w in seen[True]), seen[True]
     assert seen[False] and any(p < w for p, w in seen[False]), seen[False]
+
+
+@pytest.mark.slow
+def test_the_initial_window_is_mapped_beside_tracking_with_init_async(device):
+    """``mapping.init_async``: tracking waits for the first keyframe's mapping only; frames 1-4 (the rest of the
+    initial window) are tracked while their mappings wait in the worker, here held until frame 5 was tracked
+    (the worker gives tracking the device meanwhile).  Without it each initial frame returns with its
+    window mapped (no "init" job left: ``process`` drained the worker).  Both runs end with every initial
+    keyframe mapped for init_iters // init_window iterations and poses within 5 cm of the truth (both about 2 cm)."""
+    from rgs_warp import SLAM, open_dataset
+
+    argv = [*OVERRIDES, "dataset.max_frames=8", "mapping.asynchronous=true", f"device={device}"]
+    errors = {}
+    for beside in (False, True):
+        cfg = load_config([*argv, f"mapping.init_async={str(beside).lower()}"])
+        ds = open_dataset(cfg, device=device)
+        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+        optimize, gate, mapped = slam.mapper.optimize, threading.Event(), []
+
+        def held(*args, slam=slam, optimize=optimize, gate=gate, mapped=mapped, **kwargs):
+            deadline = time.monotonic() + 30.0  # without init_async, process(frame 1) waits for this: bounded
+            while mapped and not gate.is_set() and time.monotonic() < deadline:
+                slam._pause()  # tracking takes the device whenever it waits
+                time.sleep(0.005)
+            mapped.append(True)
+            return optimize(*args, **kwargs)
+
+        slam.mapper.optimize = held
+        results, waiting = [], []
+        for f in list(ds)[:6]:
+            results.append(slam.process(f.rgb, f.depth, f.timestamp))
+            waiting.append(slam.worker.queued("init"))
+        gate.set()
+        for f in list(ds)[6:]:
+            results.append(slam.process(f.rgb, f.depth, f.timestamp))
+        slam.finish()
+        n = cfg.mapping.init_window
+        assert waiting[0] == 0, waiting  # the first keyframe is mapped before frame 1 either way
+        if beside:
+            assert all(w >= 1 for w in waiting[1:n]), waiting
+        else:
+            assert all(w == 0 for w in waiting), waiting
+        assert [r.keyframe for r in results[:n]] == [True] * n
+        assert all(r.mapping is not None and r.mapping.iters == cfg.mapping.init_iters // n for r in results[:n])
+        _, poses = slam.trajectory()
+        gt = np.array([f.pose_gt for f in ds])
+        errors[beside] = np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)
+    print({k: np.round(v * 100, 2) for k, v in errors.items()})
+    assert np.max(errors[False]) < 0.05 and np.max(errors[True]) < 0.05, errors

@@ -347,6 +347,12 @@ class MappingConfig:
     # sessions 30-31): the office at 30 Hz 0.35-0.40 cm against 0.39-0.43 and +0.5 dB compensated, pace
     # kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs: off
     publish_seeds: bool = False
+    # asynchronous: the initial window's keyframes after the first are mapped beside tracking, as later
+    # keyframes are (the frames after the first track against its mapped map until the worker publishes
+    # the next version); false: tracking waits for each one's mapping, as in the synchronous mode (a 60 Hz
+    # camera does not wait: 7-Scenes' synchronous initial window took 1.2-1.3 s on an H200, perf.md,
+    # session 31)
+    init_async: bool = False
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
     # does not wait for it; 0: every keyframe gets `iters`
@@ -906,6 +912,11 @@ def check_config(cfg: Config) -> Config:
         raise ConfigError(
             f"mapping.min_iters ({cfg.mapping.min_iters}) applies to asynchronous mapping only: "
             "set mapping.asynchronous=true with it, or leave it at 0"
+        )
+    if cfg.mapping.init_async and not cfg.mapping.asynchronous:
+        raise ConfigError(
+            "mapping.init_async applies to asynchronous mapping only: set mapping.asynchronous=true with it, "
+            "or leave it false"
         )
     if cfg.dataset.type == "synthetic":
         check_image_size(cfg.dataset.width, cfg.dataset.height, cfg, native=True)

@@ -7,7 +7,8 @@ test accepts it as a keyframe (``KeyframeSelector``), dense matching -> triangul
 (``DenseMatcher``, ``Triangulator``, ``Seeder``) -> windowed mapping (``Mapper``) -> merge / prune
 (``Maintainer``) run before the next frame (same thread, deterministic).  With
 ``mapping.asynchronous`` they run in a worker thread instead (``slam/worker.py``) while tracking goes
-on against the latest published version of the map; the initial window stays synchronous.
+on against the latest published version of the map; the initial window stays synchronous (with
+``mapping.init_async`` its first keyframe only).
 
 ``method=baseline`` (the dense initialization baseline of supplement Table 2) makes one dense start
 at the first keyframe and grows the map by residual-driven densification inside the mapping
@@ -207,8 +208,11 @@ class SLAM:
                 self.publisher.publish(self.map)
             with self.publisher.read() as published:
                 result = self._process(rgb, depth, timestamp, T_init_WC, T_WC, published)
-        if result.index < self._init_window_end or self.publisher.version == 0:
-            self.worker.drain()  # the initial window is mapped before the next frame, as in sync mode
+        # the initial window is mapped before the next frame, as in sync mode (mapping.init_async: the first
+        # keyframe only)
+        waited = 1 if self.cfg.mapping.init_async else self._init_window_end
+        if result.index < waited or self.publisher.version == 0:
+            self.worker.drain()
         self.worker.wait_until_fewer("keyframe", self.cfg.mapping.async_queue + 1)
         result.seconds = time.perf_counter() - t0  # with the waits: the caller's latency
         return result
@@ -273,7 +277,9 @@ class SLAM:
             self.selector.accept(T)
             self.keyframe_indices.append(i)
             rgb_k, depth_k = self._own(rgb), self._own(depth)
-            self._run("keyframe", self._add_keyframe, i, T, rgb_k, depth_k, exposure, result, time.perf_counter())
+            # the initial window's jobs ("init") do not hold tracking back as later keyframes' may (async_queue)
+            kind = "init" if i < self._init_window_end else "keyframe"
+            self._run(kind, self._add_keyframe, i, T, rgb_k, depth_k, exposure, result, time.perf_counter())
             if self.worker is None:  # the next frame's tracking graphs, for the grown map: not in its latency
                 self.tracker.prepare(self.map, T)
         else:
@@ -360,7 +366,7 @@ class SLAM:
         with asynchronous mapping, as soon as a keyframe or a checkpoint waits for the worker (it uses
         idle time only)."""
         w = self.worker
-        return w is not None and (w.queued("keyframe") > 0 or w.hurry.is_set())
+        return w is not None and (w.queued("keyframe") + w.queued("init") > 0 or w.hurry.is_set())
 
     def _next_keyframe_waits(self, done: int) -> bool:
         """Whether a keyframe's window mapping ends after ``done`` iterations (``mapping.min_iters``):

@@ -146,7 +146,7 @@ class MapPublisher:
 
 class MappingWorker:
     """A thread running jobs (callables) in order, each holding the device's mapping turn.  Jobs
-    carry a kind ("keyframe", "fill", "refine"); ``queued(kind)`` counts those not finished, and
+    carry a kind ("init", "keyframe", "fill", "refine"); ``queued(kind)`` counts those not finished, and
     ``wait_until_fewer(kind, n)`` is the caller's back-pressure."""
 
     def __init__(self, turns: DeviceTurns, name: str = "rgs_warp-mapping"):
