@@ -453,6 +453,7 @@ class SLAM:
         )
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
+            self._pause()
             t0 = time.perf_counter()
             result.pruned, result.merged = self.maintainer.maintain(self.map, kf.poses[slot])
             self.stats["maintenance_s"] += time.perf_counter() - t0
@@ -537,8 +538,10 @@ class SLAM:
         neighbours = self.matcher.select_neighbours(slot, kf) if matches and len(kf) >= 2 else []
         if neighbours:
             m = self.matcher.match(slot, kf, neighbours, use_depth=self.mode == "rgbd")
+            self._pause()  # between stages: a frame waits for one of them at most (7-Scenes: about 8 ms each)
             points = self.triangulator.triangulate(m.P, m.ref_uv, m.match_uv, m.confidence)
             added += self.seeder.seed_matches(self.map, kf, slot, m, points)
+            self._pause()
         return added + self.seeder.seed_depth(self.map, kf, slot)
 
     def _process_bootstrap(self, rgb, timestamp: float | None, t0: float, frame: CheckedFrame) -> FrameResult:
