@@ -375,6 +375,14 @@ class SLAM:
         n, w = self.cfg.mapping.min_iters, self.worker
         return w is not None and 0 < n <= done and (w.queued("keyframe") > 1 or w.hurry.is_set())
 
+    def _later_keyframe_waits(self, done: int) -> bool:
+        """Whether an initial keyframe's mapping ends after ``done`` iterations (``mapping.min_iters``): once it
+        had that many and a keyframe after the initial window, or a checkpoint, waits for the worker (only
+        with ``mapping.init_async``: otherwise tracking waits for the initial window's mappings and none
+        comes)."""
+        n, w = self.cfg.mapping.min_iters, self.worker
+        return w is not None and 0 < n <= done and (w.queued("keyframe") > 0 or w.hurry.is_set())
+
     def _pause(self) -> None:
         """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
         if self.turns is not None:
@@ -449,7 +457,7 @@ class SLAM:
             held,
             pause=self._pause,
             history=self._older(window),
-            stop=None if init else self._next_keyframe_waits,
+            stop=self._later_keyframe_waits if init else self._next_keyframe_waits,
         )
         self.stats["mapping_s"] += time.perf_counter() - t0
         if self.maintainer is not None:
