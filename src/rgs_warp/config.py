@@ -349,7 +349,8 @@ class MappingConfig:
     publish_seeds: bool = False
     # asynchronous: the initial window's keyframes after the first are mapped beside tracking, as later
     # keyframes are (the frames after the first track against its mapped map until the worker publishes
-    # the next version), each ending at min_iters once a later keyframe waits for the worker; false:
+    # the next version), each ending at min_iters once as many later keyframes wait for the worker as
+    # async_queue lets wait before tracking does; false:
     # tracking waits for each one's mapping, as in the synchronous mode (a 60 Hz camera does not wait:
     # 7-Scenes' synchronous initial window took 1.2-1.3 s on an H200, perf.md, session 31)
     init_async: bool = False

@@ -377,11 +377,12 @@ class SLAM:
 
     def _later_keyframe_waits(self, done: int) -> bool:
         """Whether an initial keyframe's mapping ends after ``done`` iterations (``mapping.min_iters``): once it
-        had that many and a keyframe after the initial window, or a checkpoint, waits for the worker (only
-        with ``mapping.init_async``: otherwise tracking waits for the initial window's mappings and none
-        comes)."""
+        had that many and as many later keyframes wait for the worker as may wait before tracking does
+        (``mapping.async_queue``, at least one), or a checkpoint waits.  Only with ``mapping.init_async``:
+        otherwise tracking waits for the initial window's mappings and no later keyframe comes meanwhile."""
         n, w = self.cfg.mapping.min_iters, self.worker
-        return w is not None and 0 < n <= done and (w.queued("keyframe") > 0 or w.hurry.is_set())
+        waiting = max(1, self.cfg.mapping.async_queue)
+        return w is not None and 0 < n <= done and (w.queued("keyframe") >= waiting or w.hurry.is_set())
 
     def _pause(self) -> None:
         """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
