@@ -334,33 +334,42 @@ def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_a_keyframes_seeds_are_published_before_its_mapping(device):
-    """``mapping.publish_seeds``: when a keyframe's window mapping starts, tracking's published map already
-    holds the keyframe's seeds (as many Gaussians as the working map); without it, the map published
-    before them (fewer), until the mapping ends."""
+def test_a_keyframes_map_is_published_during_its_mapping_with_publish_after(device):
+    """``mapping.publish_after``: 0 publishes a keyframe's seeds before its window's mapping (when it starts,
+    tracking's published map holds as many Gaussians as the working map); 3 publishes once more after the
+    mapping's third iteration (one version more during each later keyframe's mapping, none during the initial
+    window's); -1 (the default) only at the job's end (the published map has fewer Gaussians while the
+    keyframe's seeds are mapped, and no version comes during a mapping)."""
     from rgs_warp import SLAM, open_dataset
 
     argv = [*OVERRIDES, "dataset.max_frames=14", "mapping.asynchronous=true", f"device={device}"]
     seen = {}
-    for publish in (False, True):
-        cfg = load_config([*argv, f"mapping.publish_seeds={str(publish).lower()}"])
+    for after in (-1, 0, 3):
+        cfg = load_config([*argv, f"mapping.publish_after={after}"])
         ds = open_dataset(cfg, device=device)
         slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
-        optimize, sizes = slam.mapper.optimize, []
+        optimize, calls = slam.mapper.optimize, []
 
-        def recording(*args, slam=slam, optimize=optimize, sizes=sizes, **kwargs):
+        def recording(*args, slam=slam, optimize=optimize, calls=calls, **kwargs):
             with slam.publisher.read() as published:
-                sizes.append((len(published), len(slam.map)))
-            return optimize(*args, **kwargs)
+                sizes = (len(published), len(slam.map))
+            version = slam.publisher.version
+            result = optimize(*args, **kwargs)
+            calls.append((sizes, slam.publisher.version - version, result.iters))
+            return result
 
         slam.mapper.optimize = recording
         results = [slam.process(f.rgb, f.depth, f.timestamp) for f in ds]
         slam.finish()
         later = [r for r in results[cfg.mapping.init_window :] if r.keyframe and r.seeded > 0]
         assert later, "no keyframe after the initial window seeded anything"
-        seen[publish] = sizes[cfg.mapping.init_window :]  # the initial window's mappings come first
-    assert seen[True] and all(p == w for p, w in seen[True]), seen[True]
-    assert seen[False] and any(p < w for p, w in seen[False]), seen[False]
+        n = cfg.mapping.init_window
+        assert all(v == 0 for _, v, _ in calls[:n]), calls[:n]  # the initial window: published at each end only
+        seen[after] = calls[n:]
+    assert seen[0] and all(p == w for (p, w), _, _ in seen[0]), seen[0]
+    assert seen[-1] and any(p < w for (p, w), _, _ in seen[-1]), seen[-1]
+    assert all(v == 0 for _, v, _ in seen[-1] + seen[0]), seen
+    assert seen[3] and all(v == int(iters > 3) for _, v, iters in seen[3]), seen[3]
 
 
 @pytest.mark.slow

@@ -340,13 +340,14 @@ class MappingConfig:
     # 2 keeps the office's map and 7-Scenes' pace on the faster machines (2 of 4); 3 loses that pace
     # again.  0: no bound
     fill_queue: int = 2
-    # asynchronous: a keyframe's seeds (its own and the frame fills' that join the map with it) are
-    # published as soon as they are in the map, before its window's mapping, so tracking sees the new
-    # surface without waiting for that (the live office: about 10 frames).  The extra version costs the
-    # next tracked frame its graphs' capture (a new map size).  H200, timing=live, 2 runs each (perf.md,
-    # sessions 30-31): the office at 30 Hz 0.35-0.40 cm against 0.39-0.43 and +0.5 dB compensated, pace
-    # kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs: off
-    publish_seeds: bool = False
+    # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
+    # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
+    # join the map with it), so tracking sees the new surface before the whole mapping ends (the live
+    # office: about 10 frames later); -1: only at the job's end.  The extra version costs the next tracked
+    # frame its graphs' capture (a new map size).  0 on an H200, timing=live (perf.md, sessions 30-31, as
+    # mapping.publish_seeds): the office at 30 Hz 0.35-0.40 cm against 0.39-0.43 and +0.5 dB compensated,
+    # pace kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs (the unmapped Kinect seeds)
+    publish_after: int = -1
     # asynchronous: the initial window's keyframes after the first are mapped beside tracking, as later
     # keyframes are (the frames after the first track against its mapped map until the worker publishes
     # the next version), each ending at min_iters once as many later keyframes wait for the worker as
@@ -774,6 +775,7 @@ CONSTRAINTS: dict[str, Bound] = {
     "mapping.final_iters": NON_NEGATIVE,
     "mapping.async_queue": NON_NEGATIVE,
     "mapping.fill_queue": NON_NEGATIVE,
+    "mapping.publish_after": Bound(lo=-1),  # -1: off
     "mapping.min_iters": NON_NEGATIVE,
     "mapping.views_per_iter": NON_NEGATIVE,
     "mapping.window": AT_LEAST_1,
@@ -913,6 +915,11 @@ def check_config(cfg: Config) -> Config:
         raise ConfigError(
             f"mapping.min_iters ({cfg.mapping.min_iters}) applies to asynchronous mapping only: "
             "set mapping.asynchronous=true with it, or leave it at 0"
+        )
+    if cfg.mapping.publish_after >= 0 and not cfg.mapping.asynchronous:
+        raise ConfigError(
+            f"mapping.publish_after ({cfg.mapping.publish_after}) applies to asynchronous mapping only: set "
+            "mapping.asynchronous=true with it, or leave it at -1"
         )
     if cfg.mapping.init_async and not cfg.mapping.asynchronous:
         raise ConfigError(

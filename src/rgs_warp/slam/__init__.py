@@ -384,6 +384,20 @@ class SLAM:
         waiting = max(1, self.cfg.mapping.async_queue)
         return w is not None and 0 < n <= done and (w.queued("keyframe") >= waiting or w.hurry.is_set())
 
+    def _publishing_pause(self, after: int):
+        """A mapping job's ``pause`` that publishes the map once, after ``after`` iterations
+        (``mapping.publish_after``), then pauses as ``_pause`` does."""
+        done = 0
+
+        def pause() -> None:
+            nonlocal done
+            done += 1
+            if done == after:
+                self._publish()
+            self._pause()
+
+        return pause
+
     def _pause(self) -> None:
         """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
         if self.turns is not None:
@@ -441,11 +455,12 @@ class SLAM:
         first = int(kf.frame_ids[slot]) == self.keyframe_indices[0]
         result.seeded = self._seed(slot, matches=cfg.method == "rgs" or first)
         self.stats["seeding_s"] += time.perf_counter() - t0
-        if cfg.mapping.publish_seeds and i >= self._init_window_end:
+        init = i < self._init_window_end
+        early = -1 if init or self.publisher is None else cfg.mapping.publish_after
+        if early == 0:
             self._publish()  # tracking sees the keyframe's surface before its window is mapped
         self._pause()
         t0 = time.perf_counter()
-        init = i < self._init_window_end
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
         iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
@@ -456,7 +471,7 @@ class SLAM:
             iters,
             psnr_every,
             held,
-            pause=self._pause,
+            pause=self._pause if early <= 0 else self._publishing_pause(early),
             history=self._older(window),
             stop=self._later_keyframe_waits if init else self._next_keyframe_waits,
         )
