@@ -331,7 +331,9 @@ class MappingConfig:
     asynchronous: bool = False
     # asynchronous: keyframes that may wait for the worker besides the one it maps before tracking waits
     # (0: tracking waits for each keyframe's mapping, as in the synchronous mode, with frame fills and
-    # frame_iters still beside it; more: lower latency, a map further behind the camera)
+    # frame_iters still beside it; more: lower latency, a map further behind the camera).  timing=live
+    # sets 2: with 1 the frame that became a keyframe waited 31-37 ms (median, H200, 7-Scenes) for the
+    # previous keyframe's mapping to end (perf.md, session 32)
     async_queue: int = 1
     # asynchronous: frame fills (seeding.frame_fill_min_uncovered) that may wait for the worker; a frame
     # that wants a fill while this many wait or run gets none, since they seed most of what it would.
