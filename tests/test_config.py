@@ -203,14 +203,14 @@ def test_timing_groups():
     ``timing=offline``, the default, leaves the synchronous mode."""
     live = load_config(["timing=live", "mapping.init_iters=700"])
     assert live.mapping.asynchronous and live.mapping.min_iters == 15 and live.mapping.init_iters == 700
-    assert live.mapping.init_async and live.mapping.async_queue == 2
+    assert live.mapping.init_wait == "first" and live.mapping.async_queue == 2
     assert live.mapping.iters == load_config([]).mapping.iters
     assert load_config([]) == load_config(["timing=offline"])
     assert not load_config([]).mapping.asynchronous
     assert "timing: live, offline" in help_text()
     with pytest.raises(ConfigError, match="applies to asynchronous mapping only"):
-        load_config(["timing=live", "mapping.asynchronous=false", "mapping.init_async=false"])
-    with pytest.raises(ConfigError, match="mapping.init_async applies to asynchronous mapping only"):
+        load_config(["timing=live", "mapping.asynchronous=false", "mapping.init_wait=window"])
+    with pytest.raises(ConfigError, match="mapping.init_wait=first applies to asynchronous mapping only"):
         load_config(["timing=live", "mapping.asynchronous=false", "mapping.min_iters=0"])
 
 

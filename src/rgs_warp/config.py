@@ -350,13 +350,15 @@ class MappingConfig:
     # mapping.publish_seeds): the office at 30 Hz 0.35-0.40 cm against 0.39-0.43 and +0.5 dB compensated,
     # pace kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs (the unmapped Kinect seeds)
     publish_after: int = -1
-    # asynchronous: the initial window's keyframes after the first are mapped beside tracking, as later
-    # keyframes are (the frames after the first track against its mapped map until the worker publishes
-    # the next version), each ending at min_iters once as many later keyframes wait for the worker as
-    # async_queue lets wait before tracking does; false:
-    # tracking waits for each one's mapping, as in the synchronous mode (a 60 Hz camera does not wait:
-    # 7-Scenes' synchronous initial window took 1.2-1.3 s on an H200, perf.md, session 31)
-    init_async: bool = False
+    # asynchronous: what of the initial window tracking waits for before the next frame.  "window": every
+    # initial keyframe's mapping, as in the synchronous mode; "first": the first keyframe's mapping only, the
+    # window's other keyframes mapped beside tracking as later keyframes are (the frames track against the
+    # first keyframe's map until the worker publishes the next version); "seeds": the first keyframe's
+    # seeds only (published before its mapping; the frames after track against them until its mapping is
+    # published).  Beside tracking, an initial keyframe's mapping ends at min_iters once as many later
+    # keyframes wait for the worker as async_queue lets wait before tracking does.  A 60 Hz camera does not
+    # wait: 7-Scenes' window took 1.2-1.3 s on an H200, "first" 0.2-0.3 s (perf.md, sessions 31-32)
+    init_wait: str = "window"
     # asynchronous: a keyframe's window mapping ends after this many iterations (instead of `iters`) when
     # the next keyframe already waits for the worker, so mapping keeps pace with the camera and tracking
     # does not wait for it; 0: every keyframe gets `iters`
@@ -642,6 +644,7 @@ CHOICES = {
     "tracking.graph": ("auto", "on", "off"),
     "mapping.graph": ("auto", "on", "off"),
     "tracking.colour_per_opacity": ("auto", "on", "off"),
+    "mapping.init_wait": ("window", "first", "seeds"),
     "dataset.type": ("replica", "tum", "7scenes", "synthetic", "realsense"),
 }
 
@@ -923,10 +926,10 @@ def check_config(cfg: Config) -> Config:
             f"mapping.publish_after ({cfg.mapping.publish_after}) applies to asynchronous mapping only: set "
             "mapping.asynchronous=true with it, or leave it at -1"
         )
-    if cfg.mapping.init_async and not cfg.mapping.asynchronous:
+    if cfg.mapping.init_wait != "window" and not cfg.mapping.asynchronous:
         raise ConfigError(
-            "mapping.init_async applies to asynchronous mapping only: set mapping.asynchronous=true with it, "
-            "or leave it false"
+            f"mapping.init_wait={cfg.mapping.init_wait} applies to asynchronous mapping only: set "
+            "mapping.asynchronous=true with it, or leave it at window"
         )
     if cfg.dataset.type == "synthetic":
         check_image_size(cfg.dataset.width, cfg.dataset.height, cfg, native=True)

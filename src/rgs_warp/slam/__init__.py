@@ -8,7 +8,7 @@ test accepts it as a keyframe (``KeyframeSelector``), dense matching -> triangul
 (``Maintainer``) run before the next frame (same thread, deterministic).  With
 ``mapping.asynchronous`` they run in a worker thread instead (``slam/worker.py``) while tracking goes
 on against the latest published version of the map; the initial window stays synchronous (with
-``mapping.init_async`` its first keyframe only).
+``mapping.init_wait`` its first keyframe's mapping or seeds only).
 
 ``method=baseline`` (the dense initialization baseline of supplement Table 2) makes one dense start
 at the first keyframe and grows the map by residual-driven densification inside the mapping
@@ -208,11 +208,13 @@ class SLAM:
                 self.publisher.publish(self.map)
             with self.publisher.read() as published:
                 result = self._process(rgb, depth, timestamp, T_init_WC, T_WC, published)
-        # the initial window is mapped before the next frame, as in sync mode (mapping.init_async: the first
-        # keyframe only)
-        waited = 1 if self.cfg.mapping.init_async else self._init_window_end
-        if result.index < waited or self.publisher.version == 0:
+        # the initial window is mapped before the next frame, as in sync mode (mapping.init_wait: the first
+        # keyframe's mapping, or its seeds, only)
+        wait = self.cfg.mapping.init_wait
+        if result.index < {"window": self._init_window_end, "first": 1, "seeds": 0}[wait]:
             self.worker.drain()
+        elif self.publisher.version == 0:  # nothing to track against yet
+            self._wait_for_first_version() if wait == "seeds" else self.worker.drain()
         self.worker.wait_until_fewer("keyframe", self.cfg.mapping.async_queue + 1)
         result.seconds = time.perf_counter() - t0  # with the waits: the caller's latency
         return result
@@ -375,11 +377,19 @@ class SLAM:
         n, w = self.cfg.mapping.min_iters, self.worker
         return w is not None and 0 < n <= done and (w.queued("keyframe") > 1 or w.hurry.is_set())
 
+    def _wait_for_first_version(self) -> None:
+        """``mapping.init_wait=seeds``: return once the worker has published the first keyframe's seeds (or
+        has no initial job left, or failed: raised)."""
+        while self.publisher.version == 0 and self.worker.queued("init") > 0:
+            self.worker.check()
+            time.sleep(0.001)
+        self.worker.check()
+
     def _later_keyframe_waits(self, done: int) -> bool:
         """Whether an initial keyframe's mapping ends after ``done`` iterations (``mapping.min_iters``): once it
         had that many and as many later keyframes wait for the worker as may wait before tracking does
-        (``mapping.async_queue``, at least one), or a checkpoint waits.  Only with ``mapping.init_async``:
-        otherwise tracking waits for the initial window's mappings and no later keyframe comes meanwhile."""
+        (``mapping.async_queue``, at least one), or a checkpoint waits.  Only with ``mapping.init_wait`` first or
+        seeds: otherwise tracking waits for the initial window's mappings and no later keyframe comes meanwhile."""
         n, w = self.cfg.mapping.min_iters, self.worker
         waiting = max(1, self.cfg.mapping.async_queue)
         return w is not None and 0 < n <= done and (w.queued("keyframe") >= waiting or w.hurry.is_set())
@@ -457,6 +467,8 @@ class SLAM:
         self.stats["seeding_s"] += time.perf_counter() - t0
         init = i < self._init_window_end
         early = -1 if init or self.publisher is None else cfg.mapping.publish_after
+        if init and self.publisher is not None and self.publisher.version == 0 and cfg.mapping.init_wait == "seeds":
+            early = 0  # the first keyframe's seeds, which tracking waits for
         if early == 0:
             self._publish()  # tracking sees the keyframe's surface before its window is mapped
         self._pause()
