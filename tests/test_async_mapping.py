@@ -431,3 +431,42 @@ def test_the_initial_window_is_mapped_beside_tracking_with_init_wait(device):
         errors[wait] = np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)
     print({k: np.round(v * 100, 2) for k, v in errors.items()})
     assert all(np.max(e) < 0.05 for e in errors.values()), errors
+
+
+@pytest.mark.slow
+def test_tracking_takes_the_device_between_a_keyframes_matching_and_seeding(device):
+    """A keyframe job gives tracking the device between its stages: a tracking turn asked for while the dense
+    matching runs is granted before the triangulation starts (a frame waits for one stage at most, not for
+    matching and seeding together)."""
+    from rgs_warp import SLAM, open_dataset
+
+    cfg = load_config([*OVERRIDES, "dataset.max_frames=2", "mapping.asynchronous=true", f"device={device}"])
+    ds = open_dataset(cfg, device=device)
+    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+    slam.process(ds[0].rgb, ds[0].depth, ds[0].timestamp)
+    order, match, triangulate, threads = [], slam.matcher.match, slam.triangulator.triangulate, []
+
+    def tracking_frame():
+        with slam.turns.tracking():
+            order.append("tracking")
+
+    def matching(*args, **kwargs):
+        m = match(*args, **kwargs)
+        order.append("match")
+        threads.append(threading.Thread(target=tracking_frame))
+        threads[-1].start()
+        deadline = time.monotonic() + 10.0
+        while slam.turns._tracking_waits == 0 and time.monotonic() < deadline:  # the frame waits for its turn
+            time.sleep(0.001)
+        return m
+
+    def triangulating(*args, **kwargs):
+        order.append("triangulate")
+        return triangulate(*args, **kwargs)
+
+    slam.matcher.match, slam.triangulator.triangulate = matching, triangulating
+    slam.process(ds[1].rgb, ds[1].depth, ds[1].timestamp)  # an initial keyframe: matched against frame 0
+    for t in threads:
+        t.join(10.0)
+    slam.finish()
+    assert order[:3] == ["match", "tracking", "triangulate"], order
