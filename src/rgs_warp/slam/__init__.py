@@ -409,8 +409,9 @@ class SLAM:
         return pause
 
     def _pause(self) -> None:
-        """A safe point of a mapping job: with asynchronous mapping, tracking may take the device."""
-        if self.turns is not None:
+        """A safe point of a mapping job: with asynchronous mapping, tracking may take the device (in the
+        worker's thread only: the monocular bootstrap seeds in tracking's own turn)."""
+        if self.turns is not None and self.worker.is_current():
             self.turns.pause()
 
     def _publish(self) -> None:

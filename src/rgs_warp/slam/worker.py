@@ -190,6 +190,10 @@ class MappingWorker:
         if check:
             self.check()
 
+    def is_current(self) -> bool:
+        """Whether the calling thread is the worker's."""
+        return threading.current_thread() is self._thread
+
     def check(self) -> None:
         if self._error is not None:
             raise RuntimeError(f"the mapping worker failed: {self._error!r}") from self._error
