@@ -79,7 +79,7 @@ def main(argv=None) -> int:
 
     print(
         f"{'run':<28} {'kf':>4} {'gaussians':>9} {'ATE cm':>7} {'kf ATE':>7} {'PSNR':>6} {'comp':>6} "
-        f"{'kf comp':>7} {'fps':>6} {'lost':>4}"
+        f"{'kf comp':>7} {'fps':>6} {'lost':>4} {'lag ms':>7}"
     )
     nan = float("nan")
     by_case: dict[str, list] = {}
@@ -93,7 +93,8 @@ def main(argv=None) -> int:
         print(
             f"{run_name:<28} {m['keyframes']:>4} {m['gaussians']:>9} {ate(m):>7.2f} {ate_kf(m):>7.2f} {psnr:>6.2f} "
             f"{ph.get('psnr_compensated_db', nan):>6.2f} {ph.get('keyframe_psnr_compensated_db') or nan:>7.2f} "
-            f"{m.get('fps') or nan:>6.2f} {(m.get('tracking') or {}).get('lost_frames', 0):>4}"
+            f"{m.get('fps') or nan:>6.2f} {(m.get('tracking') or {}).get('lost_frames', 0):>4} "
+            f"{(m.get('playback') or {}).get('lag_ms_last', nan):>7.0f}"  # dataset.playback_fps: the last frame's lag
         )
         by_case.setdefault(res["case"], []).append((ate(m), psnr))
     print(f"\n{'case':<24} {'runs':>4} {'ATE median':>10} {'ATE min':>8} {'ATE max':>8} {'PSNR mean':>9}")
