@@ -210,6 +210,8 @@ def test_timing_groups():
     assert "timing: live, offline" in help_text()
     with pytest.raises(ConfigError, match="applies to asynchronous mapping only"):
         load_config(["timing=live", "mapping.asynchronous=false", "mapping.init_wait=window"])
+    with pytest.raises(ConfigError, match="mapping.publish_after \\(0\\) applies to asynchronous mapping only"):
+        load_config(["mapping.publish_after=0"])
     with pytest.raises(ConfigError, match="mapping.init_wait=first applies to asynchronous mapping only"):
         load_config(["timing=live", "mapping.asynchronous=false", "mapping.min_iters=0"])
 

@@ -211,10 +211,11 @@ class SLAM:
         # the initial window is mapped before the next frame, as in sync mode (mapping.init_wait: the first
         # keyframe's mapping, or its seeds, only)
         wait = self.cfg.mapping.init_wait
-        if result.index < {"window": self._init_window_end, "first": 1, "seeds": 0}[wait]:
+        waited = {"window": self._init_window_end, "first": 1, "seeds": 0}[wait]
+        if wait == "seeds" and self.publisher.version == 0:
+            self._wait_for_first_version()
+        elif result.index < waited or self.publisher.version == 0:  # version 0: nothing to track against yet
             self.worker.drain()
-        elif self.publisher.version == 0:  # nothing to track against yet
-            self._wait_for_first_version() if wait == "seeds" else self.worker.drain()
         self.worker.wait_until_fewer("keyframe", self.cfg.mapping.async_queue + 1)
         result.seconds = time.perf_counter() - t0  # with the waits: the caller's latency
         return result
