@@ -103,14 +103,31 @@ def main(argv=None) -> int:
         p = np.array([v[1] for v in vals])
         print(f"{case:<24} {len(a):>4} {np.median(a):>10.2f} {a.min():>8.2f} {a.max():>8.2f} {np.nanmean(p):>9.2f}")
     with tarfile.open(out / "runs.tar.gz", "w:gz") as tar:
-        for _, _, run_name, _ in runs:
+        for _, r, run_name, _ in runs:
             for p in sorted((out / run_name / "runs").rglob("*")):
-                small = p.name in ("trajectory_topview.png", "trajectory.txt", "config.yaml")
+                small = p.name in ("trajectory_topview.png", "frame_scores.png", "trajectory.txt", "config.yaml")
                 if p.is_file() and (p.suffix in (".md", ".json", ".jsonl") or small):
                     tar.add(p, arcname=str(p.relative_to(out)))
+            if r == 0:  # what the map looks like: the run's last render | truth | error, as a small JPEG
+                _add_last_render(tar, out, run_name)
             if (out / f"{run_name}.out").is_file():
                 tar.add(out / f"{run_name}.out", arcname=f"{run_name}.out")
     return 0
+
+
+def _add_last_render(tar: tarfile.TarFile, out: Path, run_name: str) -> None:
+    """The run's last ``renders/*_render_gt_error.png`` (render | ground truth | error), at half
+    resolution as JPEG: the full PNGs of a batch exceed what a device call brings back."""
+    import cv2
+
+    renders = sorted((out / run_name / "runs").rglob("renders/*_render_gt_error.png"))
+    if not renders:
+        return
+    image = cv2.imread(str(renders[-1]))
+    small = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    path = out / f"{run_name}_{renders[-1].stem}.jpg"
+    cv2.imwrite(str(path), small, [cv2.IMWRITE_JPEG_QUALITY, 88])
+    tar.add(path, arcname=path.name)
 
 
 if __name__ == "__main__":
