@@ -203,7 +203,7 @@ def test_timing_groups():
     ``timing=offline``, the default, leaves the synchronous mode."""
     live = load_config(["timing=live", "mapping.init_iters=700"])
     assert live.mapping.asynchronous and live.mapping.min_iters == 15 and live.mapping.init_iters == 700
-    assert live.mapping.init_wait == "first" and live.mapping.async_queue == 2
+    assert live.mapping.init_wait == "first" and live.mapping.async_queue == 2 and live.mapping.publish_after == 15
     assert live.mapping.iters == load_config([]).mapping.iters
     assert load_config([]) == load_config(["timing=offline"])
     assert not load_config([]).mapping.asynchronous
@@ -213,7 +213,9 @@ def test_timing_groups():
     with pytest.raises(ConfigError, match="mapping.publish_after \\(0\\) applies to asynchronous mapping only"):
         load_config(["mapping.publish_after=0"])
     with pytest.raises(ConfigError, match="mapping.init_wait=first applies to asynchronous mapping only"):
-        load_config(["timing=live", "mapping.asynchronous=false", "mapping.min_iters=0"])
+        load_config(["timing=live", "mapping.asynchronous=false", "mapping.min_iters=0", "mapping.publish_after=-1"])
+    with pytest.raises(ConfigError, match="mapping.publish_after \\(15\\) applies to asynchronous mapping only"):
+        load_config(["timing=live", "mapping.asynchronous=false", "mapping.min_iters=0", "mapping.init_wait=window"])
 
 
 def test_a_saved_config_without_a_middle_section_is_another_versions_not_a_cut_copy(tmp_path):

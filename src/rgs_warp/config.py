@@ -348,7 +348,9 @@ class MappingConfig:
     # office: about 10 frames later); -1: only at the job's end.  The extra version costs the next tracked
     # frame its graphs' capture (a new map size).  0 on an H200, timing=live (perf.md, sessions 30-31, as
     # mapping.publish_seeds): the office at 30 Hz 0.35-0.40 cm against 0.39-0.43 and +0.5 dB compensated,
-    # pace kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs (the unmapped Kinect seeds)
+    # pace kept (3 runs each); 7-Scenes at 60 Hz 0.2-0.4 cm worse in three pairs (the unmapped Kinect seeds).
+    # 15 (timing=live; session 33, 3 runs each): the office 0.36-0.43 cm against 0.43-0.59 and 36.2-36.4 dB
+    # compensated against 34.9-36.2; 30: 0.40-0.44 cm; 7-Scenes with 15: 4.28-4.31 cm against 4.24-4.29
     publish_after: int = -1
     # asynchronous: what of the initial window tracking waits for before the next frame.  "window": every
     # initial keyframe's mapping, as in the synchronous mode; "first": the first keyframe's mapping only, the
