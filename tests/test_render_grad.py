@@ -267,3 +267,46 @@ def test_tile_stride_renders_and_differentiates_one_tile_in_two(device, problem,
     got = renderer.backward(*_image_grads(weights, device), pose_only=True)[1].numpy()
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7 * np.abs(expected).max())
     assert np.abs(expected).max() > 0
+
+
+def test_reused_tile_lists_render_a_nearby_pose_as_its_own_lists_do(device):
+    """``forward(lists="reuse")`` (the tracker's steps after a frame's first): the Gaussians of the kept
+    render's tile lists projected again at a nearby pose render and differentiate as a render with its
+    own lists there: the same at 0.3 mm and 0.02 deg away (no footprint changed its tiles), within the
+    footprints' 1/255 edges at 3 mm and 0.2 deg (more than a frame's Adam steps move: 0.2 % of the
+    pixels off, by < 0.01; pose gradient within 0.2 %), and unlike the kept render.  A reuse without a
+    kept render, or after another render built lists, is refused."""
+    from rgs_warp.geometry import pose_from_tq
+
+    cam = Camera(fx=120.0, fy=120.0, cx=63.5, cy=47.5, width=128, height=96)  # 8 x 6 tiles
+    rng = np.random.default_rng(5)
+    gmap = to_map(random_scene(rng, 300, T_WC, sh_degree=2), device)
+    weights = (rng.normal(size=(96, 128, 3)), rng.normal(size=(96, 128)), rng.normal(size=(96, 128)))
+
+    def render(renderer, T, lists, stride=1):
+        res = renderer.forward(gmap, cam, T, BACKGROUND, pose_jacobians=True, lists=lists, tile_stride=stride)
+        pose = renderer.backward(*_image_grads(weights, device), pose_only=True)[1].numpy().copy()
+        return res.color.numpy().copy(), res.depth.numpy().copy(), res.alpha.numpy().copy(), pose
+
+    renderer = Renderer(device)
+    with pytest.raises(ValueError, match="lists='keep'"):
+        renderer.forward(gmap, cam, T_WC, BACKGROUND, lists="reuse")
+    for mm, deg, atol, mean, rtol in ((0.3, 0.02, 1e-6, 1e-8, 1e-5), (3.0, 0.2, 1e-2, 2e-5, 2e-3)):
+        half = np.radians(deg / 2)
+        move = pose_from_tq(1e-3 * mm * np.array([1.0, -0.3, 0.3]), np.array([0.0, np.sin(half), 0.0, np.cos(half)]))
+        T_near = T_WC @ move
+        own = render(Renderer(device), T_near, "own")
+        kept = render(renderer, T_WC, "keep")
+        reused = render(renderer, T_near, "reuse")
+        assert np.abs(kept[0] - own[0]).max() > 0.02  # the move shows: a reuse that did not project again fails
+        assert np.abs(kept[3] - own[3]).max() > 0.05 * np.abs(own[3]).max()
+        for got, want in zip(reused[:3], own[:3], strict=True):
+            np.testing.assert_allclose(got, want, atol=atol)
+            assert np.abs(got - want).mean() < mean
+        np.testing.assert_allclose(reused[3], own[3], rtol=rtol, atol=rtol * np.abs(own[3]).max())
+    # the kept lists survive the reuse's tile skipping: a checkerboard step, then every tile again
+    render(renderer, T_near, "reuse", stride=2)
+    np.testing.assert_array_equal(render(renderer, T_near, "reuse")[0], reused[0])
+    renderer.forward(gmap, cam, T_WC, BACKGROUND)  # builds its own lists: the kept ones are gone
+    with pytest.raises(ValueError, match="lists='keep'"):
+        renderer.forward(gmap, cam, T_near, BACKGROUND, lists="reuse")
