@@ -764,11 +764,13 @@ def assert_same_steps(a, b, device, context=None) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("tile_stride", "direct_levels"), [(1, 0), (2, 0), (2, 2)])
-def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, direct_levels):
+@pytest.mark.parametrize(
+    ("tile_stride", "direct_levels", "tile_lists"), [(1, 0, "step"), (2, 0, "step"), (2, 2, "step"), (2, 2, "frame")]
+)
+def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, direct_levels, tile_lists):
     """The frame's steps replayed from captured graphs (the direct alignment's with ``direct_levels``, one
-    step, replayed with the step counter on the
-    device, and the last step; Warp's CPU graphs here, CUDA graphs on a GPU) give the eager loop's
+    step, replayed with the step counter on the device, and the last step; with ``tile_lists=frame`` the
+    first step, which keeps its tile lists, apart; Warp's CPU graphs here, CUDA graphs on a GPU) give the eager loop's
     poses bit for bit: through a capture (after one sizing step, put back), replays, a map of another
     size (captured anew) and the first map again (its graph kept), with every tile in each step and
     with the checkerboard.  Then the map's Gaussians grow in place until a replay overflows the
@@ -780,7 +782,7 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
     smaller = GaussianMap.from_numpy(*(arrays[k][: len(gmap) * 3 // 4] for k in names), device=device)
     # without the direct alignment, the supplement's 30 steps at 5e-3 (the default 10 at 1e-3 follow it)
     adam = {} if direct_levels else {"iters": 30, "lr": 5e-3}
-    cfg = TrackingConfig(tile_stride=tile_stride, direct_levels=direct_levels, **adam)
+    cfg = TrackingConfig(tile_stride=tile_stride, direct_levels=direct_levels, tile_lists=tile_lists, **adam)
     eager = Tracker(replace(cfg, graph="off"), cam, device)
     graphed = Tracker(replace(cfg, graph="on"), cam, device)
     assert not eager.use_graph and graphed.use_graph
