@@ -36,6 +36,7 @@ from rgs_warp.kernels.projection import (
     pad_intersection_keys,
     project_gaussians,
     project_gaussians_backward,
+    rekey_intersections,
     skip_tiles,
     tile_ranges_from_keys,
 )
@@ -320,11 +321,12 @@ class Renderer:
         ``lists``: the tiles' depth-sorted Gaussian lists.  "own": built for this render (projection,
         intersections, sort); "keep": the same, and kept; "reuse": those of the latest "keep" render of
         this map and camera (no render that built lists since), with the Gaussians they hold projected
-        again at ``T_WC``: no intersections, no sort (the tracker's steps after a frame's first, whose
-        pose moves by millimetres).  A reused list keeps the kept render's depth order and tiles: a
-        Gaussian the new pose moves into another tile is missing there (it enters at the edge of its
-        footprint, where the compositing's 1/255 rule about skips it anyway); one that left a tile adds
-        nothing there.  The intersection count and capacity stay the kept render's.
+        again at ``T_WC`` and each tile's list sorted again by their new depths: no intersections (the
+        tracker's steps after a frame's first, whose pose moves by millimetres).  A reused list keeps
+        the kept render's tiles: a Gaussian the new pose moves into another tile is missing there (it
+        enters at the edge of its footprint, where the compositing's 1/255 rule about skips it anyway);
+        one that left a tile adds nothing there.  The intersection count and capacity stay the kept
+        render's.
         """
         if lists not in ("own", "keep", "reuse"):
             raise ValueError(f"lists={lists!r}: one of 'own', 'keep', 'reuse'")
@@ -446,6 +448,21 @@ class Renderer:
         self._upload_view(T_WC)
         if n > 0:
             self._project(gmap, n, cam, pose_jacobians, reuse_lists=True)
+            # each tile's list in the new pose's depth order: close splats of one surface swap with a move
+            # of a millimetre, and a list in the old order cost 7-Scenes 0.4 cm of ATE (perf.md, session 33)
+            capacity = self._isect_capacity
+            depth_key_bits, depth_shift = intersection_key_layout(self._ranges.shape[0])
+            near_bits = int(np.float32(max(self.near, 1e-4)).view(np.int32))
+            wp.launch(
+                rekey_intersections,
+                dim=capacity,
+                inputs=[self._depth_bits, self._ids, self._isect_count, capacity, depth_key_bits, depth_shift]
+                + [near_bits],
+                outputs=[self._keys],
+                device=self.device,
+                record_tape=False,
+            )
+            wp.utils.radix_sort_pairs(self._keys, self._ids, capacity)
         wp.copy(self._ranges, self._ranges_kept)
         if n > 0:
             self._skip_tiles(cam, tile_stride, tile_phase, tile_step)

@@ -459,6 +459,30 @@ def emit_intersections(
 
 
 @wp.kernel
+def rekey_intersections(
+    # in: the Gaussians' current depths (float bits), the number of intersections (1 element), the buffers'
+    # capacity, the key layout and the near plane's float bits (as emit_intersections)
+    depth_bits: wp.array(dtype=wp.int32),
+    ids: wp.array(dtype=wp.int32),
+    total: wp.array(dtype=wp.int32),
+    capacity: int,
+    depth_key_bits: int,
+    depth_shift: int,
+    near_bits: int,
+    # in/out: sorted keys whose depth part is replaced by the Gaussian's current depth (the tile part kept)
+    keys: wp.array(dtype=wp.uint32),
+):
+    """Reused tile lists (``Renderer.forward``'s lists="reuse"): each intersection's key gets its Gaussian's
+    depth at the new pose, so that sorting again orders every tile's list by it (the tile is the key's
+    major part: the runs of the tiles stay where they are)."""
+    j = wp.tid()
+    if j >= wp.min(total[0], capacity):
+        return
+    tile_part = (keys[j] >> wp.uint32(depth_key_bits)) << wp.uint32(depth_key_bits)
+    keys[j] = tile_part | depth_key(depth_bits[ids[j]], near_bits, depth_shift, depth_key_bits)
+
+
+@wp.kernel
 def pad_intersection_keys(
     # in: number of intersections (1 element), the tile id past the last tile, the keys' depth bits
     total: wp.array(dtype=wp.int32),
