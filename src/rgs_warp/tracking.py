@@ -488,8 +488,8 @@ class Tracker:
     def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> str:
         """The frame's direct alignment (``_align``, with ``tracking.direct_levels``) and ``iters`` Adam
         steps, launched one by one, or replayed from captured graphs: the alignment's and one of each
-        run of alike steps (``_step_plan``: the first step, which builds the tile lists, the steps on part
-        of the tiles that reuse them, replayed ``iters - 2`` times, and the last step on all tiles), each
+        run of alike steps (``_step_plan``: the steps on part of the tiles, replayed ``iters - 1`` times, and
+        the last step on all tiles; with ``reuse_lists`` the first step, which keeps its tile lists, apart), each
         reading its step from a device counter (``tk.advance_step``), so a capture records about 15
         launches, not ``iters`` x 15 (a capture of every step made the frame after each new map size the
         slowest of a run: 35 against 13 ms at 640x360 on an H100).
@@ -497,7 +497,7 @@ class Tracker:
         A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
         is kept by those (``_graph_key``).  At a new key one step runs eagerly on every tile (its render
         sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` (render.py) x
-        the intersections that render needed are reserved, and the alignment and the two steps are
+        the intersections that render needed are reserved, and the alignment and the steps are
         captured and replayed:
         the frame after a keyframe costs one eager step and two captures more than a replayed frame
         (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
