@@ -408,16 +408,16 @@ def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
 
 def test_steps_that_reuse_the_frames_tile_lists_track_as_steps_that_build_their_own(device, scene):
     """``tracking.tile_lists=frame``: the frame's first Adam step builds the tiles' Gaussian lists (after the
-    direct alignment's own render) and the others reuse them, sorted again by the new depths; from four
+    direct alignment's own render) and the others reuse them, sorted again by the new depths; from two
     perturbed starts (2 cm, 2 deg) the poses are those of steps that each build their lists, within 0.05 mm
-    (in the kept depth order they were up to 0.4 mm apart).  auto: frame in RGB-D, step in mono."""
+    (in the kept depth order these two starts ended 0.30 and 0.39 mm apart).  auto: frame in RGB-D, step in mono."""
     rgb, depth = scene["observe"](2)
     T_true = scene["poses"][2]
     frame = Tracker(TrackingConfig(tile_lists="frame"), scene["camera"], device)
     step = Tracker(TrackingConfig(tile_lists="step"), scene["camera"], device)
     assert Tracker(TrackingConfig(tile_lists="auto"), scene["camera"], device).reuse_lists
     assert not Tracker(TrackingConfig(tile_lists="auto"), scene["camera"], device, mode="mono").reuse_lists
-    for seed in range(4):
+    for seed in (0, 3):
         T0 = perturbed(T_true, 0.02, 2.0, seed)
         built = [t.renderer._lists_version for t in (frame, step)]
         a, b = frame.track(rgb, depth, scene["map"], T0), step.track(rgb, depth, scene["map"], T0)
