@@ -268,3 +268,51 @@ def test_overflow_is_counted_and_view_keys_prevent_it(device):
     result = fitted.forward(gmap, CAMERA, T_WC, BACKGROUND, fit=True)
     assert not result.overflowed and result.intersection_capacity >= result.num_intersections > 2 * few
     _check_images(result, ref)
+
+
+def test_rekey_intersections_gives_each_key_its_gaussians_current_depth(device):
+    """``rekey_intersections`` (reused tile lists): the first ``total`` keys keep their tile part and take
+    the quantized depth of their Gaussian's current depth, as a NumPy re-implementation of the key layout
+    computes it (depths below the near plane clamp to 0, past the last octave to the top); keys past the
+    total (the padding) are untouched; after the radix sort each tile's run holds the same Gaussians."""
+    from rgs_warp.kernels.projection import rekey_intersections
+
+    depth_key_bits, shift = intersection_key_layout(60)
+    near = np.float32(0.01)
+    near_bits = int(near.view(np.int32))
+    rng = np.random.default_rng(2)
+    n, total, capacity = 30, 50, 64
+    depths = np.exp(rng.uniform(np.log(0.02), np.log(50.0), n)).astype(np.float32)
+    depths[0], depths[1] = 0.005, 3.0e9  # below the near plane; past the keys' octaves
+    ids = rng.integers(0, n, capacity).astype(np.int32)
+    tiles = np.sort(rng.integers(0, 60, capacity)).astype(np.uint32)
+    tiles[total:] = 60  # the padding's tile
+    keys = (tiles << np.uint32(depth_key_bits)) | rng.integers(0, 2**depth_key_bits, capacity).astype(np.uint32)
+    keys[total:] = np.uint32(60) << np.uint32(depth_key_bits)
+    keys_wp = wp.array(keys, dtype=wp.uint32, device=device)
+    ids_wp = wp.array(ids, dtype=wp.int32, device=device)
+    wp.launch(
+        rekey_intersections,
+        dim=capacity,
+        inputs=[wp.array(depths.view(np.int32), dtype=wp.int32, device=device), ids_wp]
+        + [wp.array([total], dtype=wp.int32, device=device), capacity, depth_key_bits, shift, near_bits],
+        outputs=[keys_wp],
+        device=device,
+    )
+    q = (depths.view(np.int32).astype(np.int64) - near_bits) >> shift
+    depth_part = np.clip(q, 0, 2**depth_key_bits - 1).astype(np.uint32)
+    expected = keys.copy()
+    expected[:total] = (tiles[:total] << np.uint32(depth_key_bits)) | depth_part[ids[:total]]
+    got = keys_wp.numpy()
+    np.testing.assert_array_equal(got, expected)
+    assert depth_part[0] == 0 and depth_part[1] == 2**depth_key_bits - 1
+    assert (got[:total] != keys[:total]).any()  # the depth parts did change
+    # sorted again: every tile's run holds the same Gaussians, now in their depth order
+    keys2 = wp.array(np.concatenate([got, got]), dtype=wp.uint32, device=device)  # the sort's scratch half
+    ids2 = wp.array(np.concatenate([ids, ids]), dtype=wp.int32, device=device)
+    wp.utils.radix_sort_pairs(keys2, ids2, capacity)
+    sorted_keys, sorted_ids = keys2.numpy()[:capacity], ids2.numpy()[:capacity]
+    for t in np.unique(tiles):
+        run = (sorted_keys >> np.uint32(depth_key_bits)) == t
+        assert sorted(sorted_ids[run]) == sorted(ids[tiles == t])
+        assert (np.diff(sorted_keys[run].astype(np.int64)) >= 0).all()

@@ -378,9 +378,7 @@ class Renderer:
         self._ranges.zero_()
         if n > 0:
             num_tiles = self._ranges.shape[0]
-            depth_key_bits, depth_shift = intersection_key_layout(num_tiles)
-            # the keys count depth from the near plane's float bits (from 0.1 mm for a plane at 0)
-            near_bits = int(np.float32(max(self.near, 1e-4)).view(np.int32))
+            depth_key_bits, depth_shift, near_bits = self._key_layout()
             wp.launch(
                 emit_intersections,
                 dim=n,
@@ -451,13 +449,10 @@ class Renderer:
             # each tile's list in the new pose's depth order: close splats of one surface swap with a move
             # of a millimetre, and a list in the old order cost 7-Scenes 0.4 cm of ATE (perf.md, session 33)
             capacity = self._isect_capacity
-            depth_key_bits, depth_shift = intersection_key_layout(self._ranges.shape[0])
-            near_bits = int(np.float32(max(self.near, 1e-4)).view(np.int32))
             wp.launch(
                 rekey_intersections,
                 dim=capacity,
-                inputs=[self._depth_bits, self._ids, self._isect_count, capacity, depth_key_bits, depth_shift]
-                + [near_bits],
+                inputs=[self._depth_bits, self._ids, self._isect_count, capacity, *self._key_layout()],
                 outputs=[self._keys],
                 device=self.device,
                 record_tape=False,
@@ -467,6 +462,13 @@ class Renderer:
         if n > 0:
             self._skip_tiles(cam, tile_stride, tile_phase, tile_step)
         return self._raster_forward(gmap, n, cam, background, tape, pose_jacobians, self._isect_capacity, True)
+
+    def _key_layout(self) -> tuple[int, int, int]:
+        """The intersection keys' (depth_key_bits, depth_shift) for this image's tiles
+        (``intersection_key_layout``) and the near plane's float bits, which the keys count depth from
+        (from 0.1 mm for a plane at 0)."""
+        depth_key_bits, depth_shift = intersection_key_layout(self._ranges.shape[0])
+        return depth_key_bits, depth_shift, int(np.float32(max(self.near, 1e-4)).view(np.int32))
 
     def _skip_tiles(self, cam: CameraParams, tile_stride: int, tile_phase: int, tile_step) -> None:
         if tile_stride > 1:
