@@ -406,45 +406,6 @@ def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
         assert abs(b.gain - 1) < 0.01 and abs(b.bias) < 0.01
 
 
-def test_steps_that_reuse_the_frames_tile_lists_track_as_steps_that_build_their_own(device, scene):
-    """``tracking.tile_lists=frame``: the frame's first Adam step builds the tiles' Gaussian lists (after the
-    direct alignment's own render) and the others reuse them, sorted again by the new depths; from two
-    perturbed starts (2 cm, 2 deg) the poses are those of steps that each build their lists, within 0.05 mm
-    (in the kept depth order these two starts ended 0.30 and 0.39 mm apart).  auto: frame in RGB-D, step in mono."""
-    rgb, depth = scene["observe"](2)
-    T_true = scene["poses"][2]
-    frame = Tracker(TrackingConfig(tile_lists="frame"), scene["camera"], device)
-    step = Tracker(TrackingConfig(tile_lists="step"), scene["camera"], device)
-    assert Tracker(TrackingConfig(tile_lists="auto"), scene["camera"], device).reuse_lists
-    assert not Tracker(TrackingConfig(tile_lists="auto"), scene["camera"], device, mode="mono").reuse_lists
-    for seed in (0, 3):
-        T0 = perturbed(T_true, 0.02, 2.0, seed)
-        built = [t.renderer._lists_version for t in (frame, step)]
-        a, b = frame.track(rgb, depth, scene["map"], T0), step.track(rgb, depth, scene["map"], T0)
-        # lists built: the alignment's render and the first step's, against every step's
-        assert frame.renderer._lists_version - built[0] == 2
-        assert step.renderer._lists_version - built[1] == 1 + step.cfg.iters
-        dt, dr = pose_error(a.T_WC, b.T_WC)
-        assert dt < 5e-5 and dr < 2e-3 and not a.lost, (dt, dr, a.reason)
-        assert pose_error(a.T_WC, T_true)[0] < 1e-3
-        assert a.valid_ratio == pytest.approx(b.valid_ratio, abs=1e-3) and a.loss == pytest.approx(b.loss, rel=0.05)
-
-
-def test_reused_tile_lists_take_the_new_depth_order_of_a_surfaces_splats(device, scene):
-    """The room's walls are covered by overlapping splats at nearly equal depths, whose order a move of 1 mm
-    changes: a render with reused lists at such a pose matches one with its own lists (max 3.6e-4 here;
-    7.4e-3 when the lists kept the first render's order), well below what the move changes (1.1e-2)."""
-    cam, gmap, T = scene["camera"], scene["map"], scene["poses"][2]
-    T_moved = perturbed(T, 1e-3, 0.05, 3)
-    kept = Renderer(device)
-    kept.forward(gmap, cam, T, pose_jacobians=True, lists="keep")
-    reused = kept.forward(gmap, cam, T_moved, pose_jacobians=True, lists="reuse").color.numpy().copy()
-    own = Renderer(device).forward(gmap, cam, T_moved, pose_jacobians=True).color.numpy()
-    before = Renderer(device).forward(gmap, cam, T, pose_jacobians=True).color.numpy()
-    assert np.abs(own - before).max() > 5e-3
-    assert np.abs(reused - own).max() < 1e-3
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["affine", "gain"])
 def test_brightness_model_absorbs_an_exposure_change(device, scene, model):
@@ -776,13 +737,11 @@ def assert_same_steps(a, b, device, context=None) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    ("tile_stride", "direct_levels", "tile_lists"), [(1, 0, "step"), (2, 0, "step"), (2, 2, "step"), (2, 2, "frame")]
-)
-def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, direct_levels, tile_lists):
+@pytest.mark.parametrize(("tile_stride", "direct_levels"), [(1, 0), (2, 0), (2, 2)])
+def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, direct_levels):
     """The frame's steps replayed from captured graphs (the direct alignment's with ``direct_levels``, one
-    step, replayed with the step counter on the device, and the last step; with ``tile_lists=frame`` the
-    first step, which keeps its tile lists, apart; Warp's CPU graphs here, CUDA graphs on a GPU) give the eager loop's
+    step, replayed with the step counter on the
+    device, and the last step; Warp's CPU graphs here, CUDA graphs on a GPU) give the eager loop's
     poses bit for bit: through a capture (after one sizing step, put back), replays, a map of another
     size (captured anew) and the first map again (its graph kept), with every tile in each step and
     with the checkerboard.  Then the map's Gaussians grow in place until a replay overflows the
@@ -794,7 +753,7 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
     smaller = GaussianMap.from_numpy(*(arrays[k][: len(gmap) * 3 // 4] for k in names), device=device)
     # without the direct alignment, the supplement's 30 steps at 5e-3 (the default 10 at 1e-3 follow it)
     adam = {} if direct_levels else {"iters": 30, "lr": 5e-3}
-    cfg = TrackingConfig(tile_stride=tile_stride, direct_levels=direct_levels, tile_lists=tile_lists, **adam)
+    cfg = TrackingConfig(tile_stride=tile_stride, direct_levels=direct_levels, **adam)
     eager = Tracker(replace(cfg, graph="off"), cam, device)
     graphed = Tracker(replace(cfg, graph="on"), cam, device)
     assert not eager.use_graph and graphed.use_graph

@@ -44,7 +44,6 @@ ITERS = 30
 WARMUP = 5
 PROFILE_ITERS = 10
 STEPS = ("forward_ms", "forward_backward_ms", "forward_pose_backward_ms")
-REUSED_STEP = "forward_pose_backward_reused_lists_ms"  # rgs_warp only: Renderer.forward(lists="reuse")
 
 
 def room_scene(n: int, seed: int = 0) -> dict:
@@ -148,16 +147,7 @@ def bench_rgs(scene: dict, grads_np: tuple, device) -> dict:
         renderer.forward(gmap, CAMERA, T, pose_jacobians=True)
         renderer.backward(g_color, g_depth, pose_only=True)
 
-    def fwd_pose_reused():
-        # the tracker's steps after a frame's first (tracking.tile_lists=frame): the kept tile lists reused
-        try:
-            renderer.forward(gmap, CAMERA, T, pose_jacobians=True, lists="reuse")
-        except ValueError:  # another step built lists since: keep this one's, untimed in the median
-            renderer.forward(gmap, CAMERA, T, pose_jacobians=True, lists="keep")
-        renderer.backward(g_color, g_depth, pose_only=True)
-
     steps = dict(zip(STEPS, (fwd, fwd_bwd, fwd_pose), strict=True))
-    steps[REUSED_STEP] = fwd_pose_reused
     out = {"end_to_end": {k: median_ms(step, timed) for k, step in steps.items()}}
     if device.is_cuda:
         out["gpu"], out["profile_ms"] = {}, {}

@@ -137,15 +137,6 @@ class TrackingConfig:
     # office 28.8 against 37.2 ms, 7-Scenes 14.7 against 17.7 ms, the same ATE (office 0.39-0.40 against
     # 0.40-0.42 cm over 3 seeds) and PSNR; 3 gains little more (experiments/results/perf.md)
     tile_stride: int = 0
-    # the tiles' depth-sorted Gaussian lists of the Adam steps: "frame": built by the frame's first step and
-    # reused by the others, which project the Gaussians they hold again and sort each tile's list by their
-    # new depths (no intersections: Renderer.forward's lists="reuse"; the same render up to the 1/255 edges
-    # of footprints that moved into another tile); "step": built by every step; auto: frame in rgbd (after
-    # the direct alignment the steps move the pose by about a millimetre), step in mono (whose steps may
-    # move it by centimetres: the motion check's test then found the collapsed translation less well).
-    # H200 (perf.md, session 33), lists in the kept depth order: 7-Scenes' tracking 4.9 against 7.0 ms of
-    # GPU time a frame on the grown map, but ATE 4.62-4.82 against 4.26-4.29 cm live (3 runs each)
-    tile_lists: str = "step"
     # Direct alignment before the Adam steps (kernels/direct.py): Gauss-Newton of the frame against one
     # render of the map at the start pose, on an image pyramid of direct_levels levels (coarse to fine,
     # the finest at the tracking resolution), direct_iters steps a level, for the twist and the affine
@@ -653,7 +644,6 @@ CHOICES = {
     "tracking.motion_check": ("auto", "on", "off"),
     "tracking.relocalize": ("auto", "on", "off"),
     "tracking.graph": ("auto", "on", "off"),
-    "tracking.tile_lists": ("auto", "frame", "step"),
     "mapping.graph": ("auto", "on", "off"),
     "tracking.colour_per_opacity": ("auto", "on", "off"),
     "mapping.init_wait": ("window", "first", "seeds"),

@@ -36,7 +36,6 @@ from rgs_warp.kernels.projection import (
     pad_intersection_keys,
     project_gaussians,
     project_gaussians_backward,
-    rekey_intersections,
     skip_tiles,
     tile_ranges_from_keys,
 )
@@ -151,8 +150,6 @@ class Renderer:
         self.pose_grad = wp.zeros(6, dtype=wp.float32, device=self.device)
         self._no_step = wp.zeros(1, dtype=wp.int32, device=self.device)  # forward's tile_step when not given
         self._last = None
-        self._lists_version = 0  # counts the renders that built tile lists (forward's lists="own" / "keep")
-        self._kept_lists = None  # what a lists="reuse" render needs to find: (that count, buffers, n, camera)
         # counts the reallocations of the buffers a render reads and writes: a captured graph holds
         # their addresses, so one captured before a reallocation must not be replayed after it
         self.buffers_version = 0
@@ -272,7 +269,6 @@ class Renderer:
         self._n_contrib = wp.zeros(shape, dtype=wp.int32, **kw)
         tiles = ((camera.width + TILE_SIZE - 1) // TILE_SIZE) * ((camera.height + TILE_SIZE - 1) // TILE_SIZE)
         self._ranges = wp.zeros((tiles, 2), dtype=wp.int32, **kw)
-        self._ranges_kept = wp.zeros((tiles, 2), dtype=wp.int32, **kw)  # forward(lists="keep"), before skip_tiles
         self._zero_depth = wp.zeros(shape, dtype=wp.float32, **kw)
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, **kw)
         self._image_shape = shape
@@ -291,7 +287,6 @@ class Renderer:
         tile_phase: int = 0,
         tile_step: wp.array | None = None,
         fit: bool = False,
-        lists: str = "own",
     ) -> RenderResult:
         """Render ``gmap`` seen from camera-to-world pose ``T_WC`` (4x4 NumPy, or a 1-element
         ``wp.array`` of ``wp.mat44`` on the device, e.g. a pose the tracker updates on the GPU).
@@ -317,30 +312,20 @@ class Renderer:
         ``fit``: size the intersection buffers by this render's own count (it waits for the projection)
         rather than by the previous render's, for a view unlike the one before it (after a view that saw
         little of the map, the previous count would drop intersections); ignored inside a capture.
-
-        ``lists``: the tiles' depth-sorted Gaussian lists.  "own": built for this render (projection,
-        intersections, sort); "keep": the same, and kept; "reuse": those of the latest "keep" render of
-        this map and camera (no render that built lists since), with the Gaussians they hold projected
-        again at ``T_WC`` and each tile's list sorted again by their new depths: no intersections (the
-        tracker's steps after a frame's first, whose pose moves by millimetres).  A reused list keeps
-        the kept render's tiles: a Gaussian the new pose moves into another tile is missing there (it
-        enters at the edge of its footprint, where the compositing's 1/255 rule about skips it anyway);
-        one that left a tile adds nothing there.  The intersection count and capacity stay the kept
-        render's.
         """
-        if lists not in ("own", "keep", "reuse"):
-            raise ValueError(f"lists={lists!r}: one of 'own', 'keep', 'reuse'")
         dev = self.device
         n = len(gmap)
         self._ensure_gaussians(gmap.capacity, gmap.num_sh)
         self._ensure_image(camera)
         cam = camera_params(camera, self.near, FRUSTUM_MARGIN)
-        if lists == "reuse":
-            return self._forward_reusing_lists(
-                gmap, n, camera, cam, T_WC, background, tape, bool(pose_jacobians), tile_stride, tile_phase, tile_step
-            )
-        self._lists_version += 1
-        self._upload_view(T_WC)
+        if isinstance(T_WC, wp.array):
+            wp.launch(invert_rigid, dim=1, inputs=[T_WC], outputs=[self._view], device=dev, record_tape=False)
+        else:
+            if self._count_event is not None:
+                # the previous render's upload from this pinned buffer must have happened
+                wp.synchronize_event(self._count_event)
+            self._view_host.numpy()[0] = invert_pose(np.asarray(T_WC, dtype=np.float64))
+            wp.copy(self._view, self._view_host)
 
         capturing = dev.is_capturing  # a CUDA graph, or Warp's CPU graph
         # Capacity from the previous render's count (finished long ago in a loop: no stall), unless
@@ -378,7 +363,9 @@ class Renderer:
         self._ranges.zero_()
         if n > 0:
             num_tiles = self._ranges.shape[0]
-            depth_key_bits, depth_shift, near_bits = self._key_layout()
+            depth_key_bits, depth_shift = intersection_key_layout(num_tiles)
+            # the keys count depth from the near plane's float bits (from 0.1 mm for a plane at 0)
+            near_bits = int(np.float32(max(self.near, 1e-4)).view(np.int32))
             wp.launch(
                 emit_intersections,
                 dim=n,
@@ -416,90 +403,24 @@ class Renderer:
                 device=dev,
                 record_tape=False,
             )
-        if lists == "keep":
-            wp.copy(self._ranges_kept, self._ranges)
-            self._kept_lists = (self._lists_version, self.buffers_version, n, camera)
-        if n > 0:
-            self._skip_tiles(cam, tile_stride, tile_phase, tile_step)
-        return self._raster_forward(gmap, n, cam, background, tape, bool(pose_jacobians), capacity, False)
+            if tile_stride > 1:
+                wp.launch(
+                    skip_tiles,
+                    dim=num_tiles,
+                    inputs=[
+                        cam.tiles_x,
+                        int(tile_stride),
+                        int(tile_phase),
+                        self._no_step if tile_step is None else tile_step,
+                    ],
+                    outputs=[self._ranges],
+                    device=dev,
+                    record_tape=False,
+                )
 
-    def _forward_reusing_lists(
-        self,
-        gmap: GaussianMap,
-        n: int,
-        camera: Camera,
-        cam: CameraParams,
-        T_WC,
-        background,
-        tape,
-        pose_jacobians: bool,
-        tile_stride: int,
-        tile_phase: int,
-        tile_step,
-    ) -> RenderResult:
-        """``forward(lists="reuse")``: the kept render's tile lists, its Gaussians projected at ``T_WC``."""
-        if self._kept_lists != (self._lists_version, self.buffers_version, n, camera):
-            raise ValueError(
-                "forward(lists='reuse') needs the tile lists of a render of this map and camera with "
-                "lists='keep', and no render that built lists (or a reallocation) since"
-            )
-        self._upload_view(T_WC)
-        if n > 0:
-            self._project(gmap, n, cam, pose_jacobians, reuse_lists=True)
-            # each tile's list in the new pose's depth order: close splats of one surface swap with a move
-            # of a millimetre, and a list in the old order cost 7-Scenes 0.4 cm of ATE (perf.md, session 33)
-            capacity = self._isect_capacity
-            wp.launch(
-                rekey_intersections,
-                dim=capacity,
-                inputs=[self._depth_bits, self._ids, self._isect_count, capacity, *self._key_layout()],
-                outputs=[self._keys],
-                device=self.device,
-                record_tape=False,
-            )
-            wp.utils.radix_sort_pairs(self._keys, self._ids, capacity)
-        wp.copy(self._ranges, self._ranges_kept)
-        if n > 0:
-            self._skip_tiles(cam, tile_stride, tile_phase, tile_step)
-        return self._raster_forward(gmap, n, cam, background, tape, pose_jacobians, self._isect_capacity, True)
-
-    def _key_layout(self) -> tuple[int, int, int]:
-        """The intersection keys' (depth_key_bits, depth_shift) for this image's tiles
-        (``intersection_key_layout``) and the near plane's float bits, which the keys count depth from
-        (from 0.1 mm for a plane at 0)."""
-        depth_key_bits, depth_shift = intersection_key_layout(self._ranges.shape[0])
-        return depth_key_bits, depth_shift, int(np.float32(max(self.near, 1e-4)).view(np.int32))
-
-    def _skip_tiles(self, cam: CameraParams, tile_stride: int, tile_phase: int, tile_step) -> None:
-        if tile_stride > 1:
-            wp.launch(
-                skip_tiles,
-                dim=self._ranges.shape[0],
-                inputs=[
-                    cam.tiles_x,
-                    int(tile_stride),
-                    int(tile_phase),
-                    self._no_step if tile_step is None else tile_step,
-                ],
-                outputs=[self._ranges],
-                device=self.device,
-                record_tape=False,
-            )
-
-    def _raster_forward(
-        self,
-        gmap: GaussianMap,
-        n: int,
-        cam: CameraParams,
-        background,
-        tape,
-        pose_jacobians: bool,
-        capacity: int,
-        reused: bool,
-    ) -> RenderResult:
         bg = wp.vec3(*[float(c) for c in background])
         self._launch_raster(cam, bg, backward=False)
-        self._last = (gmap, n, cam, bg, pose_jacobians, reused)
+        self._last = (gmap, n, cam, bg, bool(pose_jacobians))
         result = RenderResult(
             self._out_color,
             self._out_depth,
@@ -523,20 +444,7 @@ class Renderer:
             tape.record_func(backward=self._tape_backward, arrays=arrays)
         return result
 
-    def _upload_view(self, T_WC) -> None:
-        """The camera-from-world matrix of ``T_WC`` (4x4 NumPy, or a device ``wp.mat44`` array) into ``_view``."""
-        if isinstance(T_WC, wp.array):
-            wp.launch(invert_rigid, dim=1, inputs=[T_WC], outputs=[self._view], device=self.device, record_tape=False)
-        else:
-            if self._count_event is not None:
-                # the previous render's upload from this pinned buffer must have happened
-                wp.synchronize_event(self._count_event)
-            self._view_host.numpy()[0] = invert_pose(np.asarray(T_WC, dtype=np.float64))
-            wp.copy(self._view, self._view_host)
-
-    def _project(
-        self, gmap: GaussianMap, n: int, cam: CameraParams, pose_jacobians: bool, reuse_lists: bool = False
-    ) -> None:
+    def _project(self, gmap: GaussianMap, n: int, cam: CameraParams, pose_jacobians: bool) -> None:
         # 128 bytes per Gaussian, so only renderers that run the pose-only backward hold them
         if pose_jacobians and self._pose_jac.shape[0] < self._gaussian_capacity:
             self._pose_jac = wp.zeros(self._gaussian_capacity, dtype=vec32, device=self.device)
@@ -545,7 +453,7 @@ class Renderer:
             project_gaussians,
             dim=n,
             inputs=[gmap.means, gmap.rotations, gmap.log_scales, gmap.opacity_logits, gmap.sh, gmap.num_sh]
-            + [self._view, cam, int(pose_jacobians), int(reuse_lists)],
+            + [self._view, cam, int(pose_jacobians)],
             outputs=[self._xyod, self._depth, self._conic, self._color, self._radii, self._touched, self._pose_jac],
             device=self.device,
             record_tape=False,
@@ -608,7 +516,7 @@ class Renderer:
         """
         if self._last is None:
             raise RuntimeError("backward() needs a forward() first")
-        gmap, n, cam, bg, have_pose_jac, reused = self._last
+        gmap, n, cam, bg, have_pose_jac = self._last
         with_pose = with_pose or pose_only
         pose_grad = self.pose_grad if with_pose else None
         if with_pose and not accumulate:
@@ -623,8 +531,8 @@ class Renderer:
         ]
         if pose_only and self.tiled:
             if not have_pose_jac:
-                self._project(gmap, n, cam, pose_jacobians=True, reuse_lists=reused)
-                self._last = (gmap, n, cam, bg, True, reused)
+                self._project(gmap, n, cam, pose_jacobians=True)
+                self._last = (gmap, n, cam, bg, True)
             self._launch_raster(cam, bg, backward=True, grads=image_grads, pose_only=True)
             return grads, self.pose_grad
         self._grad2d.zero_()

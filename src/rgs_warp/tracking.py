@@ -151,8 +151,6 @@ class Tracker:
         # auto: a checkerboard of tiles in RGB-D (measured: the same ATE, 17-23 % faster), every tile in
         # mono, whose steps only the image constrains (a CPU test at 96x54 drifts 2.8 mm against 2 mm)
         self.tile_stride = cfg.tile_stride or (2 if mode == "rgbd" else 1)
-        # whether the frame's first step keeps its tile lists for the others (tracking.tile_lists)
-        self.reuse_lists = cfg.tile_lists == "frame" or (cfg.tile_lists == "auto" and mode == "rgbd")
         self.device = wp.get_device(device)
         self.camera = camera
         self.track_camera = camera.scaled(cfg.downscale)
@@ -487,9 +485,8 @@ class Tracker:
 
     def _steps(self, gmap: GaussianMap, use_depth: bool, T_init_WC: np.ndarray) -> str:
         """The frame's direct alignment (``_align``, with ``tracking.direct_levels``) and ``iters`` Adam
-        steps, launched one by one, or replayed from captured graphs: the alignment's and one of each
-        run of alike steps (``_step_plan``: the steps on part of the tiles, replayed ``iters - 1`` times, and
-        the last step on all tiles; with ``reuse_lists`` the first step, which keeps its tile lists, apart), each
+        steps, launched one by one, or replayed from captured graphs: the alignment's, one
+        of a step on part of the tiles, replayed ``iters - 1`` times, and one of the last step, each
         reading its step from a device counter (``tk.advance_step``), so a capture records about 15
         launches, not ``iters`` x 15 (a capture of every step made the frame after each new map size the
         slowest of a run: 35 against 13 ms at 640x360 on an H100).
@@ -497,7 +494,7 @@ class Tracker:
         A graph holds the addresses of the map's and the renderer's arrays and the map's size, so it
         is kept by those (``_graph_key``).  At a new key one step runs eagerly on every tile (its render
         sizes the renderer's buffers for this map and view), the pose is put back, ``GRAPH_HEADROOM`` (render.py) x
-        the intersections that render needed are reserved, and the alignment and the steps are
+        the intersections that render needed are reserved, and the alignment and the two steps are
         captured and replayed:
         the frame after a keyframe costs one eager step and two captures more than a replayed frame
         (6.6 ms at 1200x680 on an H100), not ``iters`` eager steps (which had made it the run's tracking
@@ -513,13 +510,13 @@ class Tracker:
         if entry is None:
             key, entry = self._capture(gmap, use_depth)
             kind = "captured"
-        align, graphs, capacity = entry
+        align, (*steps, last), capacity = entry
         self._step.zero_()
         if align is not None:
             wp.capture_launch(align)
-        for graph, (_, _, repeats) in zip(graphs, self._step_plan(), strict=True):
-            for _ in range(repeats):
-                wp.capture_launch(graph)
+        for _ in range(self.cfg.iters - 1):
+            wp.capture_launch(steps[0])
+        wp.capture_launch(last)
         self.graph_counts["replayed"] += 1
         if self.renderer.intersection_count() > capacity:
             self.graph_counts["overflowed"] += 1
@@ -531,7 +528,7 @@ class Tracker:
 
     def _capture(self, gmap: GaussianMap, use_depth: bool) -> tuple[tuple, tuple]:
         """Size the renderer with one eager step from the start pose (put back after it), then capture
-        the alignment and the steps (``_step_plan``) for ``gmap``: their key and entry, kept in ``_graphs``."""
+        the alignment and the two steps for ``gmap``: their key and entry, kept in ``_graphs``."""
         renderer = self.renderer
         self._iteration(gmap, 0, use_depth, tile_stride=1)  # sizes the buffers (may reallocate them)
         self._restart()
@@ -542,12 +539,12 @@ class Tracker:
             with wp.ScopedCapture(device=self.device) as capture:
                 self._align(gmap, use_depth)
             align = capture.graph
-        # one graph of each kind of step (_step_plan), each reading its row from the device counter:
-        # two or three captures of about 15 launches, not one of iters x 15
+        # one step on part of the tiles and the last step on all, each reading its row from the
+        # device counter: two captures of about 15 launches, not one of iters x 15
         graphs = []
-        for stride, lists, _ in self._step_plan():
+        for stride in ((self.tile_stride,) if self.cfg.iters > 1 else ()) + (1,):
             with wp.ScopedCapture(device=self.device) as capture:
-                self._iteration(gmap, 0, use_depth, tile_stride=stride, step=self._step, lists=lists)
+                self._iteration(gmap, 0, use_depth, tile_stride=stride, step=self._step)
             graphs.append(capture.graph)
         entry = (align, graphs, renderer.intersection_capacity)
         while len(self._graphs) >= GRAPHS_KEPT:
@@ -572,23 +569,9 @@ class Tracker:
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
         if self._levels and len(gmap) > 0:
             self._align(gmap, use_depth)
-        k = 0
-        for stride, lists, repeats in self._step_plan():
-            for _ in range(repeats):
-                self._iteration(gmap, k, use_depth, tile_stride=stride, lists=lists)
-                k += 1
+        for k in range(self.cfg.iters):
+            self._iteration(gmap, k, use_depth)
         self.graph_counts["eager"] += 1
-
-    def _step_plan(self) -> list[tuple[int, str, int]]:
-        """The frame's Adam steps as runs of alike steps: (tile stride, ``Renderer.forward``'s lists, how
-        many).  Every step but the last on part of the tiles (``tile_stride``), the last on all; with
-        ``reuse_lists`` (``tracking.tile_lists``) the first step keeps its tile lists and the others reuse them."""
-        iters, stride = self.cfg.iters, self.tile_stride
-        if iters == 1:
-            return [(1, "own", 1)]
-        if not self.reuse_lists:
-            return [(stride, "own", iters - 1), (1, "own", 1)]
-        return [(stride, "keep", 1)] + ([(stride, "reuse", iters - 2)] if iters > 2 else []) + [(1, "reuse", 1)]
 
     def _graph_key(self, gmap: GaussianMap, use_depth: bool) -> tuple:
         """What a captured graph of the steps depends on besides the arrays' contents: the map's size,
@@ -597,17 +580,11 @@ class Tracker:
         return (len(gmap), tuple(a.ptr for a in arrays), self.renderer.buffers_version, use_depth)
 
     def _render_and_brightness(
-        self,
-        gmap: GaussianMap,
-        k: int,
-        tile_stride: int = 1,
-        step: wp.array | None = None,
-        fit: bool = False,
-        lists: str = "own",
+        self, gmap: GaussianMap, k: int, tile_stride: int = 1, step: wp.array | None = None, fit: bool = False
     ):
         """Render the map at the current pose (one tile in ``tile_stride``, shifting with the step) and
         solve Eq. 3-4's (g, b) into history row ``k`` + ``step[0]`` (``step``: the device step counter of a
-        captured step, ``tk.advance_step``; None: a counter at 0); ``fit``, ``lists``: ``Renderer.forward``'s."""
+        captured step, ``tk.advance_step``; None: a counter at 0); ``fit``: ``Renderer.forward``'s."""
         cfg, dev = self.cfg, self.device
         step = self._no_step if step is None else step
         res = self.renderer.forward(
@@ -619,7 +596,6 @@ class Tracker:
             tile_phase=k,
             tile_step=step,
             fit=fit,
-            lists=lists,
         )
         self._last_render = res
         wp.launch_tiled(
@@ -640,20 +616,17 @@ class Tracker:
         return res
 
     def _iteration(
-        self,
-        gmap: GaussianMap,
-        k: int,
-        use_depth: bool,
-        tile_stride: int,
-        step: wp.array | None = None,
-        lists: str = "own",
+        self, gmap: GaussianMap, k: int, use_depth: bool, tile_stride: int | None = None, step: wp.array | None = None
     ) -> None:
-        """Step ``k`` (+ ``step[0]``, the device counter of a captured step, which it then advances) on one
-        tile in ``tile_stride``, with ``Renderer.forward``'s ``lists`` (``_step_plan``)."""
+        """Step ``k`` (+ ``step[0]``, the device counter of a captured step, which it then advances).
+        ``tile_stride``: default, every step but the last on a part of the tiles; the last renders all:
+        its coverage, loss and exposure are the frame's."""
         cfg = self.cfg
         dev = self.device
+        if tile_stride is None:
+            tile_stride = self.tile_stride if k < cfg.iters - 1 else 1
         counter = self._no_step if step is None else step
-        res = self._render_and_brightness(gmap, k, tile_stride, counter, lists=lists)
+        res = self._render_and_brightness(gmap, k, tile_stride, counter)
         wp.launch_tiled(
             tk.tracking_loss,
             dim=self._blocks,

@@ -265,11 +265,6 @@ def project_gaussians(
     cam: CameraParams,
     # in: whether to write pose_jac_out (for the pose-only backward)
     with_pose_jac: int,
-    # in: 1 when the tile lists of an earlier render of this map are reused (``Renderer.forward``'s
-    # lists="reuse"): only the Gaussians those lists hold (tiles_touched_out > 0, as that render left it)
-    # are projected again, their radii and tile counts kept, and one that the pose now puts behind the
-    # near plane or degenerate gets opacity 0 (the compositing then skips it)
-    reuse_lists: int,
     # out: screen-space Gaussians (xy_opacity_depth = u, v, opacity, z)
     xy_opacity_depth_out: wp.array(dtype=wp.vec4),
     depth_out: wp.array(dtype=float),
@@ -280,12 +275,8 @@ def project_gaussians(
     pose_jac_out: wp.array(dtype=vec32),
 ):
     i = wp.tid()
-    if reuse_lists != 0:
-        if tiles_touched_out[i] == 0:
-            return
-    else:
-        radii_out[i] = wp.vec2i(0, 0)
-        tiles_touched_out[i] = 0
+    radii_out[i] = wp.vec2i(0, 0)
+    tiles_touched_out[i] = 0
 
     mean = means[i]
     V = view[0]
@@ -293,8 +284,6 @@ def project_gaussians(
     X = W @ mean + t
     z = X[2]
     if z < cam.near:
-        if reuse_lists != 0:
-            xy_opacity_depth_out[i] = wp.vec4(0.0, 0.0, 0.0, z)
         return
     opacity = 1.0 / (1.0 + wp.exp(-opacity_logits[i]))
     if opacity < ALPHA_MIN:
@@ -312,8 +301,6 @@ def project_gaussians(
     c = cov2d[1, 1] + COV2D_DILATION
     det = a * c - b * b
     if det <= 0.0:
-        if reuse_lists != 0:
-            xy_opacity_depth_out[i] = wp.vec4(0.0, 0.0, 0.0, z)
         return
 
     # Axis-aligned half extent of the ellipse where opacity * G = 1/255: outside it the compositing
@@ -321,22 +308,19 @@ def project_gaussians(
     # (3 sigma in 3DGS; here sqrt(2 ln(255 o)) <= 3.33 sigma, exact for the 1/255 rule).  Of the tiles
     # that box covers, only those the ellipse itself reaches get the Gaussian (``tile_reached``): an
     # elongated or tilted one misses the box's corners.
+    extent2 = alpha_extent2(opacity)
+    extent = wp.sqrt(extent2)
+    rx = int(wp.ceil(wp.min(extent * wp.sqrt(a), 1.0e6)))
+    ry = int(wp.ceil(wp.min(extent * wp.sqrt(c), 1.0e6)))
     mean2d = wp.vec2(cam.fx * X[0] / z + cam.cx, cam.fy * X[1] / z + cam.cy)
+    radii = wp.vec2i(rx, ry)
+    rect = tile_rect(mean2d, radii, cam)
+    if (rect[1] - rect[0]) * (rect[3] - rect[2]) <= 0:
+        return
     conic = wp.vec3(c / det, -b / det, a / det)
-    if reuse_lists == 0:
-        extent2 = alpha_extent2(opacity)
-        extent = wp.sqrt(extent2)
-        rx = int(wp.ceil(wp.min(extent * wp.sqrt(a), 1.0e6)))
-        ry = int(wp.ceil(wp.min(extent * wp.sqrt(c), 1.0e6)))
-        radii = wp.vec2i(rx, ry)
-        rect = tile_rect(mean2d, radii, cam)
-        if (rect[1] - rect[0]) * (rect[3] - rect[2]) <= 0:
-            return
-        touched = tiles_reached(mean2d, conic, extent2, rect)
-        if touched == 0:
-            return
-        radii_out[i] = radii
-        tiles_touched_out[i] = touched
+    touched = tiles_reached(mean2d, conic, extent2, rect)
+    if touched == 0:
+        return
 
     d = wp.normalize(dir_raw)
     raw = wp.vec3(0.0)
@@ -359,6 +343,8 @@ def project_gaussians(
     depth_out[i] = z
     conic_out[i] = conic
     color_out[i] = color
+    radii_out[i] = radii
+    tiles_touched_out[i] = touched
 
     if with_pose_jac != 0:
         jac = vec32()
@@ -456,30 +442,6 @@ def emit_intersections(
                     keys_out[j] = (wp.uint32(ty * cam.tiles_x + tx) << wp.uint32(depth_key_bits)) | zkey
                     ids_out[j] = wp.int32(i)
                 j += 1
-
-
-@wp.kernel
-def rekey_intersections(
-    # in: the Gaussians' current depths (float bits), the number of intersections (1 element), the buffers'
-    # capacity, the key layout and the near plane's float bits (as emit_intersections)
-    depth_bits: wp.array(dtype=wp.int32),
-    ids: wp.array(dtype=wp.int32),
-    total: wp.array(dtype=wp.int32),
-    capacity: int,
-    depth_key_bits: int,
-    depth_shift: int,
-    near_bits: int,
-    # in/out: sorted keys whose depth part is replaced by the Gaussian's current depth (the tile part kept)
-    keys: wp.array(dtype=wp.uint32),
-):
-    """Reused tile lists (``Renderer.forward``'s lists="reuse"): each intersection's key gets its Gaussian's
-    depth at the new pose, so that sorting again orders every tile's list by it (the tile is the key's
-    major part: the runs of the tiles stay where they are)."""
-    j = wp.tid()
-    if j >= wp.min(total[0], capacity):
-        return
-    tile_part = (keys[j] >> wp.uint32(depth_key_bits)) << wp.uint32(depth_key_bits)
-    keys[j] = tile_part | depth_key(depth_bits[ids[j]], near_bits, depth_shift, depth_key_bits)
 
 
 @wp.kernel
