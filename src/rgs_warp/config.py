@@ -540,10 +540,6 @@ class KeypointsConfig:
     max_dev_step: float = 4.0
     max_dev_depth: float = 0.01
     rotation_min_tracks: int = 20  # fewer tracks than this for a rotation-only pose: the frame is lost
-    # With fewer landmarks than this in the frame, the tracks that have none take a point from the map's
-    # depth (the SLAM's map rendered at the previous frame's pose, ``KeypointOdometry.track``'s map_depth)
-    # for the frame's PnP: points over the whole image, in the map's scale; 0 = never
-    map_depth_below: int = 0
     # Landmarks: a track seen in >= 2 keyframes is triangulated from all of them once its rays span
     # min_parallax_deg, kept when every reprojection is within max_reproj_px (0.7-1.0 deg did not help
     # at frames 205-235 of 300, mono.md)
@@ -861,7 +857,6 @@ CONSTRAINTS: dict[str, Bound] = {
     "keypoints.max_dev_step": NON_NEGATIVE,
     "keypoints.max_dev_depth": NON_NEGATIVE,
     "keypoints.rotation_min_tracks": Bound(lo=3),  # Kabsch needs three bearings
-    "keypoints.map_depth_below": NON_NEGATIVE,
     "keypoints.min_parallax_deg": NON_NEGATIVE,
     "keypoints.max_reproj_px": POSITIVE,
     "keypoints.kf_tracked_fraction": FRACTION,

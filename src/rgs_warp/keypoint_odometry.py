@@ -157,13 +157,9 @@ class KeypointOdometry:
         self._prev = prev
         return [invert_pose(T) for T in poses]
 
-    def track(self, rgb: np.ndarray, T_pred_WC: np.ndarray | None = None, map_depth=None) -> OdometryResult:
+    def track(self, rgb: np.ndarray, T_pred_WC: np.ndarray | None = None) -> OdometryResult:
         """The next frame (HxWx3 float32 RGB in [0, 1]); T_pred_WC an optional prediction (else the
-        odometry's own constant-velocity model).  ``map_depth``: optional, a function of a camera-to-world
-        pose giving the depth of a map in this odometry's world seen from there (any resolution of the
-        image's aspect, 0 where the map has no surface); asked for the previous frame's pose when fewer than
-        ``keypoints.map_depth_below`` landmarks are tracked, whereupon the tracks without a landmark get
-        their point from it for this frame's PnP.  A lost frame changes nothing: the next one is tracked
+        odometry's own constant-velocity model).  A lost frame changes nothing: the next one is tracked
         from the last frame that had a pose."""
         if self._prev is None:
             raise RuntimeError("KeypointOdometry.track before start")
@@ -177,7 +173,7 @@ class KeypointOdometry:
         prev_uv = dict(zip(self._ids.tolist(), self._pts.astype(np.float64), strict=True))
         kept = (self._pts, self._ids)
         self._follow(self._prev, img, self._predicted_flow(T_pred, T_prev))
-        T, status, inliers, reason = self._estimate_pose(T_pred, T_prev, prev_uv, map_depth)
+        T, status, inliers, reason = self._estimate_pose(T_pred, T_prev, prev_uv)
         if T is None:
             self._pts, self._ids = kept
             return OdometryResult(None, 0, False, False, reason)
@@ -196,8 +192,7 @@ class KeypointOdometry:
         )
         keyframe = need and self._frame - self._kf_frame[-1] >= cfg.kf_min_gap
         if keyframe:
-            few = map_depth is not None and self._usable().sum() < cfg.map_depth_below
-            self._add_keyframe(img, T, map_depth if few else None)
+            self._add_keyframe(img, T)
             self._local_ba()
             self._forget()
             T = self._kf_T[-1]
@@ -322,8 +317,8 @@ class KeypointOdometry:
         )
         return _shifted(_rigid(cv2.Rodrigues(rv)[0], tv)[None], -origin)[0] if ok else T_before
 
-    def _estimate_pose(self, T_pred, T_prev, prev_uv, map_depth=None) -> tuple[np.ndarray | None, str, int, str]:
-        """(T_CW, 'ok' | 'rotation' | 'lost', landmarks (and map points) agreeing, reason)."""
+    def _estimate_pose(self, T_pred, T_prev, prev_uv) -> tuple[np.ndarray | None, str, int, str]:
+        """(T_CW, 'ok' | 'rotation' | 'lost', landmarks agreeing, reason)."""
         cfg = self.cfg
         use = self._usable()
         # PnP about the last camera's centre, not a world origin metres away (conditioning; the poses then do
@@ -331,11 +326,6 @@ class KeypointOdometry:
         origin = _centre(T_prev)
         obj = np.array([self._landmarks[t] for t in self._ids[use].tolist()]).reshape(-1, 3) - origin
         uv = self._pts[use].astype(np.float64)
-        n_landmarks = len(obj)
-        if map_depth is not None and n_landmarks < cfg.map_depth_below:
-            X, sel = self._map_points(map_depth, T_prev, prev_uv, ~use)
-            obj = np.concatenate([obj, X - origin])
-            uv = np.concatenate([uv, self._pts[~use][sel].astype(np.float64)])
         limit = cfg.pnp_px * self._px
 
         def agreeing(T):
@@ -379,37 +369,16 @@ class KeypointOdometry:
             if dr > cfg.max_dev_deg or dt > cfg.max_dev_step * step + cfg.max_dev_depth * self._scene_depth:
                 T, reason = None, f"PnP pose {dt:.3g} / {dr:.1f} deg from the motion model's"
         if T is not None:
-            # landmark tracks that do not fit the pose slide (stripes, occlusion edges): drop them (a map
-            # point's track stays: the map's depth may be what is off)
+            # landmark tracks that do not fit the pose slide (stripes, occlusion edges): drop them
             r = np.linalg.norm(_project(self.K, T, obj + origin)[0] - uv, axis=1)
             cut = cfg.residual_px * self._px if cfg.residual_px > 0 else limit
-            self._drop_tracks(self._ids[use][r[:n_landmarks] > cut])
+            self._drop_tracks(self._ids[use][r > cut])
             return T, "ok", int((r <= cut).sum()), ""
         R = self._rotation(prev_uv)
         if R is None:
             return None, "lost", 0, reason + f"; fewer than {cfg.rotation_min_tracks} tracks for a rotation"
         T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj + origin, uv))
         return T, "rotation", int(agreeing(_shifted(T[None], origin)[0]).sum()), reason
-
-    def _map_points(self, map_depth, T_prev: np.ndarray, prev_uv: dict, candidates: np.ndarray):
-        """World points of the current tracks among ``candidates`` (a mask over them) from the map's depth
-        seen from the previous frame (T_prev, world-to-camera) at their pixels there: (points (m, 3), the mask
-        over the candidates of those that got one: tracked from the previous frame, on the map's surface)."""
-        ids = self._ids[candidates].tolist()
-        sel = np.array([t in prev_uv for t in ids], bool)
-        if not sel.any():
-            return np.zeros((0, 3)), sel
-        depth = np.asarray(map_depth(invert_pose(T_prev)), np.float64)
-        scale = depth.shape[1] / self.width
-        uv = np.array([prev_uv[t] for t, s in zip(ids, sel, strict=True) if s]).reshape(-1, 2)
-        col = np.clip(np.floor(uv[:, 0] * scale).astype(int), 0, depth.shape[1] - 1)
-        row = np.clip(np.floor(uv[:, 1] * scale).astype(int), 0, depth.shape[0] - 1)
-        z = depth[row, col]
-        found = z > 0
-        sel[np.flatnonzero(sel)[~found]] = False
-        rays = np.c_[uv[found], np.ones(int(found.sum()))] @ np.linalg.inv(self.K).T
-        X = (rays * z[found, None] - T_prev[:3, 3]) @ T_prev[:3, :3]
-        return X, sel
 
     def _centre_given_rotation(self, R: np.ndarray, c_pred: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """The camera centre of a rotation-only frame: the landmarks still tracked and the epipolar planes
@@ -457,19 +426,13 @@ class KeypointOdometry:
         return float(np.degrees(np.median(np.arccos(np.clip(cos, -1, 1)))))
 
     # ------------------------------------------------------------------------------------- keyframes
-    def _add_keyframe(self, img: np.ndarray, T: np.ndarray, map_depth=None) -> None:
+    def _add_keyframe(self, img: np.ndarray, T: np.ndarray) -> None:
         k = len(self._kf_T)
         self._kf_T.append(T.copy())
         self._kf_frame.append(self._frame)
         for uv, t in zip(self._pts.astype(np.float64), self._ids.tolist(), strict=True):
             self._obs.setdefault(t, []).append((k, uv))
         self._triangulate_tracks()
-        if map_depth is not None:  # the tracks still without a landmark: the map's point at their pixel
-            bare = ~self._usable()
-            here = dict(zip(self._ids[bare].tolist(), self._pts[bare].astype(np.float64), strict=True))
-            X, sel = self._map_points(map_depth, T, here, bare)
-            for t, x in zip(self._ids[bare][sel].tolist(), X, strict=True):
-                self._landmarks[t] = x
         self._detect(img)
         for uv, t in zip(self._pts.astype(np.float64), self._ids.tolist(), strict=True):
             if t not in self._obs:

@@ -46,8 +46,6 @@ from rgs_warp.types import Camera, Frame, GaussianMap
 METHODS = ("rgs", "baseline")
 # A lost frame is tracked again from the poses of this many keyframes nearest its last good pose.
 RELOCALIZE_CANDIDATES = 3
-# Monocular: the keypoint odometry takes the map's depth where its rendered opacity reaches this
-MAP_DEPTH_ALPHA = 0.95
 
 
 @dataclass
@@ -100,7 +98,6 @@ class SLAM:
         self.renderer = Renderer(dev)
         # tracking's own renderer; asynchronous mapping also renders the published map with it
         self._tracking_renderer = Renderer(dev)
-        self._depth_renderer = None  # monocular: the map's depth for the keypoint odometry (made on first use)
         self.tracker = Tracker(cfg.tracking, camera, dev, mode=self.mode, renderer=self._tracking_renderer)
         # monocular: started by the bootstrap (its two poses), then where each frame's tracking starts
         self.odometry = None
@@ -239,7 +236,7 @@ class SLAM:
             return self._skip(i, frame, T_WC, timestamp, t0)
         tracking, given, odometry, odometry_motion = None, T_WC is not None, None, ""
         if self.odometry is not None and i > 0 and not given:  # every frame, for its tracks
-            odometry, T_WC, odometry_motion = self._odometry_frame(rgb, T_init_WC, tmap)
+            odometry, T_WC, odometry_motion = self._odometry_frame(rgb, T_init_WC)
         if i == 0:
             T = self.T_first.copy() if T_WC is None else np.array(T_WC, dtype=np.float64)
             self.tracker.reset(T)
@@ -252,7 +249,7 @@ class SLAM:
             exposure, pose_ok = self.tracker.exposure(tmap, T), True
             decision = self.selector.should_add(self.tracker.alpha, T, depth=self.tracker.depth)
             if self.odometry is not None and given:  # its tracks go on through the frames whose pose is given
-                self._odometry_pose(rgb, T, tmap)
+                self._odometry_pose(rgb, T)
         else:
             tr0 = time.perf_counter()
             before = self.tracker.state_dict()
@@ -507,9 +504,7 @@ class SLAM:
             self._publish()
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
 
-    def _odometry_frame(
-        self, rgb, T_init_WC: np.ndarray | None, tmap: GaussianMap
-    ) -> tuple[OdometryResult, np.ndarray | None, str]:
+    def _odometry_frame(self, rgb, T_init_WC: np.ndarray | None) -> tuple[OdometryResult, np.ndarray | None, str]:
         """The keypoint odometry on this frame: (its result, the frame's pose when it takes the odometry's or
         None when it is tracked, why the odometry's pose failed the motion check or "").
 
@@ -519,7 +514,7 @@ class SLAM:
         29).  With tracking.odometry_pose a PnP pose is the frame's, except one that jumps or collapses against
         the motion model: the frame is then lost at the prediction, which the motion model goes on from (as
         tracking's motion check does), and the odometry is moved there (``KeypointOdometry.move_to``)."""
-        odometry = self._odometry_pose(rgb, T_init_WC, tmap)
+        odometry = self._odometry_pose(rgb, T_init_WC)
         takes = (
             self.cfg.tracking.odometry_pose
             and T_init_WC is None
@@ -550,26 +545,10 @@ class SLAM:
             return f"keypoint odometry: {odometry.reason}; the pose is photometric tracking's, from its rotation"
         return ""
 
-    def _odometry_pose(self, rgb, T_pred_WC: np.ndarray | None, tmap: GaussianMap) -> OdometryResult:
-        """The keypoint odometry's pose of this frame (where tracking starts) from ``T_pred_WC``; where it
-        tracks few landmarks, its tracks take points from ``tmap``'s depth (``keypoints.map_depth_below``)."""
+    def _odometry_pose(self, rgb, T_pred_WC: np.ndarray | None) -> OdometryResult:
+        """The keypoint odometry's pose of this frame (where tracking starts) from ``T_pred_WC``."""
         host = rgb.numpy() if isinstance(rgb, wp.array) else np.asarray(rgb, dtype=np.float32)
-        map_depth = None
-        if len(tmap) and self.cfg.keypoints.map_depth_below > 0:
-
-            def map_depth(T_WC: np.ndarray) -> np.ndarray:
-                return self._surface_depth(tmap, T_WC)
-
-        return self.odometry.track(host, T_pred_WC, map_depth)
-
-    def _surface_depth(self, gmap: GaussianMap, T_WC: np.ndarray) -> np.ndarray:
-        """``gmap``'s depth seen from T_WC at the tracking resolution (host array), 0 where its opacity is
-        below ``MAP_DEPTH_ALPHA``: where the map is a surface, not a haze."""
-        if self._depth_renderer is None:
-            self._depth_renderer = Renderer(self.device)
-        res = self._depth_renderer.forward(gmap, self.tracker.track_camera, T_WC)
-        alpha, depth = res.alpha.numpy(), res.depth.numpy()
-        return np.where(alpha >= MAP_DEPTH_ALPHA, depth / np.maximum(alpha, 1e-6), 0.0)
+        return self.odometry.track(host, T_pred_WC)
 
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
         """The keyframes older than ``window`` that mapping may render (``mapping.history``): the
