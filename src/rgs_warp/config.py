@@ -340,7 +340,8 @@ class MappingConfig:
     # Measured (timing=live, H100, experiments/results/perf.md): unbounded, fills queued behind every
     # frame kept 7-Scenes from a 60 Hz pace; 1 keeps it but costs the office at 30 Hz about 0.5 dB;
     # 2 keeps the office's map and 7-Scenes' pace on the faster machines (2 of 4); 3 loses that pace
-    # again.  0: no bound
+    # again.  0: no bound.  H200 (session 34): the office at 30 Hz skipped 80 % of its fills with 2 and kept
+    # its pace with 0 at 0.35-0.40 cm and +1 dB compensated (3 runs each); 7-Scenes at 60 Hz unmeasured with 0
     fill_queue: int = 2
     # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
     # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
