@@ -343,6 +343,12 @@ class MappingConfig:
     # again.  0: no bound.  H200 (session 34): the office at 30 Hz skipped 80 % of its fills with 2 and kept
     # its pace with 0 at 0.35-0.40 cm and +1 dB compensated (3 runs each); 7-Scenes at 60 Hz unmeasured with 0
     fill_queue: int = 2
+    # asynchronous, with fill_queue > 0: a frame that wants a fill while fill_queue fills are unfinished takes
+    # over the newest one that has not started (that fill then seeds this frame, not the older one): the
+    # worker's load stays the bound's, and the fills seed what the camera sees now rather than what it saw
+    # when the worker fell behind.  Built in session 34 after the office at 30 Hz skipped 80 % of its fills
+    # under the bound (experiments/results/perf.md); not measured on a GPU yet
+    fill_latest: bool = False
     # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
     # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
     # join the map with it), so tracking sees the new surface before the whole mapping ends (the live
