@@ -265,44 +265,59 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
     assert all(n >= 3 for n in done[3]) and min(done[3]) < 30 and done[3][-1] < 30, done
 
 
+def _slow_fills(monkeypatch, filled: list, asynchronous_only: bool = False) -> None:
+    """``SLAM._fill_frame`` slowed to 1 s (in the asynchronous mode only, with ``asynchronous_only``), each
+    filled frame's index appended to ``filled``: frames pass while a fill waits for the worker."""
+    from rgs_warp import SLAM
+
+    fill_frame = SLAM._fill_frame
+
+    def slow_fill(self, i, *args):
+        if self.worker is not None or not asynchronous_only:
+            time.sleep(1.0)
+        filled.append(i)
+        return fill_frame(self, i, *args)
+
+    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
+
+
+def _run_office(argv: list, device):
+    """The CPU-sized office with ``argv`` (every frame wanting a fill), through ``SLAM.process``; the SLAM."""
+    from rgs_warp import SLAM, open_dataset
+
+    cfg = load_config([*OVERRIDES, *argv, "seeding.frame_fill_min_uncovered=0", f"device={device}"])
+    ds = open_dataset(cfg, device=device)
+    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+    for f in ds:
+        slam.process(f.rgb, f.depth, f.timestamp)
+    slam.finish()
+    return slam
+
+
 @pytest.mark.slow
 def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
     """Asynchronous with ``mapping.fill_queue=1`` (the default is 2): a frame that wants a fill while an earlier
     fill still waits for (or runs in) the worker gets none (that fill seeds most of what this frame
     would); ``fill_queue=0`` and the synchronous mode fill every frame that wants it.  Each fill is
     slowed to 1 s in the asynchronous runs, so frames pass while one is queued."""
-    from rgs_warp import SLAM, open_dataset
     from rgs_warp.seeding import Seeder
 
     wanted, filled = [], []
     wants_fill = Seeder.wants_fill
-    fill_frame = SLAM._fill_frame
 
     def counting_wants(self, coverage):
         w = wants_fill(self, coverage)
         wanted.append(w)
         return w
 
-    def slow_fill(self, i, *args):
-        if self.worker is not None:
-            time.sleep(1.0)
-        filled.append(i)
-        return fill_frame(self, i, *args)
-
     monkeypatch.setattr(Seeder, "wants_fill", counting_wants)
-    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
+    _slow_fills(monkeypatch, filled, asynchronous_only=True)
     counts = {}
     for asynchronous, bound in ((False, 1), (True, 1), (True, 0)):
         wanted.clear()
         filled.clear()
-        argv = [*OVERRIDES, "dataset.max_frames=14", f"mapping.asynchronous={str(asynchronous).lower()}"]
-        argv += [f"mapping.fill_queue={bound}", "seeding.frame_fill_min_uncovered=0", f"device={device}"]
-        cfg = load_config(argv)
-        ds = open_dataset(cfg, device=device)
-        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
-        for f in ds:
-            slam.process(f.rgb, f.depth, f.timestamp)
-        slam.finish()
+        mode = f"mapping.asynchronous={str(asynchronous).lower()}"
+        slam = _run_office(["dataset.max_frames=14", mode, f"mapping.fill_queue={bound}"], device)
         counts[asynchronous, bound] = (sum(wanted), len(filled))
         assert slam.frame_fills == {"wanted": sum(wanted), "skipped": sum(wanted) - len(filled), "taken_over": 0}
     n_wanted, n_filled = counts[False, 1]
@@ -319,36 +334,21 @@ def test_a_newer_frame_takes_over_a_waiting_fill_with_fill_latest(device, monkey
     second waits; with fill_latest the frames that want one meanwhile take the waiting fill over, so it seeds a
     later frame than without, and as many fills run as frames were not skipped (the worker's load is the
     bound's).  A fill that has started is not taken over (``ReplaceableJob``)."""
-    from rgs_warp import SLAM, open_dataset
     from rgs_warp.slam.worker import ReplaceableJob
 
     ran = []
     job = ReplaceableJob(ran.append, (1,))
-    assert job.replace((2,))
+    assert job.pending and job.replace((2,))
     job()
-    assert ran == [2] and not job.replace((3,))
+    assert ran == [2] and not job.pending and not job.replace((3,))
 
     filled = []
-    fill_frame = SLAM._fill_frame
-
-    def slow_fill(self, i, *args):
-        time.sleep(1.0)
-        filled.append(i)
-        return fill_frame(self, i, *args)
-
-    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
+    _slow_fills(monkeypatch, filled)
     runs = {}
     for latest in (False, True):
         filled.clear()
-        argv = [*OVERRIDES, "dataset.max_frames=10", "mapping.asynchronous=true", "mapping.fill_queue=2"]
-        argv += [f"mapping.fill_latest={str(latest).lower()}", "seeding.frame_fill_min_uncovered=0", f"device={device}"]
-        cfg = load_config(argv)
-        ds = open_dataset(cfg, device=device)
-        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
-        for f in ds:
-            slam.process(f.rgb, f.depth, f.timestamp)
-        slam.finish()
-        fills = slam.frame_fills
+        argv = ["dataset.max_frames=10", "mapping.asynchronous=true", "mapping.fill_queue=2"]
+        fills = _run_office([*argv, f"mapping.fill_latest={str(latest).lower()}"], device).frame_fills
         assert len(filled) == fills["wanted"] - fills["skipped"], (latest, fills, filled)
         runs[latest] = (list(filled), fills)
     (default, default_fills), (latest, latest_fills) = runs[False], runs[True]

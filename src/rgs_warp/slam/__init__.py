@@ -296,6 +296,8 @@ class SLAM:
             self.frame_fills["wanted"] += int(wants)
             self.frame_fills["skipped"] += int(fill_waits)
             waiting = self._waiting_fill if self.cfg.mapping.fill_latest else None
+            if waiting is not None and not waiting.pending:  # started: nothing to take over (and no copies made)
+                waiting = None
             if wants and (not fill_waits or waiting is not None):
                 rgb_t, depth_t = self.tracker.frame
                 # synchronous: the map as tracking's last render saw it (not rendered again)

@@ -153,6 +153,12 @@ class ReplaceableJob:
         self._lock = threading.Lock()
         self._started = False
 
+    @property
+    def pending(self) -> bool:
+        """Whether the worker has not started it yet (a ``replace`` may still take it over)."""
+        with self._lock:
+            return not self._started
+
     def replace(self, args: tuple) -> bool:
         """The job runs with ``args`` instead: True, or False when it has started already."""
         with self._lock:
@@ -164,8 +170,8 @@ class ReplaceableJob:
     def __call__(self) -> None:
         with self._lock:
             self._started = True
-            args = self._args
-        self._fn(*args)
+            args, self._args = self._args, ()
+        self._fn(*args)  # the arguments (a frame's image copies) are not held past the run
 
 
 class MappingWorker:
