@@ -265,96 +265,52 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
     assert all(n >= 3 for n in done[3]) and min(done[3]) < 30 and done[3][-1] < 30, done
 
 
-def _slow_fills(monkeypatch, filled: list, asynchronous_only: bool = False) -> None:
-    """``SLAM._fill_frame`` slowed to 1 s (in the asynchronous mode only, with ``asynchronous_only``), each
-    filled frame's index appended to ``filled``: frames pass while a fill waits for the worker."""
-    from rgs_warp import SLAM
-
-    fill_frame = SLAM._fill_frame
-
-    def slow_fill(self, i, *args):
-        if self.worker is not None or not asynchronous_only:
-            time.sleep(1.0)
-        filled.append(i)
-        return fill_frame(self, i, *args)
-
-    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
-
-
-def _run_office(argv: list, device):
-    """The CPU-sized office with ``argv`` (every frame wanting a fill), through ``SLAM.process``; the SLAM."""
-    from rgs_warp import SLAM, open_dataset
-
-    cfg = load_config([*OVERRIDES, *argv, "seeding.frame_fill_min_uncovered=0", f"device={device}"])
-    ds = open_dataset(cfg, device=device)
-    slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
-    for f in ds:
-        slam.process(f.rgb, f.depth, f.timestamp)
-    slam.finish()
-    return slam
-
-
 @pytest.mark.slow
 def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
-    """Asynchronous with ``mapping.fill_queue=1`` (the default is 2): a frame that wants a fill while an earlier
-    fill still waits for (or runs in) the worker gets none (that fill seeds most of what this frame
+    """Asynchronous with ``mapping.fill_queue=1`` (the default is 0: no bound): a frame that wants a fill while
+    an earlier fill still waits for (or runs in) the worker gets none (that fill seeds most of what this frame
     would); ``fill_queue=0`` and the synchronous mode fill every frame that wants it.  Each fill is
     slowed to 1 s in the asynchronous runs, so frames pass while one is queued."""
+    from rgs_warp import SLAM, open_dataset
     from rgs_warp.seeding import Seeder
 
     wanted, filled = [], []
     wants_fill = Seeder.wants_fill
+    fill_frame = SLAM._fill_frame
 
     def counting_wants(self, coverage):
         w = wants_fill(self, coverage)
         wanted.append(w)
         return w
 
+    def slow_fill(self, i, *args):
+        if self.worker is not None:
+            time.sleep(1.0)
+        filled.append(i)
+        return fill_frame(self, i, *args)
+
     monkeypatch.setattr(Seeder, "wants_fill", counting_wants)
-    _slow_fills(monkeypatch, filled, asynchronous_only=True)
+    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
     counts = {}
     for asynchronous, bound in ((False, 1), (True, 1), (True, 0)):
         wanted.clear()
         filled.clear()
-        mode = f"mapping.asynchronous={str(asynchronous).lower()}"
-        slam = _run_office(["dataset.max_frames=14", mode, f"mapping.fill_queue={bound}"], device)
+        argv = [*OVERRIDES, "dataset.max_frames=14", f"mapping.asynchronous={str(asynchronous).lower()}"]
+        argv += [f"mapping.fill_queue={bound}", "seeding.frame_fill_min_uncovered=0", f"device={device}"]
+        cfg = load_config(argv)
+        ds = open_dataset(cfg, device=device)
+        slam = SLAM(cfg, ds.camera, device=device, T_first_WC=ds[0].pose_gt)
+        for f in ds:
+            slam.process(f.rgb, f.depth, f.timestamp)
+        slam.finish()
         counts[asynchronous, bound] = (sum(wanted), len(filled))
-        assert slam.frame_fills == {"wanted": sum(wanted), "skipped": sum(wanted) - len(filled), "taken_over": 0}
+        assert slam.frame_fills == {"wanted": sum(wanted), "skipped": sum(wanted) - len(filled)}
     n_wanted, n_filled = counts[False, 1]
     assert n_wanted >= 4 and n_filled == n_wanted, counts  # synchronous: every frame that wants a fill
     n_wanted, n_filled = counts[True, 1]
     assert 1 <= n_filled < n_wanted, counts  # asynchronous: frames passed while a fill waited
     n_wanted, n_filled = counts[True, 0]
     assert n_wanted >= 4 and n_filled == n_wanted, counts  # no bound
-
-
-@pytest.mark.slow
-def test_a_newer_frame_takes_over_a_waiting_fill_with_fill_latest(device, monkeypatch):
-    """``mapping.fill_latest``: with ``fill_queue=2`` and each fill slowed to 1 s, the first fill runs while the
-    second waits; with fill_latest the frames that want one meanwhile take the waiting fill over, so it seeds a
-    later frame than without, and as many fills run as frames were not skipped (the worker's load is the
-    bound's).  A fill that has started is not taken over (``ReplaceableJob``)."""
-    from rgs_warp.slam.worker import ReplaceableJob
-
-    ran = []
-    job = ReplaceableJob(ran.append, (1,))
-    assert job.pending and job.replace((2,))
-    job()
-    assert ran == [2] and not job.pending and not job.replace((3,))
-
-    filled = []
-    _slow_fills(monkeypatch, filled)
-    runs = {}
-    for latest in (False, True):
-        filled.clear()
-        argv = ["dataset.max_frames=10", "mapping.asynchronous=true", "mapping.fill_queue=2"]
-        fills = _run_office([*argv, f"mapping.fill_latest={str(latest).lower()}"], device).frame_fills
-        assert len(filled) == fills["wanted"] - fills["skipped"], (latest, fills, filled)
-        runs[latest] = (list(filled), fills)
-    (default, default_fills), (latest, latest_fills) = runs[False], runs[True]
-    assert default_fills["taken_over"] == 0 and latest_fills["taken_over"] >= 1, runs
-    assert len(default) >= 2 and len(latest) >= 2, runs
-    assert latest[1] > default[1], runs  # the waiting fill seeded a later frame
 
 
 def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
@@ -368,11 +324,8 @@ def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
     print_summary(tmp_path, metrics)
     out, err = capsys.readouterr()
     assert "camera    60 Hz: behind it by 1350 ms at the last frame, 1120 ms at the median" in out
-    assert "368 of 445 frame fills skipped" in out and "newer" not in out
+    assert "368 of 445 frame fills skipped" in out
     assert "fell 1.35 s behind a 60 Hz camera" in err
-    metrics["frame_fills"] = {"wanted": 445, "skipped": 368, "taken_over": 40}  # mapping.fill_latest
-    print_summary(tmp_path, metrics)
-    assert "368 of 445 frame fills skipped (40 for a newer frame's)" in capsys.readouterr()[0]
     metrics["playback"] = {**playback, "lag_ms_last": 10.0, "kept_pace": True}
     metrics["frame_fills"] = {"wanted": 445, "skipped": 0}
     print_summary(tmp_path, metrics)

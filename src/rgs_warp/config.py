@@ -336,19 +336,14 @@ class MappingConfig:
     # previous keyframe's mapping to end (perf.md, session 32)
     async_queue: int = 1
     # asynchronous: frame fills (seeding.frame_fill_min_uncovered) that may wait for the worker; a frame
-    # that wants a fill while this many wait or run gets none, since they seed most of what it would.
-    # Measured (timing=live, H100, experiments/results/perf.md): unbounded, fills queued behind every
-    # frame kept 7-Scenes from a 60 Hz pace; 1 keeps it but costs the office at 30 Hz about 0.5 dB;
-    # 2 keeps the office's map and 7-Scenes' pace on the faster machines (2 of 4); 3 loses that pace
-    # again.  0: no bound.  H200 (session 34): the office at 30 Hz skipped 80 % of its fills with 2 and kept
-    # its pace with 0 at 0.35-0.40 cm and +1 dB compensated (3 runs each); 7-Scenes at 60 Hz unmeasured with 0
-    fill_queue: int = 2
-    # asynchronous, with fill_queue > 0: a frame that wants a fill while fill_queue fills are unfinished takes
-    # over the newest one that has not started (that fill then seeds this frame, not the older one): the
-    # worker's load stays the bound's, and the fills seed what the camera sees now rather than what it saw
-    # when the worker fell behind.  Built in session 34 after the office at 30 Hz skipped 80 % of its fills
-    # under the bound (experiments/results/perf.md); not measured on a GPU yet
-    fill_latest: bool = False
+    # that wants a fill while this many wait or run gets none.  0: no bound.  Set for 7-Scenes at 60 Hz on
+    # an H100 (perf.md, sessions 24-30: unbounded, fills queued behind every frame kept it from its pace; 2
+    # kept it), but on an H200 with today's live settings (session 35, 3 runs each, timing=live) the bound only
+    # costs: the office at 30 Hz skipped 70 % of its fills with 2 and tracked 0.39-0.40 cm, 35.9-36.4 dB
+    # compensated, against 0.35-0.37 cm and 37.0-37.4 dB unbounded (the synchronous mode at the camera's rate:
+    # 0.34-0.36 cm); 7-Scenes at 60 Hz kept its pace either way (4.22-4.50 against 4.27-4.37 cm).  On a GPU
+    # where a live run falls behind the camera, 2 is the first thing to try
+    fill_queue: int = 0
     # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
     # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
     # join the map with it), so tracking sees the new surface before the whole mapping ends (the live

@@ -1151,8 +1151,6 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
     playback, fills = metrics.get("playback"), metrics.get("frame_fills") or {}
     if playback:
         skipped = f"; {fills['skipped']} of {fills['wanted']} frame fills skipped" if fills.get("skipped") else ""
-        if fills.get("taken_over"):
-            skipped += f" ({fills['taken_over']} for a newer frame's)"
         print(
             f"camera    {playback['fps']:g} Hz: behind it by {playback['lag_ms_last']:.0f} ms at the last frame, "
             f"{playback['lag_ms_p50']:.0f} ms at the median{skipped}"

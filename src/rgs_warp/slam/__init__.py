@@ -38,7 +38,7 @@ from rgs_warp.matching import DenseMatcher
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
 from rgs_warp.slam.storage import SlamSnapshot, load_slam, snapshot_slam
-from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher, ReplaceableJob
+from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher
 from rgs_warp.tracking import Tracker, TrackingResult
 from rgs_warp.triangulation import Triangulator
 from rgs_warp.types import Camera, Frame, GaussianMap
@@ -155,11 +155,9 @@ class SLAM:
         # holds; ``keyframe_latency_s``: from a keyframe's tracking to the map with its seeds published
         self.worker = self.publisher = self.turns = None
         self.keyframe_latency_s: list[float] = []
-        # tracked frames that wanted a frame fill, those that got none because mapping.fill_queue fills already
-        # waited for the worker (asynchronous), and those whose fill took over a waiting one's (fill_latest: the
-        # frame it had is among the skipped)
-        self.frame_fills = {"wanted": 0, "skipped": 0, "taken_over": 0}
-        self._waiting_fill: ReplaceableJob | None = None  # the newest fill queued for the worker
+        # tracked frames that wanted a frame fill, and those that got none because mapping.fill_queue
+        # fills already waited for the worker (asynchronous)
+        self.frame_fills = {"wanted": 0, "skipped": 0}
         if cfg.mapping.asynchronous:
             self.turns = DeviceTurns()
             self.publisher = MapPublisher(cfg.render.sh_degree, dev)
@@ -295,20 +293,14 @@ class SLAM:
             fill_waits = wants and self.worker is not None and 0 < bound <= self.worker.queued("fill")
             self.frame_fills["wanted"] += int(wants)
             self.frame_fills["skipped"] += int(fill_waits)
-            waiting = self._waiting_fill if self.cfg.mapping.fill_latest else None
-            if waiting is not None and not waiting.pending:  # started: nothing to take over (and no copies made)
-                waiting = None
-            if wants and (not fill_waits or waiting is not None):
+            if wants and not fill_waits:
                 rgb_t, depth_t = self.tracker.frame
                 # synchronous: the map as tracking's last render saw it (not rendered again)
                 alpha = tracking.alpha if tracking is not None else self.tracker.alpha
                 if self.worker is not None or alpha.shape != (self.camera.height, self.camera.width):
                     alpha = None
                 fill_args = (i, self._own(rgb_t), self._own(depth_t), T, exposure, result, alpha)
-                if not fill_waits:
-                    self._queue_fill(fill_args)
-                elif waiting.replace(fill_args):
-                    self.frame_fills["taken_over"] += 1
+                self._run("fill", self._fill_frame, *fill_args)
             # refinement between keyframes: one job waiting at most (it only uses the worker's idle time)
             if self.cfg.mapping.frame_iters > 0 and self.keyframe_indices:
                 if self.worker is None or self.worker.queued("refine") == 0:
@@ -339,15 +331,6 @@ class SLAM:
             job(*args)
         else:
             self.worker.submit(kind, lambda: job(*args))
-
-    def _queue_fill(self, fill_args: tuple) -> None:
-        """A frame fill now (synchronous) or queued for the worker, where a newer frame may take it over
-        until it starts (``mapping.fill_latest``)."""
-        if self.worker is None:
-            self._fill_frame(*fill_args)
-            return
-        self._waiting_fill = ReplaceableJob(self._fill_frame, fill_args)
-        self.worker.submit("fill", self._waiting_fill)
 
     def _own(self, image):
         """``image`` itself (synchronous), or a copy that a queued job may hold while the caller and the

@@ -144,36 +144,6 @@ class MapPublisher:
             raise TornMapError("the map version tracking read was rewritten while tracking used it")
 
 
-class ReplaceableJob:
-    """A job for the worker whose arguments a newer caller may replace until the worker starts it
-    (``replace``): a frame fill that the newest frame takes over (``mapping.fill_latest``)."""
-
-    def __init__(self, fn: Callable[..., None], args: tuple):
-        self._fn, self._args = fn, args
-        self._lock = threading.Lock()
-        self._started = False
-
-    @property
-    def pending(self) -> bool:
-        """Whether the worker has not started it yet (a ``replace`` may still take it over)."""
-        with self._lock:
-            return not self._started
-
-    def replace(self, args: tuple) -> bool:
-        """The job runs with ``args`` instead: True, or False when it has started already."""
-        with self._lock:
-            if self._started:
-                return False
-            self._args = args
-            return True
-
-    def __call__(self) -> None:
-        with self._lock:
-            self._started = True
-            args, self._args = self._args, ()
-        self._fn(*args)  # the arguments (a frame's image copies) are not held past the run
-
-
 class MappingWorker:
     """A thread running jobs (callables) in order, each holding the device's mapping turn.  Jobs
     carry a kind ("init", "keyframe", "fill", "refine"); ``queued(kind)`` counts those not finished, and
