@@ -200,6 +200,9 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert metrics["time_s"]["checkpoints_s"] == 0.0  # played as a live stream: no checkpoint at any keyframe
     fills = metrics["frame_fills"]
     assert fills["wanted"] >= 1 and 0 <= fills["skipped"] <= fills["wanted"], fills
+    # the worker's backlog of frame fills at each frame's end, logged; its most in the metrics
+    waiting = [json.loads(line)["fills_waiting"] for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert fills["most_waiting"] == max(waiting) and min(waiting) >= 0, (fills, waiting)
 
 
 @pytest.mark.slow
@@ -304,7 +307,10 @@ def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
             slam.process(f.rgb, f.depth, f.timestamp)
         slam.finish()
         counts[asynchronous, bound] = (sum(wanted), len(filled))
+        most = slam.frame_fills.pop("most_waiting")
         assert slam.frame_fills == {"wanted": sum(wanted), "skipped": sum(wanted) - len(filled)}
+        # the fills waiting at a frame's end: none synchronous, at most the bound, more without one
+        assert most == 0 if not asynchronous else (most == 1 if bound == 1 else most >= 2), (asynchronous, bound, most)
     n_wanted, n_filled = counts[False, 1]
     assert n_wanted >= 4 and n_filled == n_wanted, counts  # synchronous: every frame that wants a fill
     n_wanted, n_filled = counts[True, 1]

@@ -602,6 +602,8 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
             entry.update(cloned=result.mapping.cloned, split=result.mapping.split)
     elif result.seeded:  # frame fill: seeds waiting for the next keyframe
         entry["seeded"] = result.seeded
+    if cfg.mapping.asynchronous:
+        entry["fills_waiting"] = result.fills_waiting  # the worker's backlog of frame fills
     return entry
 
 

@@ -76,6 +76,8 @@ class FrameResult:
     # the frame's pose with tracking.odometry_pose), None when it is off, in the bootstrap, in frames whose
     # pose the caller gave, and in RGB-D
     odometry: OdometryResult | None = None
+    # asynchronous: frame fills waiting for (or running in) the mapping worker as the frame ends
+    fills_waiting: int = 0
 
 
 class SLAM:
@@ -155,9 +157,9 @@ class SLAM:
         # holds; ``keyframe_latency_s``: from a keyframe's tracking to the map with its seeds published
         self.worker = self.publisher = self.turns = None
         self.keyframe_latency_s: list[float] = []
-        # tracked frames that wanted a frame fill, and those that got none because mapping.fill_queue
-        # fills already waited for the worker (asynchronous)
-        self.frame_fills = {"wanted": 0, "skipped": 0}
+        # tracked frames that wanted a frame fill, those that got none because mapping.fill_queue fills
+        # already waited for the worker, and the most fills that waited at a frame's end (asynchronous)
+        self.frame_fills = {"wanted": 0, "skipped": 0, "most_waiting": 0}
         if cfg.mapping.asynchronous:
             self.turns = DeviceTurns()
             self.publisher = MapPublisher(cfg.render.sh_degree, dev)
@@ -438,6 +440,9 @@ class SLAM:
         self.poses.append(result.T_WC)
         self.timestamps.append(float(result.index) if timestamp is None else float(timestamp))
         self.stats["frames"] += 1
+        if self.worker is not None:
+            result.fills_waiting = self.worker.queued("fill")
+            self.frame_fills["most_waiting"] = max(self.frame_fills["most_waiting"], result.fills_waiting)
         result.seconds = time.perf_counter() - t0
         return result
 
