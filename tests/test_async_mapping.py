@@ -270,7 +270,7 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
 
 @pytest.mark.slow
 def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
-    """Asynchronous with ``mapping.fill_queue=1`` (the default is 0: no bound): a frame that wants a fill while
+    """Asynchronous with ``mapping.fill_queue=1`` (the default is 32): a frame that wants a fill while
     an earlier fill still waits for (or runs in) the worker gets none (that fill seeds most of what this frame
     would); ``fill_queue=0`` and the synchronous mode fill every frame that wants it.  Each fill is
     slowed to 1 s in the asynchronous runs, so frames pass while one is queued."""

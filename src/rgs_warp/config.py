@@ -336,14 +336,14 @@ class MappingConfig:
     # previous keyframe's mapping to end (perf.md, session 32)
     async_queue: int = 1
     # asynchronous: frame fills (seeding.frame_fill_min_uncovered) that may wait for the worker; a frame
-    # that wants a fill while this many wait or run gets none.  0: no bound.  Set for 7-Scenes at 60 Hz on
-    # an H100 (perf.md, sessions 24-30: unbounded, fills queued behind every frame kept it from its pace; 2
-    # kept it), but on an H200 with today's live settings (session 35, 3 runs each, timing=live) the bound only
-    # costs: the office at 30 Hz skipped 70 % of its fills with 2 and tracked 0.39-0.40 cm, 35.9-36.4 dB
-    # compensated, against 0.35-0.37 cm and 37.0-37.4 dB unbounded (the synchronous mode at the camera's rate:
-    # 0.34-0.36 cm); 7-Scenes at 60 Hz kept its pace either way (4.22-4.50 against 4.27-4.37 cm).  On a GPU
-    # where a live run falls behind the camera, 2 is the first thing to try
-    fill_queue: int = 0
+    # that wants a fill while this many wait or run gets none.  0: no bound.  Measured (H200, perf.md):
+    # with 2 (the default until session 35) the office at 30 Hz skipped 70 % of its fills and tracked
+    # 0.39-0.40 cm, 35.9-36.4 dB compensated, against 0.35-0.37 cm and 37.0-37.4 dB unbounded (synchronous at
+    # the camera's rate: 0.34-0.36 cm), 7-Scenes at 60 Hz keeping its pace either way (3 runs each).  Unbounded,
+    # frames handed over faster than the worker fills them pile up: 457 fills waiting in the unpaced 2,000-frame
+    # office at 640x360, 2.4 GiB of frame copies, keyframes mapped 4.3 s late.  32 is about a second at 30 Hz
+    # and 420 MB of frames at 1200x680: the paced 2,000-frame run peaked at 29 waiting (its start), 16 later
+    fill_queue: int = 32
     # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
     # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
     # join the map with it), so tracking sees the new surface before the whole mapping ends (the live
