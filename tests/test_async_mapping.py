@@ -147,6 +147,18 @@ def test_a_failed_worker_still_lets_the_slam_save(tmp_path, device, monkeypatch)
     assert (tmp_path / "saved" / "trajectory.txt").is_file() and (tmp_path / "saved" / "map.ply").is_file()
 
 
+@pytest.mark.parametrize("keyframes_first", [False, True])
+def test_a_keyframes_job_runs_before_the_fills_waiting_ahead_of_it(keyframes_first):
+    worker, release, ran = MappingWorker(DeviceTurns(), keyframes_first=keyframes_first), threading.Event(), []
+    worker.submit("fill", release.wait)  # running: the others wait behind it
+    for kind, name in [("fill", "f1"), ("refine", "r"), ("fill", "f2"), ("keyframe", "k1"), ("keyframe", "k2")]:
+        worker.submit(kind, lambda name=name: ran.append(name))
+    release.set()
+    worker.drain()
+    expected = ["k1", "k2", "f1", "r", "f2"] if keyframes_first else ["f1", "r", "f2", "k1", "k2"]
+    assert ran == expected
+
+
 def test_back_pressure_waits_for_the_worker():
     worker, release = MappingWorker(DeviceTurns()), threading.Event()
     worker.submit("keyframe", release.wait)

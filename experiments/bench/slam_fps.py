@@ -166,6 +166,7 @@ def main(argv=None) -> int:
             "mapping_graph_steps": metrics.get("mapping_graph_steps"),
             "mapping_iterations_per_s": metrics.get("mapping_iterations", 0) / metrics["wall_s"],
             "keyframe_to_map_s": metrics.get("keyframe_to_map_s"),
+            "frame_fills": metrics.get("frame_fills"),  # asynchronous: the worker's backlog of frame fills
             "playback": metrics.get("playback"),  # dataset.playback_fps: the frames' lag behind the camera
             **summarise(log),
         }

@@ -344,6 +344,8 @@ class MappingConfig:
     # office at 640x360, 2.4 GiB of frame copies, keyframes mapped 4.3 s late.  32 is about a second at 30 Hz
     # and 420 MB of frames at 1200x680: the paced 2,000-frame run peaked at 29 waiting (its start), 16 later
     fill_queue: int = 32
+    # asynchronous: a keyframe's job runs before the frame fills and refinements waiting ahead of it
+    keyframes_first: bool = False
     # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
     # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
     # join the map with it), so tracking sees the new surface before the whole mapping ends (the live
