@@ -342,10 +342,10 @@ class MappingConfig:
     # the camera's rate: 0.34-0.36 cm), 7-Scenes at 60 Hz keeping its pace either way (3 runs each).  Unbounded,
     # frames handed over faster than the worker fills them pile up: 457 fills waiting in the unpaced 2,000-frame
     # office at 640x360, 2.4 GiB of frame copies, keyframes mapped 4.3 s late.  32 is about a second at 30 Hz
-    # and 420 MB of frames at 1200x680: the paced 2,000-frame run peaked at 29 waiting (its start), 16 later
+    # and 420 MB of frames at 1200x680: the paced 2,000-frame run peaked at 29 waiting (its start), 16 later.
+    # With 32 the office at 30 Hz tracks as unbounded; a 60 Hz camera on a slower machine keeps pace with 8
+    # (7-Scenes, session 36: 3 of 3 runs against 2 of 6 with 32; the office then 0.39-0.40 cm against 0.35-0.37)
     fill_queue: int = 32
-    # asynchronous: a keyframe's job runs before the frame fills and refinements waiting ahead of it
-    keyframes_first: bool = False
     # asynchronous: the map is published once more during a keyframe's job, after this many iterations of
     # its window's mapping (0: right after its seeding, before any: its seeds and the frame fills' that
     # join the map with it), so tracking sees the new surface before the whole mapping ends (the live

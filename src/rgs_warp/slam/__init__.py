@@ -163,7 +163,7 @@ class SLAM:
         if cfg.mapping.asynchronous:
             self.turns = DeviceTurns()
             self.publisher = MapPublisher(cfg.render.sh_degree, dev)
-            self.worker = MappingWorker(self.turns, keyframes_first=cfg.mapping.keyframes_first)
+            self.worker = MappingWorker(self.turns)
 
     # ---- per frame -----------------------------------------------------------------------------
     def track(self, rgb, depth=None, timestamp=None, T_init_WC=None, T_WC=None) -> np.ndarray:

@@ -16,15 +16,13 @@ Three parts, each usable alone:
   number that is odd while it is written; a reader that finds it odd, or changed when it is done,
   has read a map being written (``TornMapError``): the check that the tests make fail on a
   deliberately unsynchronised publisher.
-* ``MappingWorker``: the thread and its queue of jobs, run in order (with ``keyframes_first``, a
-  keyframe's job before the frame fills and refinements that wait ahead of it).  An exception in a job stops
+* ``MappingWorker``: the thread and its queue of jobs, run in order.  An exception in a job stops
   the worker and is raised in the caller's thread at its next call (``check``, ``submit``,
   ``drain``): nothing fails silently.
 """
 
 from __future__ import annotations
 
-import itertools
 import queue
 import threading
 from collections.abc import Callable
@@ -151,14 +149,9 @@ class MappingWorker:
     carry a kind ("init", "keyframe", "fill", "refine"); ``queued(kind)`` counts those not finished, and
     ``wait_until_fewer(kind, n)`` is the caller's back-pressure."""
 
-    # the order of jobs waiting together with ``keyframes_first`` (lower first; submission order within one)
-    FIRST = {"init": 0, "keyframe": 0}
-
-    def __init__(self, turns: DeviceTurns, name: str = "rgs_warp-mapping", keyframes_first: bool = False):
+    def __init__(self, turns: DeviceTurns, name: str = "rgs_warp-mapping"):
         self.turns = turns
-        self.keyframes_first = keyframes_first
-        self._jobs: queue.PriorityQueue = queue.PriorityQueue()
-        self._order = itertools.count()
+        self._jobs: queue.Queue = queue.Queue()
         self._cv = threading.Condition()
         self._queued: dict[str, int] = {}
         self._error: BaseException | None = None
@@ -172,8 +165,7 @@ class MappingWorker:
         self.check()
         with self._cv:
             self._queued[kind] = self._queued.get(kind, 0) + 1
-        rank = self.FIRST.get(kind, 1) if self.keyframes_first else 0
-        self._jobs.put((rank, next(self._order), kind, job))
+        self._jobs.put((kind, job))
 
     def queued(self, kind: str) -> int:
         """Jobs of ``kind`` submitted and not finished."""
@@ -208,7 +200,7 @@ class MappingWorker:
 
     def _run(self) -> None:
         while True:
-            _, _, kind, job = self._jobs.get()
+            kind, job = self._jobs.get()
             try:
                 if self._error is None:  # after a failure the rest are dropped (drain still returns)
                     with self.turns.mapping():
