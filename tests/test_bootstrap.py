@@ -258,6 +258,7 @@ def test_bootstrap_recovers_pose_and_depth(office_pair):
     assert np.all((r.confidence >= 0) & (r.confidence <= 1)) and r.confidence.mean() > 0.5
 
 
+@pytest.mark.slow
 def test_bootstrap_pose_at_160x90(device):
     """office0 at 160x90, frames 0 and 7 (14 cm, 10 deg apart: 2.7 deg median parallax), the first
     pairs a caller reaches.  Measured: rotation 0.10 deg and translation direction 2.2 deg off (as
@@ -274,6 +275,7 @@ def test_bootstrap_pose_at_160x90(device):
     assert len(r.points) > 300
 
 
+@pytest.mark.slow
 def test_bootstrap_rejects_pairs_without_parallax(device):
     seq = SequenceRenderer(SyntheticConfig(scene="office0", width=160, height=90, n_frames=100), device)
     rgb0, _ = seq.render(0)

@@ -553,6 +553,7 @@ def test_direct_stage_lands_near_the_true_pose(device, scene, mode):
 
 
 @pytest.mark.parametrize("mode", ["rgbd", "mono"])
+@pytest.mark.slow
 def test_direct_stage_then_adam_steps_reach_sub_millimetre(device, scene, mode):
     """The direct stage, then 15 Adam steps at lr 1e-3, from 2 cm / 2 deg off: measured 0.11-0.12 mm /
     0.001-0.003 deg (RGB-D), 1.0-1.5 mm / 0.011-0.017 deg (mono); the 15 steps alone end 46-73 mm off."""

@@ -222,6 +222,7 @@ def test_unknown_method_is_a_failed_row(tmp_path):
     assert "run failed: ConfigError" in (tmp_path / "eval.md").read_text()
 
 
+@pytest.mark.slow
 def test_resume_reuses_finished_runs_with_the_same_overrides(tmp_path):
     calls = []
 

@@ -365,6 +365,7 @@ def test_mapping_refines_corrupted_colours(device, room):
 
 
 @pytest.mark.parametrize("per_iter, per_step", [(0, 3), (1, 1), (2, 2)])
+@pytest.mark.slow
 def test_views_per_iteration_renders_a_random_subset(device, room, per_iter, per_step):
     """``mapping.views_per_iter``: each iteration renders that many views of the window, a fresh
     subset each time (every view still seen over the iterations); 0 renders all of them."""
@@ -560,6 +561,7 @@ def test_window_psnr_matches_numpy(device, room):
     assert np.ptp(expected) > 0.5  # the exposure of keyframe 1 counts
 
 
+@pytest.mark.slow
 def test_history_views_are_rendered_in_their_share(device, room):
     # mapping.history: each view an iteration renders is an older keyframe (another buffer here, as the
     # SLAM's KeyframeHistory) with this probability; their exposures are held, the window's refined
@@ -624,6 +626,7 @@ def test_history_keeps_older_keyframes_fitted(device, room):
     assert after[0.5] > after[0.0] + 2.0, after
 
 
+@pytest.mark.slow
 def test_mapping_renders_do_not_overflow_between_views(device, room):
     # Consecutive mapping iterations render different views; a dense one after a sparse one must not
     # find its intersection buffers sized by the sparse one (dropped intersections: a wrong image and
@@ -642,6 +645,7 @@ def test_mapping_renders_do_not_overflow_between_views(device, room):
     assert mapper.renderer.overflowed_renders <= 1
 
 
+@pytest.mark.slow
 def test_mapping_steps_replayed_from_graphs_match_eager_steps(device, room):
     """``mapping.graph=on`` (Warp's CPU graphs here): a view's first step in a call runs eagerly, the
     second is captured, the rest replay it, each step reading its loss row and learning rates from the
@@ -675,6 +679,7 @@ def test_mapping_steps_replayed_from_graphs_match_eager_steps(device, room):
     assert_same_values(r1.loss_history, r0.loss_history, device)
 
 
+@pytest.mark.slow
 def test_mapping_graphs_captured_again_when_the_renderer_reallocates(device, room):
     """Views of different density (the room from a keyframe, and from 40 and 60 m behind two others),
     in a set order: each rendered once eagerly, then captured in turn and replayed; then the renderer's
@@ -731,6 +736,7 @@ def test_count_overflow_counts_renders_beyond_their_capacity(device):
     assert int(overflows.numpy()[0]) == 2
 
 
+@pytest.mark.slow
 def test_stop_ends_the_call_after_the_iterations_it_asked_for(device, room):
     """``optimize(stop=...)`` (asynchronous mapping keeping pace: ``mapping.min_iters``): asked after every
     iteration but the last with the iterations done; True ends the call there, and the result holds

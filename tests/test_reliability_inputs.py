@@ -526,7 +526,7 @@ def frames(draw):
     return draw(_image(rgb_shape, rgb_dtype)), draw(_image(depth_shape, depth_dtype))
 
 
-@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(frames())
 def test_fuzz_frame_check(frame):
     """Whatever the frame, the check raises ValueError (a message, no other exception) or returns a

@@ -56,6 +56,7 @@ def _warp_error(rgb_i, rgb_j, u, v, mask) -> float:
     return float(np.abs(warped - rgb_i)[mask].mean())
 
 
+@pytest.mark.slow  # each builds the scene again (1.5 s a renderer on the CPU)
 def test_same_seed_same_arrays_other_seed_differs(device):
     cfg = SyntheticConfig(scene="office0", n_frames=20, exposure_drift=True, depth_noise_m=0.002, **SMALL)
     a, b = SequenceRenderer(cfg, device), SequenceRenderer(cfg, device)
@@ -69,6 +70,7 @@ def test_same_seed_same_arrays_other_seed_differs(device):
     assert np.abs(rc - ra).max() > 1e-3 and np.abs(dc - da).max() > 1e-3
 
 
+@pytest.mark.slow  # each builds the scene again (1.5 s a renderer on the CPU)
 def test_exposure_drift_is_an_affine_map_of_the_undrifted_image(device):
     base = SyntheticConfig(scene="office0", n_frames=30, **SMALL)
     drift = SyntheticConfig(**{**base.__dict__, "exposure_drift": 0.15})
@@ -134,6 +136,7 @@ def test_reprojection_agrees_with_an_independent_ray_cast(room):
     assert np.median(px_err) < 0.01 and np.percentile(px_err, 99) < 0.1, (np.median(px_err), px_err.max())
 
 
+@pytest.mark.slow  # each builds the scene again (1.5 s a renderer on the CPU)
 def test_depth_lies_on_the_ground_truth_mesh(tmp_path, device):
     o3d = import_open3d()
     ds = SyntheticDataset(
@@ -191,6 +194,7 @@ def test_replica_layout_files_and_cache(tmp_path, device, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == [root.name]
 
 
+@pytest.mark.slow  # each builds the scene again (1.5 s a renderer on the CPU)
 def test_tum_layout_parses_and_associates(tmp_path, device):
     cfg = SyntheticConfig(scene="office0", n_frames=8, **SMALL)
     write_sequence(cfg, tmp_path, "tum", device=device, progress=False)

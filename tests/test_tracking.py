@@ -365,7 +365,8 @@ def scene(device):
     return room_scene(device)
 
 
-@pytest.mark.parametrize("mode", ["rgbd", pytest.param("mono", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["rgbd", "mono"])
 def test_recovers_a_perturbed_pose(device, scene, mode):
     # monocular: 40 steps (the paper allows 30-60); with 30 the gain model (ratio of means) leaves
     # 1.2 mm where the affine least squares (lower contrast early on) got just under 1 mm
@@ -386,6 +387,7 @@ def test_recovers_a_perturbed_pose(device, scene, mode):
         assert result.loss_history[-1] < result.loss_history[0]
 
 
+@pytest.mark.slow
 def test_steps_on_a_checkerboard_of_tiles_recover_the_pose(device, scene):
     """``tracking.tile_stride=2``: every step but the last renders one tile in two, alternating (half the
     raster work); it recovers the perturbed pose as the full steps do, and the last step renders every
@@ -566,6 +568,7 @@ def test_motion_check_flags_a_jump_from_the_prediction():
         assert reason.startswith("motion check: the pose jumped") == flagged, (scale, reason)
 
 
+@pytest.mark.slow
 def test_a_frame_that_jumped_is_lost_and_keeps_the_prediction(device, scene):
     """A monocular frame whose tracked pose leaves the prediction by more than the jump bound (here
     tightened to 5 mm so that a frame 1 cm off the prediction is one) is lost as motion-inconsistent, and
@@ -630,15 +633,8 @@ def test_motion_check_passes_true_paths(request, path):
         assert not any(reasons.values())
 
 
-@pytest.mark.parametrize(
-    "mode, check",
-    # the negative controls take the slow tier (9 s each on the CPU)
-    [
-        ("mono", "auto"),
-        pytest.param("mono", "off", marks=pytest.mark.slow),
-        pytest.param("rgbd", "auto", marks=pytest.mark.slow),
-    ],
-)
+@pytest.mark.slow  # 8-9 s each on the CPU
+@pytest.mark.parametrize("mode, check", [("mono", "auto"), ("mono", "off"), ("rgbd", "auto")])
 def test_tracking_whose_translation_collapses_is_lost(device, scene, mode, check):
     """The camera goes on turning as before while its translation drops to 0.05 of the step (frames
     rendered at such poses): the monocular tracker follows, and its motion check (on by default in
