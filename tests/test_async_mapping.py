@@ -338,12 +338,16 @@ def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
 
     playback = {"fps": 60.0, "lag_ms_p50": 1120.0, "lag_ms_last": 1350.0, "kept_pace": False}
     metrics = {"frames": 500, "keyframes": 33, "gaussians": 220000, "fps": 47.5, "playback": playback}
-    metrics["frame_fills"] = {"wanted": 445, "skipped": 368}
+    metrics["frame_fills"] = {"wanted": 445, "skipped": 368, "most_waiting": 32}
     print_summary(tmp_path, metrics)
     out, err = capsys.readouterr()
     assert "camera    60 Hz: behind it by 1350 ms at the last frame, 1120 ms at the median" in out
     assert "368 of 445 frame fills skipped" in out
     assert "fell 1.35 s behind a 60 Hz camera" in err
+    assert "mapping.fill_queue: 32 waited" in err  # the bound named when the fills queued up to it
+    metrics["frame_fills"]["most_waiting"] = 4
+    print_summary(tmp_path, metrics)
+    assert "fill_queue" not in capsys.readouterr().err
     metrics["playback"] = {**playback, "lag_ms_last": 10.0, "kept_pace": True}
     metrics["frame_fills"] = {"wanted": 445, "skipped": 0}
     print_summary(tmp_path, metrics)

@@ -1163,10 +1163,20 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
     else:
         print(f"report    {run_dir / 'metrics.md'}")
     if playback and not playback["kept_pace"]:
+        # the fill bound first when fills queued up to it: the likeliest cause on a slower machine (perf.md,
+        # session 36: 7-Scenes at 60 Hz kept pace in 3 of 3 runs with 8, in 2 of 6 with 32)
+        most = fills.get("most_waiting", 0)
+        queue = (
+            f"fewer frame fills waiting for the mapping (mapping.fill_queue: {most} waited; 8 kept a 60 Hz camera's "
+            "pace on slower machines) or "
+            if most > 8
+            else ""
+        )
         print(
             f"warning: the run fell {playback['lag_ms_last'] / 1e3:.2f} s behind a {playback['fps']:g} Hz camera; "
-            "timing=live keeps pace by mapping less (mapping.min_iters), a lower dataset.playback_fps or fewer "
-            "tracking steps (tracking.iters) leave it more time (experiments/results/perf.md)",
+            f"timing=live keeps pace by mapping less, try {queue}fewer iterations a keyframe (mapping.min_iters); "
+            "a lower dataset.playback_fps or fewer tracking steps (tracking.iters) leave it more time "
+            "(experiments/results/perf.md)",
             file=sys.stderr,
         )
     tracking = metrics.get("tracking") or {}
