@@ -12,9 +12,11 @@ frame index).  The default case is the long one: 2,000 frames of the synthetic o
 (the same path as 300 frames, walked more slowly: the map should stop growing once the room is
 seen, and so should memory and time).
 
-``--jobs N`` runs the cases as N processes at a time on the one GPU (each in DIR/cases/NAME, its log
-beside it) and gathers their results into DIR/slam_fps.json with ``"jobs": N``: for screening settings
-by PSNR and ATE, which sharing the GPU leaves alone; their frames/s and latencies then mean nothing.
+Several cases run each in its own process (in DIR/cases/NAME, its log and plot beside it; their results
+gathered into DIR/slam_fps.json), so that a case's peak memory is its own: in one process the memory pool
+keeps what an earlier case held (session 36: a paced run after an unpaced one showed 2.1 GiB for 1.1).
+``--jobs N`` runs N of them at a time on the one GPU, with ``"jobs": N`` in the results: for screening
+settings by PSNR and ATE, which sharing the GPU leaves alone; their frames/s and latencies then mean nothing.
 """
 
 from __future__ import annotations
@@ -127,12 +129,12 @@ def main(argv=None) -> int:
     ap.add_argument("--commit", default="unknown", help="the commit measured (git on a copied tree may not know)")
     ap.add_argument("--case", action="append", help="name:override,override (repeatable)")
     ap.add_argument("--common", default="", help="overrides applied to every case, comma separated")
-    ap.add_argument("--jobs", type=int, default=1, help="cases run as this many processes at a time (screening)")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run this many processes at a time (screening)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cases = args.case or DEFAULT_CASES
-    if args.jobs > 1 and len(cases) > 1:
+    if len(cases) > 1:
         return run_jobs(cases, args, out)
     results = {}
     for name, overrides, cfg in case_configs(cases, args.common, out):
