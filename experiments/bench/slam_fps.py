@@ -129,7 +129,7 @@ def main(argv=None) -> int:
     ap.add_argument("--commit", default="unknown", help="the commit measured (git on a copied tree may not know)")
     ap.add_argument("--case", action="append", help="name:override,override (repeatable)")
     ap.add_argument("--common", default="", help="overrides applied to every case, comma separated")
-    ap.add_argument("--jobs", type=int, default=1, help="cases run this many processes at a time (screening)")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run as this many processes at a time (screening)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
