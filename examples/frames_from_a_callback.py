@@ -1,5 +1,5 @@
 """SLAM on frames that a callback delivers (a ROS subscriber, a camera SDK's frame callback), through
-``rgs_warp.datasets.CallbackSource`` and ``rgs_warp.run.run``: the callback puts each frame in a queue,
+``rgs_warp.datasets.CallbackSource`` and ``rgs_warp.app.runner.run``: the callback puts each frame in a queue,
 the source takes them out in order, and the run tracks, maps, saves and evaluates as on a dataset.
 
     python examples/frames_from_a_callback.py               # a publisher thread replays the synthetic office
@@ -26,8 +26,8 @@ import threading
 import numpy as np
 
 from rgs_warp import load_config, open_dataset
+from rgs_warp.app.runner import run
 from rgs_warp.datasets import CallbackSource
-from rgs_warp.run import run
 from rgs_warp.types import Frame
 
 

@@ -170,3 +170,11 @@ def perturbed(T_WC: np.ndarray, t_m: float, r_deg: float, seed: int) -> np.ndarr
     a, b = rng.normal(size=3), rng.normal(size=3)
     xi = np.concatenate([a / np.linalg.norm(a) * t_m, b / np.linalg.norm(b) * np.radians(r_deg)])
     return invert_pose(se3_exp(xi) @ invert_pose(T_WC))
+
+
+def flat_map(n: int, log_scale: float, device) -> GaussianMap:
+    """n small, opaque Gaussians at the origin."""
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    return GaussianMap.from_numpy(
+        np.zeros((n, 3)), quats, np.full((n, 3), log_scale), np.full(n, 2.0), np.zeros((n, 9, 3)), device
+    )

@@ -1,12 +1,12 @@
 """A run's peak memory is its own: the CUDA memory pool's high-water mark spans the process, and the
-suite runs several runs in one process (Ray reuses its workers).  Before session 12 every run after a
+suite runs several runs in one process (Ray reuses its workers).  Without a reset every run after a
 bigger one reported that one's peak.  No GPU here: a fake pool stands in for Warp's."""
 
 from types import SimpleNamespace
 
 import pytest
 
-from rgs_warp import run as run_module
+from rgs_warp.app import memory as memory
 
 
 class FakePool:
@@ -30,12 +30,12 @@ class FakePool:
 def pool(monkeypatch):
     def make(current_mib, high_mib, resettable):
         fake = FakePool(current_mib, high_mib, resettable)
-        wp = run_module.wp
+        wp = memory.wp
         monkeypatch.setattr(wp, "get_device", lambda d=None: SimpleNamespace(is_cuda=True, ordinal=0))
         monkeypatch.setattr(wp, "is_mempool_enabled", lambda d=None: True)
         monkeypatch.setattr(wp, "get_mempool_used_mem_high", lambda d=None: fake.high)
         monkeypatch.setattr(wp, "get_mempool_used_mem_current", lambda d=None: fake.current)
-        monkeypatch.setattr(run_module, "_reset_mempool_high", fake.reset)
+        monkeypatch.setattr(memory, "reset_mempool_high", fake.reset)
         return fake
 
     return make
@@ -43,42 +43,42 @@ def pool(monkeypatch):
 
 def test_a_smaller_run_after_a_bigger_one_reports_its_own_peak(pool):
     fake = pool(current_mib=100, high_mib=4800, resettable=True)  # an office baseline ran before
-    floor = run_module.start_peak_memory("cuda:0")
+    floor = memory.start_peak_memory("cuda:0")
     assert floor == 0.0
     fake.allocate(2200)
     fake.free(2200)
-    peak, reason = run_module.run_peak_memory("cuda:0", floor)
+    peak, reason = memory.run_peak_memory("cuda:0", floor)
     assert reason is None
     assert peak == pytest.approx(2300)
 
 
 def test_without_a_reset_a_run_under_the_old_mark_is_na_not_the_old_peak(pool):
     fake = pool(current_mib=100, high_mib=4800, resettable=False)
-    floor = run_module.start_peak_memory("cuda:0")
+    floor = memory.start_peak_memory("cuda:0")
     assert floor == pytest.approx(4800)
     fake.allocate(2200)
-    peak, reason = run_module.run_peak_memory("cuda:0", floor)
+    peak, reason = memory.run_peak_memory("cuda:0", floor)
     assert peak is None
     assert "4800 MiB" in reason and "earlier run" in reason
     fake.allocate(5000)  # above the old mark: the mark is this run's
-    peak, reason = run_module.run_peak_memory("cuda:0", floor)
+    peak, reason = memory.run_peak_memory("cuda:0", floor)
     assert reason is None
     assert peak == pytest.approx(7300)
 
 
 def test_the_first_run_of_a_process_reports_its_peak_without_a_reset(pool):
     fake = pool(current_mib=300, high_mib=300, resettable=False)
-    floor = run_module.start_peak_memory("cuda:0")
+    floor = memory.start_peak_memory("cuda:0")
     assert floor == 0.0
     fake.allocate(1000)
-    assert run_module.run_peak_memory("cuda:0", floor) == (pytest.approx(1300), None)
+    assert memory.run_peak_memory("cuda:0", floor) == (pytest.approx(1300), None)
 
 
 def test_cpu_has_no_peak(device):
     if device != "cpu":
         pytest.skip("the CPU case")
-    assert run_module.start_peak_memory("cpu") is None
-    peak, reason = run_module.run_peak_memory("cpu", None)
+    assert memory.start_peak_memory("cpu") is None
+    peak, reason = memory.run_peak_memory("cpu", None)
     assert peak is None
     assert "CUDA" in reason
 
@@ -90,6 +90,6 @@ def test_the_driver_reset_fails_quietly_without_a_driver():
 
         ctypes.CDLL("libcuda.so.1")
     except OSError:
-        assert run_module._reset_mempool_high(0) is False
+        assert memory.reset_mempool_high(0) is False
     else:
         pytest.skip("a CUDA driver is present: the reset is exercised by the GPU runs")

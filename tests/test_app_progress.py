@@ -3,7 +3,7 @@
 import numpy as np
 import warp as wp
 
-from rgs_warp.progress import KernelLoads, RunProgress, watch_kernel_loads
+from rgs_warp.app.progress import KernelLoads, RunProgress, watch_kernel_loads
 
 
 def _fresh_kernel(step: float):

@@ -1,6 +1,7 @@
-"""Evaluation suite with a fake SLAM runner: aggregation against NumPy, bold for the best per column,
-errors and n/a reasons in eval.md, the convergence comparison, plots, eval.json, and the default plan's
-scene selection."""
+"""The evaluation suite (rgs_warp.app.suite) with a fake SLAM runner: aggregation against NumPy, bold for
+the best per column, errors and n/a reasons in eval.md, the device and plan it names, the convergence
+comparison, plots, eval.json, the default plans' scene selection, the plan printed before the runs,
+sweeps, and the Ray path's options without Ray."""
 
 import json
 import sys
@@ -9,7 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rgs_warp.eval import suite
+from rgs_warp.app import suite
+from rgs_warp.app.cpu_size import CPU_SIZED
+from rgs_warp.app.suite import cli
+from rgs_warp.config import ConfigError, load_config
 
 SCENES = ("synthetic/room0", "synthetic/office0", "7scenes/redkitchen")
 METHODS = ("rgs", "baseline")
@@ -79,15 +83,17 @@ def fake_runner(cfg, run_dir: Path, progress: bool = True):
     return run_dir, metrics
 
 
-PLAN = [{"scene": s, "overrides": [f"dataset={s}"], "absent": None} for s in SCENES] + [
-    {"scene": "replica/room1", "overrides": ["dataset=replica/room1"], "absent": "/nowhere/Replica/room1 not found"}
+PLAN = [{"scene": s, "overrides": [f"dataset={s}"], "skipped": None} for s in SCENES] + [
+    {"scene": "replica/room1", "overrides": ["dataset=replica/room1"], "skipped": "no data at /nowhere/Replica/room1"}
 ]
 
 
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     out = tmp_path_factory.mktemp("eval")
-    res = suite.run_suite(PLAN, METHODS, REPEATS, out, runner=fake_runner, extra_overrides=["device=cpu"])
+    res = suite.run_suite(
+        PLAN, METHODS, REPEATS, out, runner=fake_runner, extra_overrides=["device=cpu"], plan_name="cpu"
+    )
     return out, res
 
 
@@ -157,7 +163,7 @@ def test_errors_and_na_reasons_in_markdown(result):
     assert lpips.startswith("n/a [^") and f"{lpips.split()[-1]}: no LPIPS weights given" in md
     assert "no ground-truth mesh for this sequence" in md
     assert "measured on CUDA devices only" in md
-    assert "- replica/room1: not present (/nowhere/Replica/room1 not found)" in md
+    assert "- replica/room1: skipped: no data at /nowhere/Replica/room1" in md
     assert "- synthetic/room0: `dataset=synthetic/room0`" in md
     # an average over scenes of which one has no number says which
     assert t["Tracking", "7scenes", "ATE RMSE keyframes (cm) ↓", "baseline"][1] == "n/a"
@@ -213,6 +219,17 @@ def test_plots_and_json(result):
     assert Path(run["run_dir"]) == out / "eval_runs" / "synthetic-room0-rgs-2"
     assert (Path(run["run_dir"]) / "metrics.json").is_file()
     assert res["header"]["repeats"] == REPEATS and res["header"]["device"] == "cpu"
+    assert res["skipped"] == [{"scene": "replica/room1", "reason": "no data at /nowhere/Replica/room1"}]
+
+
+def test_markdown_names_the_device_and_the_plan(result):
+    out, res = result
+    md = (out / "eval.md").read_text()
+    name = res["header"]["device_name"]
+    assert name.endswith(" cores") and res["header"]["plan"] == "cpu"
+    assert md.startswith(f"# rgs_warp evaluation: plan cpu on {name}\n")
+    assert f"- device: cpu ({name})" in md
+    assert "- plan: cpu (CPU-sized" in md and "`nox -s eval -- --full`" in md
 
 
 def test_unknown_method_is_a_failed_row(tmp_path):
@@ -255,34 +272,95 @@ def test_resume_reuses_finished_runs_with_the_same_overrides(tmp_path):
     assert len(calls) == 9
 
 
-def test_default_plan_scene_selection(tmp_path, monkeypatch):
-    shared = tmp_path / "shared"
-    (shared / suite.SEVENSCENES_SAMPLE).mkdir(parents=True)
-    monkeypatch.setattr(suite, "SHARED_DATA", shared)
+CPU_SIZE = [f"{k}={v}" for k, v in CPU_SIZED.items()]
+
+
+def _data_root(tmp_path: Path, *folders: str) -> Path:
     root = tmp_path / "data"
-    (root / "Replica" / "office0").mkdir(parents=True)
-    (root / "TUM" / "rgbd_dataset_freiburg1_desk").mkdir(parents=True)
+    for folder in folders:
+        (root / folder).mkdir(parents=True)
+    return root
 
+
+def test_cpu_plan_runs_cpu_sized_scenes_and_one_real_sequence_per_benchmark(tmp_path):
+    root = _data_root(tmp_path, "Replica/office0", "Replica/room1", "TUM/rgbd_dataset_freiburg1_desk")
     plan = {e["scene"]: e for e in suite.default_plan("cpu", root)}
-    present = [s for s, e in plan.items() if not e["absent"]]
-    assert present == ["synthetic/room0", "synthetic/office0", "7scenes/redkitchen", "replica/office0", "tum/fr1_desk"]
-    assert f"dataset.path={shared / suite.SEVENSCENES_SAMPLE}" in plan["7scenes/redkitchen"]["overrides"]
-    assert "dataset.stride=5" in plan["7scenes/redkitchen"]["overrides"]
-    assert f"dataset.max_frames={suite.CPU_MAX_FRAMES}" in plan["synthetic/room0"]["overrides"]
-    assert "Replica/room1" in plan["replica/room1"]["absent"]
-    # the plan's overrides are valid and point where the presence check looked
-    cfg = suite.load_config(plan["replica/office0"]["overrides"])
-    assert cfg.dataset_path() == (root / "Replica" / "office0").resolve() and cfg.dataset.downscale == 5
+    present = [s for s, e in plan.items() if not e["skipped"]]
+    assert present == ["synthetic/room0", "synthetic/office0", "replica/office0", "tum/fr1_desk"]
+    assert plan["synthetic/room0"]["overrides"] == ["dataset=synthetic/room0", *CPU_SIZE]
+    # a present sequence beyond the cpu plan's one per benchmark: the full plan's
+    assert plan["replica/room1"]["skipped"] == "in the full plan only (`nox -s eval -- --full`)"
+    # a missing one says where it looked and how to get it
+    seven = plan["7scenes/redkitchen"]["skipped"]
+    assert seven.startswith(f"no data at {root.resolve() / '7scenes/redkitchen/seq-01'}")
+    assert seven.endswith("get it with `python -m rgs_warp.download 7scenes/redkitchen`")
+    # the overrides are valid and point where the presence check looked, at about the CPU size
+    office = load_config(plan["replica/office0"]["overrides"])
+    assert office.dataset_path() == (root / "Replica" / "office0").resolve() and office.dataset.downscale == 10
+    assert office.dataset.max_frames == CPU_SIZED["dataset.max_frames"] and office.mapping.init_iters == 100
+    assert not any(o.startswith(("dataset.width", "dataset.height")) for o in plan["replica/office0"]["overrides"])
+    quick = {e["scene"]: e for e in suite.default_plan("cpu", root, quick=True)}
+    assert load_config(quick["tum/fr1_desk"]["overrides"]).dataset.max_frames == suite.QUICK_MAX_FRAMES
 
-    gpu = suite.default_plan("cuda:0", root)
-    assert [e["scene"] for e in gpu[:2]] == ["synthetic/room0_replica_size", "synthetic/office0_replica_size"]
-    assert not any(o.startswith("dataset.max_frames") for e in gpu for o in e["overrides"])
 
-    # the full sequence under the data root wins over the shared sample; neither: listed as absent
-    (root / "7scenes" / "redkitchen" / "seq-01").mkdir(parents=True)
-    assert not any(o.startswith("dataset.path") for o in suite.default_plan("cpu", root)[2]["overrides"])
-    monkeypatch.setattr(suite, "SHARED_DATA", tmp_path / "none")
-    assert suite.default_plan("cpu", tmp_path / "empty")[2]["absent"]
+def test_full_plan_runs_every_present_sequence_whole(tmp_path, monkeypatch):
+    root = _data_root(tmp_path, "Replica/office0", "Replica/room1", "7scenes/redkitchen/seq-01")
+    plan = suite.default_plan("full", root)
+    present = [e["scene"] for e in plan if not e["skipped"]]
+    assert present == [
+        "synthetic/room0_replica_size",
+        "synthetic/office0_replica_size",
+        "7scenes/redkitchen",
+        "replica/office0",
+        "replica/room1",
+    ]
+    assert all(e["overrides"] == [f"dataset={e['scene']}", f"data_root={root.resolve()}"] for e in plan[2:])
+    # without data_root the data root is $RGS_DATA's
+    monkeypatch.setenv("RGS_DATA", str(root))
+    assert suite.default_plan("full") == plan
+    with pytest.raises(ValueError, match="one of cpu, full"):
+        suite.default_plan("gpu", root)
+
+
+def test_select_scenes_takes_any_known_scene_at_the_plan_size(tmp_path):
+    root = _data_root(tmp_path, "Replica/room1")
+    (room1,) = suite.select_scenes("cpu", ["replica/room1"], root)
+    assert not room1["skipped"] and load_config(room1["overrides"]).dataset.downscale == 10
+    with pytest.raises(ConfigError, match="unknown scene.s. replica/nosuch"):
+        suite.select_scenes("cpu", ["replica/nosuch"], root)
+
+
+def test_plan_printed_before_the_runs(tmp_path, monkeypatch, capsys):
+    """The command says up front what it runs (runs, sizes, an estimate), what it skips and how to get
+    it, and how to get the full plan; the tables then name the plan."""
+    seen = {}
+    monkeypatch.setattr(cli, "check_evaluation_imports", lambda: None)
+    monkeypatch.setattr(cli, "run_suite", lambda plan, *a, **k: seen.update(k, plan=plan) or {"runs": []})
+    root = _data_root(tmp_path, "Replica/office0", "Replica/room1")
+    assert cli.main(["--device", "cpu", "--out", str(tmp_path / "out"), f"data_root={root}"]) == 1  # no run ok
+    printed = capsys.readouterr().out
+    first = "Evaluation plan cpu on cpu: 6 runs (3 scenes x 2 methods x 1 repeat), about 10 minutes on 2 cores"
+    assert printed.startswith(first), printed
+    assert "  synthetic/room0: 120x68, 25 frames\n" in printed
+    assert "  replica/office0: 1/10 size, 25 frames\n" in printed
+    assert f"Skipped, no data under {root.resolve()} (data_root= or $RGS_DATA" in printed
+    assert "python -m rgs_warp.download NAME" in printed and "  tum/fr1_desk tum/fr1_desk2 " in printed
+    assert "Skipped, in the full plan only (`nox -s eval -- --full`): replica/room1\n" in printed
+    assert printed.endswith(
+        "meant for a GPU): nox -s eval -- --full\n0 of 0 runs ok; report " + str(tmp_path / "out/eval.md\n")
+    )
+    assert seen["plan_name"] == "cpu" and [e["scene"] for e in seen["plan"] if not e["skipped"]] == [
+        "synthetic/room0",
+        "synthetic/office0",
+        "replica/office0",
+    ]
+    cli.main(["--device", "cpu", "--full", "--quick", "--out", str(tmp_path / "out"), f"data_root={root}"])
+    printed = capsys.readouterr().out
+    assert printed.startswith("Evaluation plan quick on cpu: 8 runs (4 scenes x 2 methods x 1 repeat), hours")
+    assert "meant for a GPU" not in printed
+    assert "  synthetic/room0_replica_size: 1200x680, 15 frames\n" in printed and seen["plan_name"] == "quick"
+    cli.main(["--device", "cpu", "--full", "--out", str(tmp_path / "out"), f"data_root={root}"])
+    assert seen["plan_name"] == "full" and capsys.readouterr().out.startswith("Evaluation plan full on cpu: 24 runs")
 
 
 def test_second_best_underlined_among_three():
@@ -338,17 +416,13 @@ variants: [{name: short, overrides: [tracking.iters=3]}]
     assert sweep["variants"] == [{"name": "short", "overrides": ["tracking.iters=3"]}]
     room, office = sweep["plan"]
     # a scene of the plan keeps the plan's CPU sizing; the spec's overrides, then the scene's own, win
-    assert room["overrides"] == [
-        "dataset=synthetic/room0",
-        f"dataset.max_frames={suite.CPU_MAX_FRAMES}",
-        "dataset.max_frames=9",
-    ]
+    assert room["overrides"] == ["dataset=synthetic/room0", *CPU_SIZE, "dataset.max_frames=9"]
     assert office["overrides"] == [
         "dataset=synthetic/office0_replica_size",
         "dataset.max_frames=9",
         "dataset.max_frames=7",
     ]
-    assert suite.load_config(office["overrides"]).dataset.max_frames == 7
+    assert load_config(office["overrides"]).dataset.max_frames == 7
 
     for text, message in (
         ("methods: [rgs]", "non-empty 'scenes'"),
@@ -361,7 +435,7 @@ variants: [{name: short, overrides: [tracking.iters=3]}]
         ("scenes: [synthetic/room0]\nvariants: [{name: a b}, {name: a/b}]", "the same name"),
         ("scenes: [synthetic/room0]\nvariants: [{overrides: [tracking.nosuch=1]}]", "tracking.nosuch"),
     ):
-        with pytest.raises(suite.ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
             suite.load_sweep(_spec(tmp_path, text), "cpu")
 
 
@@ -433,7 +507,7 @@ def test_without_a_sweep_the_records_and_header_are_as_before(result):
     assert list(res["runs"][0])[:5] == ["scene", "method", "repeat", "seed", "run_dir"]
 
 
-# ---- the Ray path without Ray (tests/test_eval_suite_ray.py runs it) -----------------------------------
+# ---- the Ray path without Ray (tests/test_app_suite_ray.py runs it) -----------------------------------
 
 
 def test_ray_task_options_ask_for_a_gpu_on_cuda(monkeypatch):
@@ -451,15 +525,15 @@ def test_ray_path_without_ray_says_what_to_install(tmp_path, monkeypatch):
     with pytest.raises(ImportError, match=r"rgs_warp\[cluster\]"):
         suite.run_suite(PLAN[:1], ("rgs",), 1, tmp_path, runner=fake_runner, progress=False, cluster="")
     argv = ["--ray", "--device", "cpu", "--scenes", "synthetic/room0", "--out", str(tmp_path), "--repeats", "1"]
-    monkeypatch.setattr(suite, "check_evaluation_imports", lambda: None)
+    monkeypatch.setattr(cli, "check_evaluation_imports", lambda: None)
     assert suite.main(argv) == 1
 
 
 def test_ray_without_address_before_overrides(monkeypatch, tmp_path):
     """``--ray key=value``: the override is an override, not the cluster's address."""
     seen = {}
-    monkeypatch.setattr(suite, "check_evaluation_imports", lambda: None)
-    monkeypatch.setattr(suite, "run_suite", lambda *a, **k: seen.update(k) or {"runs": []})
+    monkeypatch.setattr(cli, "check_evaluation_imports", lambda: None)
+    monkeypatch.setattr(cli, "run_suite", lambda *a, **k: seen.update(k) or {"runs": []})
     argv = [
         "--scenes",
         "synthetic/room0",
@@ -493,11 +567,11 @@ def test_peer_metrics_named_in_the_tables(result):
 
 
 def test_git_commit_names_edited_code(tmp_path):
-    # a number measured on edited code must not carry the bare commit (the lent GPU machine runs the
-    # working tree over an older .git: its suites said 16a5048 for code two commits newer)
+    # a number measured on edited code must not carry the bare commit (a machine that runs a copied
+    # working tree over an older .git would name code it did not run)
     import subprocess
 
-    from rgs_warp.eval.report import git_commit
+    from rgs_warp.app.report import git_commit
 
     assert git_commit(tmp_path) == "unknown"
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-C", str(tmp_path)]
@@ -509,3 +583,27 @@ def test_git_commit_names_edited_code(tmp_path):
     assert git_commit(tmp_path) == head
     (tmp_path / "a.txt").write_text("2")
     assert git_commit(tmp_path) == head + "+changes"
+
+
+def test_unknown_methods_are_refused_before_any_run(tmp_path, capsys, monkeypatch):
+    def no_runs(*args, **kwargs):
+        raise AssertionError("runs were started")
+
+    monkeypatch.setattr(cli, "run_suite", no_runs)
+    assert suite.main(["--methods", "rgs,foo", "--device", "cpu", "--out", str(tmp_path)]) == 2
+    assert "error: unknown method(s) foo; valid: rgs, baseline" in capsys.readouterr().err
+
+
+def test_cpu_plan_reads_the_shared_7scenes_frames_under_a_data_root(tmp_path, shared_data):
+    """The shared 500 frames as the data root's 7scenes/redkitchen/seq-01: the cpu plan runs them at
+    128x96, every 5th frame, 25 frames (frames 0-120)."""
+    from rgs_warp.datasets import open_dataset
+
+    root = tmp_path / "data"
+    (root / "7scenes" / "redkitchen").mkdir(parents=True)
+    (root / "7scenes" / "redkitchen" / "seq-01").symlink_to(shared_data / "7scenes-redkitchen")
+    (entry,) = [e for e in suite.default_plan("cpu", root) if e["scene"] == "7scenes/redkitchen"]
+    assert not entry["skipped"]
+    ds = open_dataset(load_config([*entry["overrides"], "device=cpu"]))
+    frame = ds[len(ds) - 1]
+    assert len(ds) == 25 and frame.rgb.shape == (96, 128, 3)

@@ -1,13 +1,14 @@
-"""The evaluation suite on a local Ray cluster (``--ray``), against the serial path: a tiny sweep (two
-synthetic scenes at 64x36, 6 frames, two seeds) gives the same numbers both ways, a task whose worker
-dies is retried, a run whose worker dies twice is an error row, and ``--resume`` redoes only that."""
+"""The evaluation suite (rgs_warp.app.suite) on a local Ray cluster (``--ray``), against the serial path:
+a tiny sweep (two synthetic scenes at 64x36, 6 frames, two seeds) gives the same numbers both ways, a
+task whose worker dies is retried, a run whose worker dies twice is an error row, and ``--resume``
+redoes only that."""
 
 import json
 from pathlib import Path
 
 import pytest
 
-from rgs_warp.eval import suite
+from rgs_warp.app import suite
 
 ray = pytest.importorskip("ray", reason="the --ray path needs Ray: pip install -e '.[cluster]'")
 

@@ -1,4 +1,4 @@
-"""The viewer (``rgs_warp.view``): viser's camera against our pose and intrinsics, the hook's cost
+"""The viewer (``rgs_warp.app.view``): viser's camera against our pose and intrinsics, the hook's cost
 without a browser, a simulated browser that receives rendered views, and (slow) a real headless
 chromium driven by Playwright that shows the rendered map and follows a camera move."""
 
@@ -22,7 +22,7 @@ from rgs_warp.types import Camera
 viser = pytest.importorskip("viser", reason='the viewer needs viser: pip install "rgs_warp[viewer]"')
 from viser import transforms as vtf  # noqa: E402  (viser's own SO(3), the reference)
 
-from rgs_warp.view import (  # noqa: E402
+from rgs_warp.app.view import (  # noqa: E402
     SimulatedClient,
     Viewer,
     look_at_pose,
@@ -150,24 +150,25 @@ def test_simulated_clients_receive_rendered_views(viewer, device):
             c.close()
 
 
-def test_views_render_whole_after_a_smaller_view(viewer, device):
+def test_views_render_whole_after_a_smaller_view(device):
     """A view that needs more tile intersections than the viewer's previous one is rendered whole
-    (the renderer drops what exceeds its capacity and grows it for the next render)."""
+    (``SLAM.render``, which the viewer renders with: the renderer drops what exceeds its capacity and
+    grows it for the next render)."""
     from rgs_warp.render import Renderer
 
     slam = tiny_slam(device)
     camera = view_camera(math.radians(60.0), 320, 180, 320)
     far, near = np.eye(4), np.eye(4)
     far[2, 3], near[2, 3] = -8.0, 1.2
-    viewer._render(slam, camera, far)
-    got = viewer._render(slam, camera, near).color.numpy()
+    slam.render(far, camera)
+    got = slam.render(near, camera).color.numpy()
     np.testing.assert_allclose(got, Renderer(device).forward(slam.map, camera, near).color.numpy(), atol=1e-5)
 
 
 def test_viewer_config_and_missing_viser(monkeypatch, capsys, tmp_path):
+    from rgs_warp.app.cli import main
+    from rgs_warp.app.view import require_viser
     from rgs_warp.config import ConfigError
-    from rgs_warp.run import main
-    from rgs_warp.view import require_viser
 
     assert load_config(["viewer=true", "viewer_port=0"]).viewer
     with pytest.raises(ConfigError, match="viewer_port"):
@@ -182,8 +183,8 @@ def test_viewer_config_and_missing_viser(monkeypatch, capsys, tmp_path):
 
 
 def test_resume_may_turn_the_viewer_on(tmp_path):
+    from rgs_warp.app.runner import resume_config
     from rgs_warp.config import ConfigError, save_config
-    from rgs_warp.run import resume_config
 
     save_config(load_config([]), tmp_path / "config.yaml")
     (tmp_path / "checkpoint.json").write_text("{}")
@@ -194,7 +195,7 @@ def test_resume_may_turn_the_viewer_on(tmp_path):
 
 
 def test_view_command_refuses_what_is_not_a_run(tmp_path, capsys):
-    from rgs_warp.view import main
+    from rgs_warp.app.view import main
 
     assert main([str(tmp_path / "nothing"), "--port", "0", "--device", "cpu"]) == 1
     err = capsys.readouterr().err
@@ -209,18 +210,18 @@ def test_live_run_feeds_the_viewer(tmp_path, device, monkeypatch, capsys):
     closes."""
     import json
 
-    import rgs_warp.view
-    from rgs_warp.run import main
+    import rgs_warp.app.view
+    from rgs_warp.app.cli import main
 
     viewer = Viewer(port=0, host="127.0.0.1", panel_every_s=0.0, scene_every_s=0.0)
     client = SimulatedClient(viewer.url, fps=30.0, width=320, height=180)
     served, closed = [], []
 
     def serve(slam=None, stop=None, poll_s=0.02):
-        served.append(viewer._slam)
+        served.append(viewer.slam)
         raise KeyboardInterrupt  # Ctrl-C while it serves the finished run
 
-    monkeypatch.setattr(rgs_warp.view, "open_viewer", lambda port: viewer)
+    monkeypatch.setattr(rgs_warp.app.view, "open_viewer", lambda port, host: viewer)
     monkeypatch.setattr(viewer, "serve", serve)
     monkeypatch.setattr(viewer, "close", lambda: closed.append(True))
     # a small run: 3 keyframes (the keyframe ATE needs 3), 2 tracked frames; accuracy is test_slam's business
@@ -334,3 +335,40 @@ def _wait_for_view(page, canvas, viewer, path: Path, unlike: np.ndarray | None =
                 f"last screenshot: {path})"
             )
         page.wait_for_timeout(250)
+
+
+# ---- where it listens -------------------------------------------------------------------------------
+def test_the_viewer_listens_on_this_machine_only_by_default():
+    """viser's default, 0.0.0.0, served the run to every network the machine is on, with no access
+    control; the viewer's default is the loopback address (the ssh tunnel it prints reaches it)."""
+    from rgs_warp.config import Config
+
+    with Viewer(port=0) as viewer:
+        assert viewer.server.get_host() == "127.0.0.1" and viewer.url.startswith("http://127.0.0.1:")
+    assert Config().viewer_host == "127.0.0.1"
+
+
+def test_open_viewer_warns_when_it_listens_beyond_this_machine(capsys):
+    from rgs_warp.app.view import open_viewer
+
+    with open_viewer(0) as viewer:
+        err = capsys.readouterr().err
+        assert "warning" not in err and f"ssh -L {viewer.port}:localhost:{viewer.port}" in err
+    with open_viewer(0, "0.0.0.0") as viewer:
+        err = capsys.readouterr().err
+        assert f"warning: the viewer listens on 0.0.0.0: anyone who reaches this machine on port {viewer.port}" in err
+
+
+def test_open_viewer_says_when_its_port_was_taken(capsys):
+    """viser moves to the next free port without a word; the viewer names both."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        from rgs_warp.app.view import open_viewer
+
+        with open_viewer(port) as viewer:
+            assert viewer.port != port
+            assert f"viewer: port {port} is in use; serving on port {viewer.port} instead" in capsys.readouterr().err

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import warp as wp
 
+from rgs_warp.app.runner import run
 from rgs_warp.config import load_config
-from rgs_warp.run import run
 from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher, TornMapError
 from rgs_warp.types import GaussianMap
 from test_slam import OVERRIDES  # the CPU-sized office run of the end-to-end tests
@@ -149,7 +149,7 @@ def test_a_failed_worker_still_lets_the_slam_save(tmp_path, device, monkeypatch)
 
 def test_jobs_run_in_the_order_submitted_whatever_their_kind():
     """A keyframe's job waits behind the fills submitted before it (running it first starved the fills:
-    the office at 30 Hz lost 1.3 dB, perf.md session 36)."""
+    the office at 30 Hz lost 1.3 dB, experiments/results/perf.md)."""
     worker, release, ran = MappingWorker(DeviceTurns()), threading.Event(), []
     worker.submit("fill", release.wait)  # running: the others wait behind it
     for kind, name in [("fill", "f1"), ("refine", "r"), ("keyframe", "k1"), ("fill", "f2"), ("keyframe", "k2")]:
@@ -157,6 +157,32 @@ def test_jobs_run_in_the_order_submitted_whatever_their_kind():
     release.set()
     worker.drain()
     assert ran == ["f1", "r", "k1", "f2", "k2"]
+
+
+def test_inline_and_worker_mapping_take_the_same_calls(device):
+    """The SLAM's two places for mapping jobs: inline, a job runs at once on the map tracking reads and keeps
+    the caller's images; with the worker, it is queued and keeps a copy of them, and tracking reads a
+    published copy of the working map (published at its first read, as after a load)."""
+    from rgs_warp.config import MappingConfig
+    from rgs_warp.render import Renderer
+    from rgs_warp.slam.worker import InlineMapping, WorkerMapping
+
+    working, image, ran = _map_of(10, 1.0, device), np.zeros((4, 4, 3), np.float32), []
+    inline = InlineMapping(working, Renderer(device))
+    inline.run("keyframe", ran.append, 1)
+    assert ran == [1] and inline.queued("keyframe") == 0 and inline.own(image) is image and inline.publish() == 0
+    with inline.tracking_map() as tracked:
+        assert tracked is working
+    jobs, release = WorkerMapping(working, Renderer(device), MappingConfig(), 0, device), threading.Event()
+    jobs.run("keyframe", release.wait)
+    jobs.run("keyframe", ran.append, 2)
+    kept = jobs.own(image)
+    assert jobs.queued("keyframe") == 2 and ran == [1] and kept is not image and np.array_equal(kept, image)
+    release.set()
+    jobs.drain()
+    assert ran == [1, 2] and jobs.queued("keyframe") == 0
+    with jobs.tracking_map() as tracked:
+        assert tracked is not working and len(tracked) == len(working) and jobs.publisher.version == 1
 
 
 def test_back_pressure_waits_for_the_worker():
@@ -289,25 +315,25 @@ def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
     from rgs_warp import SLAM, open_dataset
     from rgs_warp.seeding import Seeder
 
-    wanted, filled = [], []
-    wants_fill = Seeder.wants_fill
-    fill_frame = SLAM._fill_frame
+    wanted, filled, slow = [], [], [False]
+    wants_fill, fill_frame = Seeder.wants_fill, Seeder.fill_frame
 
     def counting_wants(self, coverage):
         w = wants_fill(self, coverage)
         wanted.append(w)
         return w
 
-    def slow_fill(self, i, *args):
-        if self.worker is not None:
+    def slow_fill(self, gmap, frame_id, *args):
+        if slow[0]:
             time.sleep(1.0)
-        filled.append(i)
-        return fill_frame(self, i, *args)
+        filled.append(frame_id)
+        return fill_frame(self, gmap, frame_id, *args)
 
     monkeypatch.setattr(Seeder, "wants_fill", counting_wants)
-    monkeypatch.setattr(SLAM, "_fill_frame", slow_fill)
+    monkeypatch.setattr(Seeder, "fill_frame", slow_fill)
     counts = {}
     for asynchronous, bound in ((False, 1), (True, 1), (True, 0)):
+        slow[0] = asynchronous
         wanted.clear()
         filled.clear()
         argv = [*OVERRIDES, "dataset.max_frames=14", f"mapping.asynchronous={str(asynchronous).lower()}"]
@@ -334,7 +360,7 @@ def test_one_frame_fill_waits_for_the_worker_at_most(device, monkeypatch):
 def test_summary_says_how_far_behind_the_camera(tmp_path, capsys):
     """``run.print_summary`` of a played run: the lag at the last frame and the median, the skipped frame
     fills, and a warning (stderr) only when the run fell behind the camera."""
-    from rgs_warp.run import print_summary
+    from rgs_warp.app.cli import print_summary
 
     playback = {"fps": 60.0, "lag_ms_p50": 1120.0, "lag_ms_last": 1350.0, "kept_pace": False}
     metrics = {"frames": 500, "keyframes": 33, "gaussians": 220000, "fps": 47.5, "playback": playback}
@@ -373,11 +399,12 @@ def test_a_keyframes_map_is_published_during_its_mapping_with_publish_after(devi
         optimize, calls = slam.mapper.optimize, []
 
         def recording(*args, slam=slam, optimize=optimize, calls=calls, **kwargs):
-            with slam.publisher.read() as published:
+            publisher = slam.mapping_jobs.publisher
+            with publisher.read() as published:
                 sizes = (len(published), len(slam.map))
-            version = slam.publisher.version
+            version = publisher.version
             result = optimize(*args, **kwargs)
-            calls.append((sizes, slam.publisher.version - version, result.iters))
+            calls.append((sizes, publisher.version - version, result.iters))
             return result
 
         slam.mapper.optimize = recording
@@ -419,7 +446,7 @@ def test_the_initial_window_is_mapped_beside_tracking_with_init_wait(device):
         def held(*args, slam=slam, optimize=optimize, gate=gate, mapped=mapped, free=free, wait=wait, **kwargs):
             deadline = time.monotonic() + 30.0
             while wait != "window" and len(mapped) >= free and not gate.is_set() and time.monotonic() < deadline:
-                slam._pause()  # tracking takes the device whenever it waits
+                slam.mapping_jobs.pause()  # tracking takes the device whenever it waits
                 time.sleep(0.005)
             mapped.append(True)
             return optimize(*args, **kwargs)
@@ -428,9 +455,9 @@ def test_the_initial_window_is_mapped_beside_tracking_with_init_wait(device):
         results, waiting, published = [], [], []
         for f in list(ds)[:6]:
             results.append(slam.process(f.rgb, f.depth, f.timestamp))
-            waiting.append(slam.worker.queued("init"))
-            with slam.publisher.read() as p:
-                published.append((slam.publisher.version, len(p)))
+            waiting.append(slam.mapping_jobs.queued("init"))
+            with slam.mapping_jobs.publisher.read() as p:
+                published.append((slam.mapping_jobs.publisher.version, len(p)))
         gate.set()
         for f in list(ds)[6:]:
             results.append(slam.process(f.rgb, f.depth, f.timestamp))
@@ -469,7 +496,7 @@ def test_tracking_takes_the_device_between_a_keyframes_matching_and_seeding(devi
     order, match, triangulate, threads = [], slam.matcher.match, slam.triangulator.triangulate, []
 
     def tracking_frame():
-        with slam.turns.tracking():
+        with slam.mapping_jobs.turns.tracking():
             order.append("tracking")
 
     def matching(*args, **kwargs):
@@ -478,7 +505,7 @@ def test_tracking_takes_the_device_between_a_keyframes_matching_and_seeding(devi
         threads.append(threading.Thread(target=tracking_frame))
         threads[-1].start()
         deadline = time.monotonic() + 10.0
-        while slam.turns._tracking_waits == 0 and time.monotonic() < deadline:  # the frame waits for its turn
+        while not slam.mapping_jobs.turns.tracking_waits and time.monotonic() < deadline:  # the frame waits
             time.sleep(0.001)
         return m
 

@@ -20,7 +20,8 @@ from rgs_warp.config import MatchingConfig, SeedingConfig
 from rgs_warp.datasets.sevenscenes import SevenScenesDataset
 from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg, skew, so3_exp
-from rgs_warp.kernels.matching import NO_MATCH, select_matches, window_search
+from rgs_warp.kernels.bootstrap import select_matches, window_search
+from rgs_warp.kernels.math import NO_MATCH
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.seeding import PointSeeder
 from rgs_warp.types import GaussianMap

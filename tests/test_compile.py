@@ -1,6 +1,6 @@
 """Every module that defines Warp kernels compiles for the GPU (sm_90) with NVRTC, without a GPU:
-CUDA-only compile errors (shared memory, tile sizes, intrinsics) would otherwise first show on a lent
-H100.  The modules are found by scanning the package's sources for ``@wp.kernel``, so a kernel moved
+CUDA-only compile errors (shared memory, tile sizes, intrinsics) would otherwise first show on a
+GPU.  The modules are found by scanning the package's sources for ``@wp.kernel``, so a kernel moved
 to another file stays covered; generic kernels compile through the overloads their module declares."""
 
 import importlib
@@ -8,7 +8,8 @@ import importlib
 import pytest
 import warp as wp
 
-from rgs_warp.compile import compile_module, kernel_modules, main
+from rgs_warp.app.compile import main
+from rgs_warp.compile import compile_module, kernel_modules
 
 MODULES = kernel_modules()
 

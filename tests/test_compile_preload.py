@@ -1,4 +1,4 @@
-"""On a GPU only (skipped without CUDA; run it on the lent machine with ``pytest -m gpu``): after
+"""On a GPU only (skipped without CUDA; run it on a GPU machine with ``pytest -m gpu``): after
 ``preload`` in a fresh process, the device's stream in Python is the one Warp's native code issues
 memory operations on, and a CUDA graph that allocates and zeroes an array captures and replays.
 Both failed on a one-GPU machine when force_load's threads took the primary context concurrently

@@ -1,19 +1,24 @@
-"""Config: YAML groups, overrides, errors with suggestions, the CLI's handling of them."""
+"""Config: YAML groups, overrides, errors with suggestions, the CLI's handling of them, the reference page."""
+
+import re
+from pathlib import Path
 
 import pytest
 import yaml
 
+from rgs_warp.app.cli import help_text, main
 from rgs_warp.config import (
+    CONSTRAINTS,
     Config,
     ConfigError,
     config_from_dict,
     group_options,
-    help_text,
+    leaves,
     load_config,
     load_saved_config,
+    parse_yaml,
     save_config,
 )
-from rgs_warp.run import main
 
 
 def test_defaults_and_overrides():
@@ -106,7 +111,7 @@ def test_data_root(monkeypatch, tmp_path):
 
 def test_off_on_yes_no_stay_strings():
     # YAML 1.1 reads off / on / yes / no as booleans; the configs read YAML 1.2 booleans only
-    assert load_config(["tracking.brightness=off"]).tracking.brightness == "off"
+    assert load_config(["tracking.graph=off"]).tracking.graph == "off"
     assert load_config(["seeding.depth_fill=false"]).seeding.depth_fill is False
     with pytest.raises(ConfigError, match="expected true or false"):
         load_config(["seeding.depth_fill=no"])
@@ -150,7 +155,7 @@ def test_group_file_settings_of_other_sections(tmp_path, monkeypatch):
 
 
 def test_cpu_sized_run_only_on_the_cpu_without_sizes():
-    from rgs_warp.config import CPU_SIZED, cpu_sized_overrides
+    from rgs_warp.app.cpu_size import CPU_SIZED, cpu_sized_overrides
 
     extra, message = cpu_sized_overrides(load_config([]), [], "cpu")
     assert extra == [f"{k}={v}" for k, v in CPU_SIZED.items()]
@@ -178,7 +183,7 @@ def test_cpu_sized_run_only_on_the_cpu_without_sizes():
 def test_cli_applies_the_cpu_sized_run_and_says_so(argv, device, sized, monkeypatch, capsys, tmp_path):
     """The command line resolves the device (mocked here), and on the CPU without sizes runs the
     CPU-sized config and prints how to get the full run."""
-    import rgs_warp.run as run_module
+    import rgs_warp.app.cli as run_module
 
     seen = {}
 
@@ -233,3 +238,23 @@ def test_a_saved_config_without_a_middle_section_is_another_versions_not_a_cut_c
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"sections keypoints, eval, export missing \(truncated\?\)"):
         load_saved_config(path)
+
+
+def test_reference_page_lists_every_key_with_its_default_and_range():
+    # docs/config.md: a table row a key, "| `key` | `default` | range | what it is |"
+    text = (Path(__file__).parents[1] / "docs" / "config.md").read_text()
+    rows = {m[1]: (m[2], m[3]) for m in re.finditer(r"^\| `([\w.]+)` \| `([^`]*)` \|([^|]*)\|", text, re.M)}
+    keys = dict(leaves(Config()))
+    assert sorted(set(keys) - set(rows)) == [] and sorted(set(rows) - set(keys)) == []
+    for key, default in keys.items():
+        cell, bound = rows[key]
+        documented = parse_yaml(cell)
+        if isinstance(default, tuple):
+            documented = tuple(float(v) for v in documented)
+        elif isinstance(default, float):
+            documented = float(documented)
+        elif isinstance(default, str):
+            documented = "" if documented is None else str(documented)
+        assert documented == default and type(documented) is type(default), (key, cell, default)
+        expected = str(CONSTRAINTS[key]).removeprefix("in ") if key in CONSTRAINTS else ""
+        assert bound.strip() == expected, (key, bound, expected)

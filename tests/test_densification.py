@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from helpers_maps import flat_map
 from helpers_render import BACKGROUND, CAMERA, T_WC, to_map
 from reference_render import random_scene
 from rgs_warp.densification import Densifier
@@ -363,3 +364,17 @@ def test_map_grows_where_the_residual_is(device):
     out, after = run(range(5, 9))
     assert out["cloned"] + out["split"] > 10 and len(gmap) > count
     assert_untouched_right_of(48, after)
+
+
+def test_densification_stops_growing_at_the_cap(device):
+    from rgs_warp.densification import Densifier
+
+    n = 6
+    for cap, expected in ((0, 2 * n), (n + 1, n)):  # every Gaussian would clone: 12 rows, over a cap of 7
+        gmap = flat_map(n, -5.0, device)
+        densifier = Densifier(gmap, start=0, interval=10, max_gaussians=cap)
+        densifier.grad_norm_sum.fill_(1.0)
+        densifier.visible_count.fill_(1)
+        step = densifier.step(10, 6.0)
+        gmap.remove(step.remove)
+        assert len(gmap) == expected, cap

@@ -1,4 +1,4 @@
-"""Direct alignment of tracking (kernels/direct.py, ``Tracker._align``): the reference image and the
+"""Direct alignment of tracking (kernels/direct.py, direct_align.py): the reference image and the
 normal equations against a NumPy re-implementation of the documented maths, their gradient against
 finite differences of their cost, the damped Gauss-Newton step against NumPy's solve, then the tracker
 with ``tracking.direct_levels`` on the synthetic room of test_tracking.py."""
@@ -11,7 +11,8 @@ from helpers_maps import perturbed, room_scene
 from rgs_warp.config import TrackingConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg, se3_exp
 from rgs_warp.kernels import direct as dk
-from rgs_warp.tracking import Tracker, pose_error
+from rgs_warp.motion_model import pose_error
+from rgs_warp.tracking import Tracker
 
 # ---- NumPy references ---------------------------------------------------------------------------------
 
@@ -110,7 +111,7 @@ def _reference_sums(ref_rgb, ref_depth, rgb, depth, has_depth, K, T_rel, affine)
 
 
 def _kernel_sums(device, ref_rgb, ref_depth, rgb, depth, has_depth, K, T_rel, affine) -> np.ndarray:
-    """``normal_equations`` launched as tracking.py's ``_align`` does, on zeroed sums."""
+    """``normal_equations`` launched as ``DirectAlignment.align`` does, on zeroed sums."""
     h, w = ref_depth.shape
     sums = wp.zeros(dk.N_COLUMNS, dtype=wp.float64, device=device)
     wp.launch_tiled(
@@ -443,7 +444,7 @@ def _textured_plane(T_rel: np.ndarray, gain: float, bias: float):
 
 def _gauss_newton(device, K, images, has_depth: int, iters: int, brightness: bool = True):
     """``iters`` steps of ``normal_equations`` + ``solve_step`` from T_rel = I, (g, b) = (1, 0), as
-    ``Tracker._align`` at one level; ``brightness`` False holds (g, b) (their rows of the system replaced
+    ``DirectAlignment.align`` at one level; ``brightness`` False holds (g, b) (their rows of the system replaced
     by the identity's, on the host).  Returns T_rel and (g, b)."""
     ref_rgb, ref_depth, rgb, depth = images
     h, w = ref_depth.shape

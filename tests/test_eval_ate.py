@@ -7,7 +7,8 @@ from evo.core import metrics as evo_metrics
 from evo.core.geometry import umeyama_alignment as evo_umeyama
 from evo.core.trajectory import PoseTrajectory3D
 
-from rgs_warp.eval import ate, ate_keyframes_and_all, plot_trajectory_topview, umeyama_alignment
+from rgs_warp.app.report import plot_trajectory_topview
+from rgs_warp.eval import ate, ate_keyframes_and_all, umeyama_alignment
 from rgs_warp.geometry import se3_exp
 
 TOL_M = 1e-6

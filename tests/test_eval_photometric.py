@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from skimage.metrics import structural_similarity
 
+from rgs_warp.app.report import write_report
 from rgs_warp.eval import (
     LPIPS,
     cached_alexnet_path,
@@ -22,7 +23,6 @@ from rgs_warp.eval import (
     psnr_raw_and_compensated,
     ssim,
     ssim_3dgs,
-    write_report,
 )
 
 

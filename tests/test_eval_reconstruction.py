@@ -111,7 +111,7 @@ def test_mesh_export_of_a_saved_run(tmp_path, device):
     """``python -m rgs_warp.export RUN_DIR`` on a saved run: a coloured mesh.ply that Open3D reads back,
     on the ground-truth surface of the synthetic scene (to-surface accuracy, the metrics' code)."""
     from rgs_warp import SLAM, load_config, open_dataset
-    from rgs_warp.export import main as export_main
+    from rgs_warp.app.export import main as export_main
 
     cfg = load_config(
         ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90", "dataset.max_frames=6"]

@@ -101,3 +101,18 @@ def test_frames_from_a_callback_example(tmp_path, device):
     run_dir, metrics = example.main([*TINY, f"device={device}", f"output_dir={tmp_path}", "run_name=cb"])
     assert metrics["frames"] == 10 and (run_dir / "trajectory.txt").is_file()
     assert metrics["photometric"]["psnr_db"] > 15.0
+
+
+@pytest.mark.slow
+def test_readme_library_example_runs_as_written(tmp_path, monkeypatch):
+    """The README's "As a library" block, as written (device=auto: the CPU here), tracks and saves."""
+    readme = (EXAMPLES.parent / "README.md").read_text()
+    block = readme.split("## As a library", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    slam, dataset = scope["slam"], scope["dataset"]
+    assert len(slam.poses) == len(dataset) == 20 and (tmp_path / "out" / "map.ply").is_file()
+    assert scope["image"].shape == (68, 120, 3) and len(slam.map) > 0
+    gt = np.array([dataset[i].pose_gt for i in range(len(dataset))])
+    assert ate(np.array(slam.poses), gt)["rmse_cm"] < 8.0

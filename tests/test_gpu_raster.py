@@ -1,4 +1,4 @@
-"""On a GPU only (skipped without CUDA; run it on the lent machine with ``pytest -m gpu``): the tiled
+"""On a GPU only (skipped without CUDA; run it on a GPU machine with ``pytest -m gpu``): the tiled
 compositing backward's CUDA-only code, the warp shuffles that sum each splat's screen-space gradient
 over a warp and scatter its ten components to ten lanes (``kernels/rasterize.py``,
 ``warp_reduce_scatter``), against the per-pixel backward, which adds every pixel's gradient with its

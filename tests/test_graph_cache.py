@@ -56,23 +56,23 @@ def test_seeder_depth_extrapolation_replayed_equals_eager():
         slots.append(kf.add(i, np.eye(4), rgb, depth))
     cfg = SeedingConfig(depth_extrapolate_px=6)
     eager = Seeder(cfg, cam, "cpu", mode="rgbd")
-    replayed = Seeder(cfg, cam, "cpu", mode="rgbd")
-    replayed._graphs = GraphCache("cpu", size=4, enabled=True)
+    graphs = GraphCache("cpu", size=4, enabled=True)
+    replayed = Seeder(cfg, cam, "cpu", mode="rgbd", graphs=graphs)
     for rounds in range(3):
         for s in slots:
             if rounds == 2:  # new contents in the same slot: the graph reads them
                 kf.depth[s].assign(np.roll(kf.depth[s].numpy(), 3, axis=0))
-            expected = eager._depth_to_seed(kf, s).numpy().copy()
-            got = replayed._depth_to_seed(kf, s).numpy()
+            expected = eager.depth_to_seed(kf, s).numpy().copy()
+            got = replayed.depth_to_seed(kf, s).numpy()
             np.testing.assert_array_equal(got, expected)
             assert (got > 0).sum() > (kf.depth[s].numpy() > 0).sum() + 100  # pixels without depth got some
-    assert replayed._graphs.counts == {"captured": 2, "replayed": 4}
+    assert graphs.counts == {"captured": 2, "replayed": 4}
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA GPU")
 def test_poisson_rounds_replayed_from_a_kept_loop_graph_equal_fresh_captures():
-    """CUDA only (the loop is a conditional while-node; run on the lent machine with ``pytest -m gpu``):
+    """CUDA only (the loop is a conditional while-node; run on a GPU machine with ``pytest -m gpu``):
     Poisson-disk subsampling with its rounds' loop kept in a GraphCache and replayed gives what a
     fresh capture gives, call after call, with the points' contents changing in the same buffers."""
     from rgs_warp.sampling import poisson_disk_subsample

@@ -4,6 +4,7 @@ independent NumPy reference, and the Maintainer stage that removes both from the
 import numpy as np
 import warp as wp
 
+from helpers_maps import flat_map
 from rgs_warp.config import MappingConfig
 from rgs_warp.geometry import invert_pose, matrix_to_quat
 from rgs_warp.maintenance import Maintainer, MergeScratch, PruneStats, merge_duplicates, prune_mask
@@ -427,3 +428,24 @@ def test_maintainer_without_merging_prunes_only(device):
     pruned, merged = Maintainer(MappingConfig(merge_footprint_px=0.0), CAM, device).maintain(gmap, T_WC)
     assert (pruned, merged) == (1, 0) and len(gmap) == 2
     np.testing.assert_allclose(gmap.to_numpy()["means"][1], gs[2]["mean"], atol=1e-6)
+
+
+def test_least_visible_gaussians_go_first(device):
+    from rgs_warp.config import MappingConfig
+    from rgs_warp.maintenance import Maintainer, least_visible_mask
+
+    n = 10
+    gmap = flat_map(n, -3.0, device)
+    gmap.opacity_logits.zero_()
+    gmap.add_column("obs_count", wp.int32)
+    gmap.add_column("vis_count", wp.float32)
+    # all opacity 0.5; rows 3 and 7 were inside 9 views and contributed in 0 and 1: hidden
+    obs, vis = np.zeros(gmap.capacity, np.int32), np.zeros(gmap.capacity, np.float32)
+    obs[:n], vis[:n] = 9, 9.0
+    vis[3], vis[7] = 0.0, 1.0
+    gmap.column("obs_count").assign(obs)
+    gmap.column("vis_count").assign(vis)
+    assert np.flatnonzero(least_visible_mask(gmap, 8)).tolist() == [3, 7]
+    maintainer = Maintainer(MappingConfig(max_gaussians=9, cap_headroom=0.9), CAM, device)
+    assert maintainer.cap(gmap) == 2 and len(gmap) == 8  # down to 0.9 x 9
+    assert maintainer.cap(gmap) == 0

@@ -10,14 +10,13 @@ import warp as wp
 from rgs_warp.config import MAX_PATCH_RADIUS, MatchingConfig, TriangulationConfig
 from rgs_warp.geometry import invert_pose, se3_exp
 from rgs_warp.kernels.matching import (
-    NO_MATCH,
     EpipolarSearch,
     epipolar_search,
     epipolar_search_parts,
     grey_image,
-    refine_zncc,
     score_matches,
 )
+from rgs_warp.kernels.math import NO_MATCH, refine_zncc
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.triangulation import Triangulator
@@ -281,7 +280,7 @@ def _parabola(sm, s0, sp):
 
 
 def _refine_reference(a_img, q, b_img, coarse, R, r):
-    """The ZNCC refinement of kernels/matching.py written from its docstring, in float64."""
+    """The ZNCC refinement of kernels/math.py written from its docstring, in float64."""
     scores = {
         (dx, dy): _zncc_reference(a_img, q, b_img, (coarse[0] + dx, coarse[1] + dy), r)
         for dy in range(-R, R + 1)
@@ -298,9 +297,9 @@ def _refine_reference(a_img, q, b_img, coarse, R, r):
 
 @pytest.mark.parametrize("R, r", [(3, 3), (2, 1), (4, MAX_PATCH_RADIUS)])
 def test_zncc_refinement_against_reference(device, R, r):
-    """kernels/matching.py: grey_image and refine_zncc against a float64 NumPy reference on smooth
-    random images, the target the query moved by a known sub-pixel shift: the same best shift and
-    parabola offsets, and the shift recovered; a flat query patch keeps the coarse match."""
+    """grey_image (kernels/matching.py) and refine_zncc (kernels/math.py) against a float64 NumPy
+    reference on smooth random images, the target the query moved by a known sub-pixel shift: the same
+    best shift and parabola offsets, and the shift recovered; a flat query patch keeps the coarse match."""
     rng = np.random.default_rng(1)
     a_rgb = _texture(40, 48, seed=3)
     shift = np.array([2.3, -1.4])

@@ -138,7 +138,7 @@ def test_binning_and_sort(device):
             if _min_q(mean2d[i], conic[i], fine_x, fine_y) <= extent2 * 0.999:
                 assert i in lst, (tile, i, "the ellipse reaches the tile's pixel rectangle")
     assert total == result.num_intersections > 150
-    assert total < 0.95 * boxed  # 320 of 358: the box alone would list them all (as before session 23)
+    assert total < 0.95 * boxed  # 320 of 358: the box alone would list them all
 
 
 def test_intersection_keys_with_many_tiles(device):

@@ -9,10 +9,11 @@ import pytest
 import warp as wp
 
 from rgs_warp import SLAM, open_dataset
+from rgs_warp.app.cli import main
+from rgs_warp.app.runner import run
 from rgs_warp.config import load_config
 from rgs_warp.io.ply import load_ply
 from rgs_warp.io.trajectory import read_tum_trajectory
-from rgs_warp.run import main, run
 
 # CPU-sized: 160x90, 20 frames, short initialization and mapping (the GPU numbers use the defaults)
 OVERRIDES = [
@@ -208,8 +209,8 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     assert main(["dataset=replica/office0", f"data_root={tmp_path}", f"output_dir={tmp_path}"]) == 1
     err = capsys.readouterr().err
     assert "Replica/office0 does not exist" in err and "obtain it from" in err
-    assert main(["mode=mono", "tracking.brightness=linear"]) == 2
-    assert "tracking.brightness" in capsys.readouterr().err
+    assert main(["mode=mono", "tracking.motion_check=linear"]) == 2
+    assert "tracking.motion_check" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -331,18 +332,18 @@ def test_collapsed_translation_is_lost_and_not_mapped(device, monkeypatch):
     cfg = load_config([*OVERRIDES, *overrides])
     camera, frames = _frames(cfg, n)
     slam = SLAM(cfg, camera, device=device, T_first_WC=frames[0].pose_gt)
-    read_back = Tracker._read_back
+    read_back = Tracker.step_history
 
     def collapsed(tracker):
         hist, poses_CW = read_back(tracker)
         if len(slam.poses) >= first:
-            T_last = tracker._poses[-1]
+            T_last = tracker.state_dict()["motion_poses"][-1]
             step = invert_pose(T_last) @ invert_pose(poses_CW[-1])
             step[:3, 3] *= 0.05
             poses_CW[-1] = invert_pose(T_last @ step)
         return hist, poses_CW
 
-    monkeypatch.setattr(Tracker, "_read_back", collapsed)
+    monkeypatch.setattr(Tracker, "step_history", collapsed)
     for f in frames:
         predicted = slam.tracker.predict()
         r = slam.process(f.rgb, f.depth, f.timestamp)
@@ -352,7 +353,8 @@ def test_collapsed_translation_is_lost_and_not_mapped(device, monkeypatch):
         assert r.lost and r.tracking.motion_inconsistent, (r.index, r.lost_reason)
         assert re.match(r"motion check: the translation collapsed to 0\.\d\d x", r.lost_reason), r.lost_reason
         assert not r.keyframe and r.keyframe_reason == "not mapped: tracked motion inconsistent" and r.seeded == 0
-        np.testing.assert_allclose(slam.tracker._poses[-1], predicted, atol=1e-12)  # the prediction goes on
+        latest = slam.tracker.state_dict()["motion_poses"][-1]
+        np.testing.assert_allclose(latest, predicted, atol=1e-12)  # the prediction goes on
     assert max(slam.keyframe_indices) < first
 
 
@@ -364,7 +366,7 @@ def test_a_lost_frame_is_relocalised_from_the_keyframes(device, relocalize):
     poses, and finds it, the motion model restarting there, so frame 9 is tracked as usual.  Off
     (RGB-D's default), frame 8 stays lost.  RGB-D stands in for mono (on there by default), whose
     CPU-sized runs track too poorly."""
-    from rgs_warp.tracking import pose_error
+    from rgs_warp.motion_model import pose_error
 
     cfg = load_config([*OVERRIDES, "mapping.init_iters=20", "mapping.iters=3", f"tracking.relocalize={relocalize}"])
     camera, frames = _frames(cfg, 10)
@@ -630,7 +632,7 @@ def test_an_odometry_jump_loses_one_frame_and_the_odometry_goes_on_from_the_pred
     whole world jumps 30 cm (as a local BA that moves its gauge does; the camera moves 3 cm a frame here).
     That frame fails the motion check and is lost at the prediction; the odometry is moved there, so the
     frames after take its poses again (not lost) and the trajectory has no jump.  Left where it was, every
-    later frame jumped from the prediction as well and was lost (7-Scenes, session 30: frames 230-286)."""
+    later frame jumped from the prediction as well and was lost (7-Scenes: frames 230-286)."""
     from rgs_warp.keypoint_odometry import OdometryResult
 
     jumped = []
@@ -721,9 +723,9 @@ WINDOW_RGB = np.array([0.95, 0.95, 0.9], np.float32)
 @pytest.mark.slow
 def test_pixels_without_depth_are_covered(device):
     """A window: the part of the room beyond a plane is overexposed (flat white, so nothing to match)
-    and without depth in every frame.  With the far layer (seeding.far_layer_m) or with depth seeds
-    carried from the nearby measured depth (seeding.depth_extrapolate_px) the map covers it after
-    mapping and renders its colour; with neither, it stays uncovered or takes its surroundings' colours."""
+    and without depth in every frame.  With depth seeds carried from the nearby measured depth
+    (seeding.depth_extrapolate_px) the map covers it after mapping and renders its colour; without, it
+    stays uncovered or takes its surroundings' colours."""
     n = 8
     base = [*OVERRIDES, "mapping.init_iters=40", "mapping.iters=8", f"device={device}"]
     camera, frames = _frames(load_config(base), n)
@@ -740,11 +742,7 @@ def test_pixels_without_depth_are_covered(device):
     unmeasured = [(f.depth > 0) & (world_depth(f) > cut) for f in frames]
     scored = unmeasured[2]
     coverage, errors = {}, {}
-    cases = {
-        "neither": ["seeding.far_layer_m=0", "seeding.depth_extrapolate_px=0"],
-        "far layer": ["seeding.far_layer_m=8", "seeding.depth_extrapolate_px=0"],
-        "extrapolated": ["seeding.far_layer_m=0", "seeding.depth_extrapolate_px=64"],
-    }
+    cases = {"neither": ["seeding.depth_extrapolate_px=0"], "extrapolated": ["seeding.depth_extrapolate_px=64"]}
     for name, overrides in cases.items():
         slam = SLAM(load_config([*base, *overrides]), camera, device=device)
         for f, hole in zip(frames, unmeasured, strict=True):
@@ -755,11 +753,9 @@ def test_pixels_without_depth_are_covered(device):
         coverage[name] = float(res.alpha.numpy()[scored].mean())
         errors[name] = float(np.abs(res.color.numpy()[scored] - WINDOW_RGB).mean())
     assert scored.mean() > 0.2
-    # measured (CPU): coverage 0.86 -> 0.93 (far layer) and 0.95 (extrapolated), mean colour error
-    # 0.17 -> 0.10 with either: with neither the window is covered by whatever mapping stretched over
-    # it, in the colours of its surroundings
-    for name in ("far layer", "extrapolated"):
-        assert coverage[name] > 0.9 and errors[name] < 0.75 * errors["neither"], (coverage, errors)
+    # measured (CPU): coverage 0.86 -> 0.95, mean colour error 0.17 -> 0.10: without the extrapolated
+    # seeds the window is covered by whatever mapping stretched over it, in the colours of its surroundings
+    assert coverage["extrapolated"] > 0.9 and errors["extrapolated"] < 0.75 * errors["neither"], (coverage, errors)
 
 
 @pytest.mark.slow

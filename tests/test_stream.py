@@ -9,12 +9,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from rgs_warp.app.runner import Playback, run
 from rgs_warp.config import load_config
 from rgs_warp.datasets import CallbackSource, DatasetError, open_dataset
 from rgs_warp.datasets.stream import camera_from_intrinsics, frame_from_images
 from rgs_warp.eval import ate
 from rgs_warp.io.trajectory import read_tum_trajectory
-from rgs_warp.run import Playback, run
 from rgs_warp.types import Camera, Frame
 
 HAS_REALSENSE = importlib.util.find_spec("pyrealsense2") is not None
@@ -100,7 +100,7 @@ def test_realsense_recording_end_to_end(tmp_path, device):
     source = open_dataset(cfg)
     assert source.camera == scene.camera and source.depth_scale_m == pytest.approx(0.001)
     run_dir, metrics = run(cfg, progress=False, source=source)
-    # every frame the recording holds, in order, once (session 12's pipeline-based playback lost or
+    # every frame the recording holds, in order, once (a playback through the pipeline API lost or
     # repeated a frame set now and then)
     assert metrics["frames"] == len(frames)
     stamps, est = read_tum_trajectory(run_dir / "trajectory.txt")

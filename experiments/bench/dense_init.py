@@ -1,4 +1,4 @@
-"""One-shot dense initialization on a synthetic scene (issue 6): DenseMatcher -> Triangulator ->
+"""One-shot dense initialization on a synthetic scene: DenseMatcher -> Triangulator ->
 PointSeeder at one keyframe with its neighbours, ground-truth poses; reports match accuracy against the
 true correspondences, triangulated depth error, seeds, and the PSNR of the seeded map (no
 optimisation) rendering the reference keyframe.
@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from rgs_warp.app.report import git_commit
 from rgs_warp.config import MatchingConfig, SeedingConfig, TriangulationConfig
 from rgs_warp.datasets import SyntheticDataset
 from rgs_warp.eval import psnr
-from rgs_warp.eval.report import git_commit
 from rgs_warp.geometry import invert_pose
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher

@@ -1,4 +1,4 @@
-"""Dense matching precision on the shared real data, per backbone (issue 6).
+"""Dense matching precision on the shared real data, per backbone.
 
 For every reference pixel of the feature grid and every neighbour, the true correspondence is the
 reference pixel back-projected with the ground-truth depth and projected into the neighbour with the
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from rgs_warp.app.report import git_commit
 from rgs_warp.config import MatchingConfig, load_config
 from rgs_warp.datasets import ReplicaDataset, SevenScenesDataset
-from rgs_warp.eval.report import git_commit
 from rgs_warp.geometry import invert_pose
 from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.matching import DenseMatcher
@@ -200,7 +200,7 @@ def main() -> None:
 
 def markdown(results: dict) -> str:
     lines = [
-        "# Dense matching precision (issue 6)",
+        "# Dense matching precision",
         "",
         f"Commit `{results['commit']}`, device `{results['device']}`, by `experiments/bench/matching_precision.py` "
         "(protocol in its docstring). Precision = fraction of matches with confidence > 0.5 within 2 px of the "

@@ -1,4 +1,4 @@
-"""Mesh metrics (Acc / Comp / Comp.Ratio, §3) of runs made where open3d is missing (the lent GPU):
+"""Mesh metrics (Acc / Comp / Comp.Ratio, §3) of runs made on a machine without open3d:
 ``experiments/bench/slam.py --diagnose`` writes ``mesh_inputs.tar.gz`` (per case: half-resolution
 rendered depth of every keyframe, their poses, the camera and, when small, the dataset's
 ground-truth mesh); this fuses the depth with the same TSDF and metrics as ``python -m

@@ -1,4 +1,4 @@
-"""Where a frame's GPU time goes (issue 19's hot path): per-kernel GPU time of tracked frames and of
+"""Where a frame's GPU time goes: per-kernel GPU time of tracked frames and of
 keyframes in a synchronous run, from Warp's activity timing (``wp.timing_begin``), against the
 frames' wall time.
 

@@ -1,14 +1,13 @@
 """Rasterizer benchmark: rgs_warp vs gsplat 1.5.3 on the same GPU, same inputs, same process.
 
-Workload (issue 4): 1200x680, fx = fy = 600, cx = 599.5, cy = 339.5, identity pose; N Gaussians
+Workload: 1200x680, fx = fy = 600, cx = 599.5, cy = 339.5, identity pose; N Gaussians
 with means uniform (by area) on the five visible walls of the box x in [-3, 3], y in [-1.5, 1.5],
 z in [0.5, 4.5] seen from the origin down +z; scales uniform in [1, 2] cm, random unit quaternions,
 opacity uniform in [0.5, 1], SH degree 2 coefficients ~ N(0, 0.1).  Colour + depth (sum w z:
 gsplat's "RGB+D").  Steps: forward, forward + backward of every Gaussian parameter (the mapper's
-step: neither library computes the view matrix's gradient; until session 26 rgs_warp's returned
-the pose twist gradient as well), forward + pose-only backward (gsplat: gradient of the view matrix
-only).  gsplat's forward runs under torch.no_grad(); gsplat
-runs both packed=True (its default) and packed=False, and the faster one per step is the reference.
+step: neither library computes the view matrix's gradient), forward + pose-only backward (gsplat:
+gradient of the view matrix only).  gsplat's forward runs under torch.no_grad(); gsplat runs both
+packed=True (its default) and packed=False, and the faster one per step is the reference.
 
 Three times per step:
 * end-to-end: CUDA-event median of 30 eager launches after warm-up.  This includes host launch
@@ -35,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from rgs_warp.eval.report import git_commit
+from rgs_warp.app.report import git_commit
 from rgs_warp.render import Renderer
 from rgs_warp.types import Camera, GaussianMap
 

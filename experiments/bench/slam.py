@@ -1,4 +1,4 @@
-"""Whole-system benchmark (issue 7): ``rgs_warp.run.run`` on GPU-sized sequences, one table.
+"""Whole-system benchmark: ``rgs_warp.app.runner.run`` on GPU-sized sequences, one table.
 
     python experiments/bench/slam.py [--out DIR] [--case NAME:override,override ...]
 
@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from rgs_warp import SLAM
+from rgs_warp.app.report import git_commit
+from rgs_warp.app.runner import run
 from rgs_warp.config import load_config
-from rgs_warp.eval.report import git_commit
-from rgs_warp.run import run
 from rgs_warp.types import Camera
 
 DEFAULT_CASES = [

@@ -1,9 +1,9 @@
-"""Whole-system speed and memory over a run (issues 19 and 20): per-frame time and GPU memory
+"""Whole-system speed and memory over a run: per-frame time and GPU memory
 against the frame index, with the accuracy of the same run.
 
     python experiments/bench/slam_fps.py [--out DIR] [--commit SHA] [--case NAME:override,override ...] [--jobs N]
 
-Each case is ``rgs_warp.run.run`` on a sequence; its ``log.jsonl`` gives, per frame, the seconds
+Each case is ``rgs_warp.app.runner.run`` on a sequence; its ``log.jsonl`` gives, per frame, the seconds
 (whole frame and tracking), the Gaussians and the GPU memory held (Warp's memory pool).  DIR gets
 ``slam_fps.json`` (per case: frames/s, tracking frames/s, per-frame latency p50/p99 for the whole
 frame and for tracking, peak and final memory, the memory and time trends over the run's second
@@ -14,7 +14,7 @@ seen, and so should memory and time).
 
 Several cases run each in its own process (in DIR/cases/NAME, its log and plot beside it; their results
 gathered into DIR/slam_fps.json), so that a case's peak memory is its own: in one process the memory pool
-keeps what an earlier case held (session 36: a paced run after an unpaced one showed 2.1 GiB for 1.1).
+keeps what an earlier case held (a paced run after an unpaced one showed 2.1 GiB for 1.1).
 ``--jobs N`` runs N of them at a time on the one GPU, with ``"jobs": N`` in the results: for screening
 settings by PSNR and ATE, which sharing the GPU leaves alone; their frames/s and latencies then mean nothing.
 """
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from slam import case_configs  # experiments/bench/slam.py (the script's folder is on sys.path)
 
-from rgs_warp.run import run
+from rgs_warp.app.runner import run
 
 DEFAULT_CASES = [
     "office_2000:dataset=synthetic/office0,dataset.width=640,dataset.height=360,dataset.n_frames=2000",

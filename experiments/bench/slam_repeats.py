@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     pending, active, t0 = list(runs), {}, time.perf_counter()
     # each run's share of the CPU cores for the evaluation's host code (torch, BLAS): with every run
     # spinning one thread per core, 6 runs on 16 cores did not finish their evaluations in 7 minutes
-    # (4 runs at 4 threads each: 170 s for the whole batch, session 10)
+    # (4 runs at 4 threads each: 170 s for the whole batch)
     threads = str(max(1, (os.cpu_count() or 1) // args.jobs))
     env = dict(os.environ, **{k: threads for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")})
     while pending or active:

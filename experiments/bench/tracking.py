@@ -1,4 +1,4 @@
-"""Tracking benchmark (issue 5): one tracking iteration at 1200x680 with 300k Gaussians on the GPU.
+"""Tracking benchmark: one tracking iteration at 1200x680 with 300k Gaussians on the GPU.
 
 Workload: the rasterizer benchmark's (experiments/bench/raster.py: Gaussians on the walls of a box room,
 fx = fy = 600, SH degree 2).  The observed frame is the map rendered at the identity pose; tracking
@@ -28,8 +28,8 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from raster import CAMERA, room_scene  # noqa: E402  (the rasterizer benchmark's workload)
 
+from rgs_warp.app.report import git_commit  # noqa: E402
 from rgs_warp.config import TrackingConfig  # noqa: E402
-from rgs_warp.eval.report import git_commit  # noqa: E402
 from rgs_warp.geometry import invert_pose, se3_exp  # noqa: E402
 from rgs_warp.render import Renderer  # noqa: E402
 from rgs_warp.tracking import Tracker, pose_error  # noqa: E402

@@ -1,4 +1,4 @@
-"""Tracking against a map built from ground truth (issue 5 acceptance), on the CPU or a GPU (``--device``).
+"""Tracking against a map built from ground truth, on the CPU or a GPU (``--device``).
 
 Scene room0 at a small resolution, n_frames=200 (~1.9 cm / 1.9 deg between frames).  The map holds flat
 discs on the ground-truth depth of every 10th frame of the tracked segment, rendered with a 1.5x wider
@@ -6,10 +6,10 @@ field of view (tests/helpers_maps.py), optionally with colours refitted to those
 observations are tracked, frame by frame from the true first pose with the constant-velocity prediction:
 
 * ``rendered``: the map's own render at the true pose (tracker-only error: gradient, optimiser, motion
-  model, brightness model), with the dataset's exposure walk applied when drift is on;
+  model, gain model), with the dataset's exposure walk applied when drift is on;
 * ``raw``: the ray-traced synthetic frames (adds the error of a map that does not reproduce them exactly).
 
-For each: ATE with drift off / drift on / drift on without the brightness model (Eq. 3-4).  With
+For each: ATE with the exposure drift off and on.  With
 ``--keyframes`` instead: the lead's KeyframeSelector and KeyframeBuffer along the whole path, the map
 growing by each keyframe (rho, buffer contents).  Results go to
 ``<out>/tracking_<observations>.json``; ``<out>/tracking.md`` summarises every such file there.
@@ -80,14 +80,14 @@ def refit_with_mapper(gmap, camera, frames, iters: int, device) -> None:
     print(f"map refit: {iters} iterations, L1 {result.l1_history[0]:.4f} -> {result.final_l1:.4f}", flush=True)
 
 
-def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device, overrides=None):
+def run_sequence(seq, camera, gmap, n, kind, drift, device, overrides=None):
     from rgs_warp.config import TrackingConfig
     from rgs_warp.eval import ate
     from rgs_warp.render import Renderer
     from rgs_warp.tracking import Tracker, pose_error
 
     renderer = Renderer(device)
-    tcfg = TrackingConfig(brightness="gain" if brightness else "off", **(overrides or {}))
+    tcfg = TrackingConfig(**(overrides or {}))
     tracker = Tracker(tcfg, camera, device, mode="rgbd")
     tracker.reset(seq.poses[0])
     estimates = [seq.poses[0]]
@@ -116,7 +116,6 @@ def run_sequence(seq, camera, gmap, n, kind, drift, brightness, device, override
         "observations": kind,
         "tracking": overrides or {},
         "exposure_drift": drift,
-        "brightness": brightness,
         "ate_rmse_cm": ate(est, gt, align="none")["rmse_cm"],
         "ate_rmse_cm_se3": ate(est, gt, align="se3")["rmse_cm"],
         "max_err_mm": max(r["err_mm"] for r in rows),
@@ -222,8 +221,8 @@ def main() -> None:
     os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".cache" / "warp"))
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
+    from rgs_warp.app.report import git_commit
     from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
-    from rgs_warp.eval.report import git_commit
 
     device = args.device
     t_start = time.perf_counter()
@@ -252,13 +251,13 @@ def main() -> None:
         args.observations = ["keyframes"]
     else:
         for kind in args.observations:
-            configs = ((False, True),) if args.no_ablation else ((False, True), (True, True), (True, False))
+            configs = (False,) if args.no_ablation else (False, True)
             variants = [parse_overrides(v) for v in args.tracking]
-            for (drift, brightness), overrides in [(c, v) for v in variants for c in configs]:
-                run = run_sequence(seqs[drift], camera, gmap, args.frames, kind, drift, brightness, device, overrides)
+            for drift, overrides in [(c, v) for v in variants for c in configs]:
+                run = run_sequence(seqs[drift], camera, gmap, args.frames, kind, drift, device, overrides)
                 report["runs"].append(run)
                 print(
-                    f"{kind:8s} {overrides} drift={drift!s:5s} brightness={brightness!s:5s} "
+                    f"{kind:8s} {overrides} drift={drift!s:5s} "
                     f"ATE {run['ate_rmse_cm']:.3f} cm "
                     f"(se3 {run['ate_rmse_cm_se3']:.3f}), max {run['max_err_mm']:.2f} mm / "
                     f"{run['max_err_deg']:.3f} deg, converged {run['converged']}, lost {run['lost']}, "
@@ -271,7 +270,7 @@ def main() -> None:
     name = "tracking_" + "_".join(args.observations) + (f"_{args.tag}" if args.tag else "") + ".json"
     (out / name).write_text(json.dumps(report, indent=1, default=float))
     reports = [json.loads(p.read_text()) for p in sorted(out.glob("tracking_*.json"))]
-    (out / "tracking.md").write_text("# Tracker (issue 5)\n\n" + "\n".join(markdown(r) for r in reports))
+    (out / "tracking.md").write_text("# Tracker\n\n" + "\n".join(markdown(r) for r in reports))
     print(markdown(report))
 
 
@@ -321,30 +320,21 @@ def markdown(report: dict) -> str:
         "Tracker defaults (RGB-D, 30 iterations), start from the "
         "true first pose, then the constant-velocity prediction.",
         "",
-        "| observations | tracking overrides | exposure drift | brightness (Eq. 3-4) | ATE RMSE (cm, no alignment) "
+        "| observations | tracking overrides | exposure drift | ATE RMSE (cm, no alignment) "
         "| ATE RMSE (cm, SE(3)) | max error (mm / deg) | converged | lost | s / frame |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["runs"]:
         lines.append(
             f"| {r['observations']} | {overrides_text(r.get('tracking'))} | {'on' if r['exposure_drift'] else 'off'} "
-            f"| {'on' if r['brightness'] else 'off'} "
             f"| {r['ate_rmse_cm']:.3f} | {r['ate_rmse_cm_se3']:.3f} | {r['max_err_mm']:.2f} / {r['max_err_deg']:.3f} "
             f"| {r['converged']}/{len(r['frames'])} | {r['lost']} | {r['seconds_per_frame']:.1f} |"
         )
-    by = {
-        (r["observations"], r["exposure_drift"], r["brightness"]): r["ate_rmse_cm"]
-        for r in report["runs"]
-        if not r.get("tracking")
-    }
+    by = {(r["observations"], r["exposure_drift"]): r["ate_rmse_cm"] for r in report["runs"] if not r.get("tracking")}
     lines.append("")
     for kind in ("rendered", "raw"):
-        if (kind, False, True) in by and (kind, True, False) in by:
-            base = by[(kind, False, True)]
-            lines.append(
-                f"- {kind}: drift with the brightness model = {by[(kind, True, True)] / base:.2f}x the no-drift ATE; "
-                f"without it {by[(kind, True, False)] / base:.2f}x."
-            )
+        if (kind, False) in by and (kind, True) in by:
+            lines.append(f"- {kind}: drift = {by[(kind, True)] / by[(kind, False)]:.2f}x the no-drift ATE.")
     return "\n".join(lines) + "\n"
 
 

@@ -1,10 +1,10 @@
-"""What the viewer costs a run (issue 21: nothing measurable with nobody connected, at most 10 % of
+"""What the viewer costs a run (the requirement: nothing measurable with nobody connected, at most 10 % of
 the tracking frames/s with someone connected).
 
     python experiments/bench/viewer_fps.py [--out DIR] [--commit SHA] [--case NAME:override,override ...]
 
 Each case runs three times: ``off`` (no viewer), ``idle`` (the viewer serving, nobody connected) and
-``client`` (a simulated browser, ``rgs_warp.view.SimulatedClient`` in a process of its own, that
+``client`` (a simulated browser, ``rgs_warp.app.view.SimulatedClient`` in a process of its own, that
 moves its camera 30 times a second over a 1280x720 canvas, so that the viewer renders a 640x360
 view whenever ``max_fps`` lets it, besides the panel and the scene).  The hook,
 ``Viewer.update(slam, result, rgb, gt_poses, lost_frames)``, runs after each frame in the run loop;
@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 from slam import case_configs  # experiments/bench/slam.py (the script's folder is on sys.path)
 
-from rgs_warp.run import run
-from rgs_warp.view import SimulatedClient, Viewer
+from rgs_warp.app.runner import run
+from rgs_warp.app.view import SimulatedClient, Viewer
 
 DEFAULT_CASES = ["office:dataset=synthetic/office0,dataset.width=1200,dataset.height=680"]
 MODES = ("off", "idle", "client")

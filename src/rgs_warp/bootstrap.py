@@ -13,7 +13,7 @@ then tries a later k, up to ``BootstrapConfig.max_wait_frames``.
    coarse whole-image pass finds, refined to sub-pixel (parabola, then image-resolution patch ZNCC
    as in the DenseMatcher), searched back from k into 0; kept when similar enough, distinctive
    (Lowe's ratio against the best match outside the immediate neighbourhood) and mutual
-   (``kernels/matching.py``, the bootstrap's section).
+   (``kernels/bootstrap.py``).
 3. On the host, once per attempt: the essential matrix and the relative pose by OpenCV
    (``relative_pose``: ``findEssentialMat`` with USAC, Sampson error in image px, deterministic;
    ``recoverPose`` picks the (R, t) that puts the most inliers in front of both cameras).  Rejected
@@ -43,26 +43,24 @@ import warp as wp
 from rgs_warp.config import BootstrapConfig, MatchingConfig
 from rgs_warp.features import feature_centres, make_backbone
 from rgs_warp.geometry import invert_pose, skew
-from rgs_warp.kernels.matching import (
-    grey_image,
-    sample_descriptors,
-    score_matches,
+from rgs_warp.kernels.bootstrap import (
     select_matches,
     window_search,
     window_search_best,
     window_search_finish,
     window_search_rows,
 )
+from rgs_warp.kernels.matching import grey_image, sample_descriptors, score_matches
 from rgs_warp.triangulation import TriangulatedPoints, baseline_angle_deg, projection_matrices, triangulate_dlt
 from rgs_warp.types import Camera
 
 
 class BandedWindowSearch:
-    """``kernels.matching.window_search`` for windows as large as the image (the bootstrap's coarse
+    """``kernels.bootstrap.window_search`` for windows as large as the image (the bootstrap's coarse
     pass): each query's window rows are split over ``bands`` threads, whose bests are reduced in row
     order, so the result is the same (tests/test_bootstrap.py) while one thread per query would
     leave the GPU nearly idle (a few thousand queries, each scanning the whole grid: 0.76 s of a
-    1.0 s bootstrap attempt at 1200x680 on an H100, session 14).  Buffers for ``queries`` queries."""
+    1.0 s bootstrap attempt at 1200x680 on an H100).  Buffers for ``queries`` queries."""
 
     def __init__(self, queries: int, bands: int, device=None):
         kw = {"device": wp.get_device(device)}

@@ -6,7 +6,7 @@
 Warp compiles a module the first time one of its kernels launches on a device and keeps the binary in
 its kernel cache (``WARP_CACHE_PATH``), named by the hash of the module's code: an unchanged module is
 never compiled again, a changed one always is.  Compiled one after another as a run reaches them,
-rgs_warp's 18 modules take about 28 s of NVRTC (2-core machine; they were a fresh H100 machine's first
+rgs_warp's kernel modules take about 28 s of NVRTC (2-core machine; they were a fresh H100 machine's first
 run's 5.0 against 7.8 frames/s).  A run on a GPU therefore compiles them all at its start, in parallel
 (``preload``); this command does the same ahead of time, or, with ``--arch``, for GPUs this machine
 does not have: the binaries go into the kernel cache that the GPU machine reads (a shared
@@ -16,12 +16,9 @@ toolkit loads PTX, an older driver CUBIN: ``--arch`` writes both unless ``--form
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import re
-import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -59,8 +56,8 @@ def preload(device: str, workers: int | None = None) -> None:
     # Warp takes a GPU's primary context, and sets the stream its native code issues work on, at first
     # use (on a one-GPU machine: with two, its peer-access check at init takes them).  Taken inside
     # force_load's threads, the native stream stayed the legacy one while Python's device.stream was
-    # Warp's own, and every run's first CUDA graph capture failed (CUDA error 906, session 13,
-    # tests/test_gpu_context.py).  So this thread takes it before them.
+    # Warp's own, and every run's first CUDA graph capture failed (CUDA error 906,
+    # tests/test_compile_preload.py).  So this thread takes it before them.
     _ = device.context
     modules = [wp.get_module(importlib.import_module(name).__name__) for name in kernel_modules()]
     wp.force_load(device=device, modules=modules, max_workers=_workers(workers))
@@ -88,50 +85,7 @@ def compile_for_archs(
         return [f for files in pool.map(lambda job: compile_module(*job), jobs) for f in files]
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m rgs_warp.compile",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("--device", default="cuda:0", help="the GPU to compile for (default cuda:0)")
-    p.add_argument("--arch", default="", help="GPU architectures without a GPU, comma separated (e.g. 80,86,89,90)")
-    p.add_argument("--format", default=",".join(FORMATS), help="with --arch: cubin, ptx or both (default)")
-    p.add_argument("--workers", type=int, default=None, help="modules compiled at once (default: CPU cores)")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
-    wp.config.quiet = True
-    wp.init()
-    t0 = time.perf_counter()
-    if args.arch:
-        try:
-            archs = [int(a) for a in args.arch.split(",") if a.strip()]
-        except ValueError:
-            print(f"error: --arch takes numbers like 80,86,89,90 (sm_80 ...), got {args.arch!r}", file=sys.stderr)
-            return 2
-        formats = tuple(f.strip() for f in args.format.split(",") if f.strip())
-        unknown = [f for f in formats if f not in FORMATS]
-        if unknown or not formats:
-            print(f"error: --format takes {', '.join(FORMATS)} or both, got {args.format!r}", file=sys.stderr)
-            return 2
-        files = compile_for_archs(archs, formats, args.workers)
-        what = f"{len(files)} binaries for sm_{', sm_'.join(map(str, archs))} ({', '.join(formats)})"
-    else:
-        if not wp.is_cuda_available():
-            print(
-                "error: no CUDA GPU that Warp can see; --arch 80,86,89,90 compiles for GPUs without one "
-                "(CPU kernels compile on their first use)",
-                file=sys.stderr,
-            )
-            return 2
-        preload(args.device, args.workers)
-        what = f"every kernel module on {args.device}"
-    print(f"compiled or found {what} in {time.perf_counter() - t0:.1f} s; kernel cache: {wp.config.kernel_cache_dir}")
-    return 0
-
-
 if __name__ == "__main__":
+    from rgs_warp.app.compile import main
+
     raise SystemExit(main())

@@ -1,5 +1,5 @@
 """The frames given to ``SLAM.process`` checked at the boundary, the first one included, before any
-stage sees them (issue 20; docs/decisions.md, "Frame validation").
+stage sees them (docs/decisions.md, "Frame validation"), and staged on the device once.
 
 Two kinds of problem, two answers:
 
@@ -17,11 +17,13 @@ Two kinds of problem, two answers:
   pixels has depth, is unusable: ``SLAM.process`` refuses it as the first frame (no map can start
   from it) and marks a later one lost, with the reason, without tracking or mapping it.
 
-``wp.array`` frames are checked by a kernel on their device (``kernels/frame_check.py``) and copied to
-the host only when something has to be masked or explained.  NumPy frames of a SLAM on a CUDA device
-are first uploaded into the checker's buffers (which the tracker then reads in place) and checked
-there the same way; on the CPU device they are checked on the host (at 1200x680 the host's passes
-over the image took 2.3 ms of a frame on the lent H100 machine, the upload and kernel about 0.5 ms).
+The checked frame's images are device arrays, what every stage reads: ``wp.array`` frames in place,
+NumPy frames copied into the checker's buffers (the SLAM's: the tracker's input buffers, which it then
+reads without another copy).  ``wp.array`` frames are checked by a kernel on their device
+(``kernels/frame_check.py``) and copied to the host only when something has to be masked or explained.
+NumPy frames of a SLAM on a CUDA device are uploaded first and checked there the same way; on the CPU
+device they are checked on the host, then copied (at 1200x680 the host's passes over the image took
+2.3 ms of a frame on an H100 machine, the upload and kernel about 0.5 ms).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from rgs_warp.geometry import rigid_pose_problem
 from rgs_warp.kernels import frame_check as fk
 from rgs_warp.types import Camera
 
-__all__ = ["CheckedFrame", "FrameChecker", "as_float_image"]
+__all__ = ["CheckedFrame", "FrameChecker", "Uploads", "as_float_image"]
 
 # Colour within [0, 1] up to this (float images that were resampled or colour-corrected may overshoot
 # by rounding); values beyond are a scaling mistake, not noise.
@@ -51,13 +53,14 @@ MIN_VALID_DEPTH = 0.01
 
 @dataclass
 class CheckedFrame:
-    """A frame after ``FrameChecker.check``: ``rgb`` and ``depth`` are what the stages get (the input,
-    or float32 host copies with the faulty pixels masked); ``nonfinite_rgb`` colour pixels were filled,
+    """A frame after ``FrameChecker.check``: ``rgb`` and ``depth`` are what the stages get, device arrays
+    at the camera's size (the input's ``wp.array``s, or the checker's buffers holding the NumPy input,
+    faulty pixels masked; ``depth`` None in "mono"); ``nonfinite_rgb`` colour pixels were filled,
     ``nonfinite_depth`` depth values set to 0; ``unusable`` says why the frame cannot be tracked or
     mapped ("" when it can)."""
 
-    rgb: np.ndarray | wp.array
-    depth: np.ndarray | wp.array | None
+    rgb: wp.array
+    depth: wp.array | None
     nonfinite_rgb: int = 0
     nonfinite_depth: int = 0
     unusable: str = ""
@@ -99,57 +102,89 @@ def _shape_hint(got: tuple, want: tuple) -> str:
     return ""
 
 
-class FrameChecker:
-    """Checks frames of ``camera``'s size for the SLAM on ``device`` (``mode`` "rgbd" reads depth);
-    build once, call ``check`` per frame."""
+class Uploads:
+    """NumPy images copied into device arrays: on a CUDA device through a page-locked host buffer of the
+    destination's shape and dtype (made at its first use), on the CPU device straight into it."""
 
-    def __init__(self, camera: Camera, device, mode: str = "rgbd", upload: bool | None = None):
-        """``upload``: NumPy float32 frames are copied to the device and checked there (module
-        docstring); default: on CUDA devices.  The checked frame's arrays are then this checker's,
-        valid until its next ``check``."""
+    def __init__(self, device):
+        self.device = wp.get_device(device)
+        self._host: dict[tuple, wp.array] = {}
+
+    def copy(self, image: np.ndarray, dst: wp.array) -> wp.array:
+        """``image`` (of ``dst``'s shape, channels last) copied into ``dst``; returns ``dst``."""
+        if not self.device.is_cuda:  # a CPU array's NumPy view is its memory
+            np.copyto(dst.numpy().reshape(image.shape), image)
+            return dst
+        key = (dst.shape, dst.dtype)
+        if key not in self._host:
+            self._host[key] = wp.empty(dst.shape, dtype=dst.dtype, device="cpu", pinned=True)
+        host = self._host[key]
+        np.copyto(host.numpy().reshape(image.shape), image)
+        wp.copy(dst, host)
+        return dst
+
+
+class FrameChecker:
+    """Checks frames of ``camera``'s size for the SLAM on ``device`` (``mode`` "rgbd" reads depth) and
+    stages them there; build once, call ``check`` per frame."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        device,
+        mode: str = "rgbd",
+        upload: bool | None = None,
+        buffers: tuple[wp.array, wp.array] | None = None,
+    ):
+        """``upload``: NumPy float32 frames are copied to the device first and checked there (module
+        docstring); default: on CUDA devices.  ``buffers``: the (rgb, depth) device arrays of the camera's
+        size that NumPy frames are copied into (the SLAM gives the tracker's, ``Tracker.frame_buffers``);
+        default: the checker's own.  A checked frame's arrays are then these, valid until the next
+        ``check``."""
         self.camera, self.device, self.mode = camera, wp.get_device(device), mode
         self.shape = (camera.height, camera.width)
         self.upload = self.device.is_cuda if upload is None else bool(upload)
         self._counts = wp.zeros(fk.N_COUNTS, dtype=wp.int32, device=self.device)
         self._no_depth = wp.zeros((1, 1), dtype=wp.float32, device=self.device)
-        self._staged: dict[str, tuple[wp.array, wp.array]] = {}  # name: (pinned host, device) buffers
+        self._uploads = Uploads(self.device)
+        self._buffers = {} if buffers is None else dict(zip(("rgb", "depth"), buffers, strict=True))
 
     def check(self, rgb, depth=None) -> CheckedFrame:
-        """The frame checked (module docstring); ``depth`` is ignored unless the mode is "rgbd", where it
-        is required.  Raises ValueError for the caller's mistakes."""
+        """The frame checked and on the device (module docstring); ``depth`` is ignored unless the mode is
+        "rgbd", where it is required.  Raises ValueError for the caller's mistakes."""
         if self.mode != "rgbd":
             depth = None
         elif depth is None:
             raise ValueError("mode 'rgbd' needs a depth image for every frame (or set mode=mono)")
         if isinstance(rgb, wp.array) or isinstance(depth, wp.array):
-            return self._check_device(rgb, depth)
+            frame = self._check_device(rgb, depth)
+        else:
+            frame = self._check_numpy(rgb, depth)
+        frame.rgb, frame.depth = self._staged(frame.rgb, "rgb"), self._staged(frame.depth, "depth")
+        return frame
+
+    def _check_numpy(self, rgb, depth) -> CheckedFrame:
         if self.upload:
             rgb_h = as_float_image(rgb, self.shape + (3,), "rgb")
             depth_h = None if depth is None else as_float_image(depth, self.shape, "depth")
             if rgb_h.dtype == np.float32 and (depth_h is None or depth_h.dtype == np.float32):
-                staged = [self._stage(image, name) for image, name in ((rgb_h, "rgb"), (depth_h, "depth"))]
+                staged = [self._staged(image, name) for image, name in ((rgb_h, "rgb"), (depth_h, "depth"))]
                 return self._check_device(*staged, host=(rgb_h, depth_h))
         return self._check_host(rgb, depth)
 
-    def _stage(self, image: np.ndarray | None, name: str) -> wp.array | None:
-        """``image`` copied into this checker's device buffer for ``name`` (through a pinned one)."""
-        if image is None:
-            return None
-        if name not in self._staged:
+    def _staged(self, image: np.ndarray | wp.array | None, name: str) -> wp.array | None:
+        """``image`` on the device: a device array as it is, a NumPy one copied into the buffer for ``name``."""
+        if image is None or isinstance(image, wp.array):
+            return image
+        if name not in self._buffers:
             dtype = wp.vec3 if name == "rgb" else wp.float32
-            pinned = self.device.is_cuda
-            self._staged[name] = (
-                wp.empty(self.shape, dtype=dtype, device="cpu", pinned=pinned),
-                wp.empty(self.shape, dtype=dtype, device=self.device),
-            )
-        host, dev = self._staged[name]
-        np.copyto(host.numpy().reshape(image.shape), image)
-        wp.copy(dev, host)
-        return dev
+            self._buffers[name] = wp.empty(self.shape, dtype=dtype, device=self.device)
+        return self._uploads.copy(image, self._buffers[name])
 
     def _check_device(self, rgb, depth, host: tuple | None = None) -> CheckedFrame:
         """``host``: the NumPy frame that ``rgb`` and ``depth`` were uploaded from (what is masked or
-        explained when something is off, instead of a copy back)."""
+        explained when something is off, instead of a copy back).  A frame to mask comes back with the
+        host check's NumPy images."""
         for image, name, dtype in ((rgb, "rgb", wp.vec3), (depth, "depth", wp.float32)):
             if image is None:
                 continue
@@ -172,6 +207,8 @@ class FrameChecker:
         return CheckedFrame(rgb, depth, unusable=unusable)
 
     def _check_host(self, rgb, depth) -> CheckedFrame:
+        """The check on the host: the frame's images come back as float32 NumPy arrays (the input where
+        nothing was masked)."""
         rgb = as_float_image(rgb, self.shape + (3,), "rgb")
         # min and max propagate NaN: finite bounds mean a finite image, the common case in two passes
         lo, hi = rgb.min(), rgb.max()
@@ -247,8 +284,12 @@ def checked_pose(T, name: str) -> np.ndarray:
         T = np.array(T, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected a 4x4 camera-to-world matrix of numbers") from None
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+    if T.shape != (4, 4):
         raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        rows, cols = np.nonzero(~np.isfinite(T))
+        where = ", ".join(f"[{r}, {c}] = {T[r, c]}" for r, c in zip(rows[:3], cols[:3], strict=True))
+        raise ValueError(f"{name}: expected a finite 4x4 camera-to-world matrix, got non-finite entries: {where}")
     problem = rigid_pose_problem(T)
     if problem:
         raise ValueError(f"{name}: {problem}")

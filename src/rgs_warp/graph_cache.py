@@ -2,7 +2,7 @@
 
 A stage that runs the same launches on the same arrays call after call (a frame fill's 64 depth
 extrapolation steps, a Poisson-disk sampling's loop of rounds) pays Warp's Python launch cost for each
-of them every time: about 1.3 ms of a 1200x680 frame fill on the lent H100 machine for the extrapolation
+of them every time: about 1.3 ms of a 1200x680 frame fill on an H100 machine for the extrapolation
 alone.  ``GraphCache.run`` captures the launches once per key and replays the graph after.  The key
 must hold everything the launches bake in: array addresses, sizes, scalar arguments (``launch_key``
 builds one from launch arguments); the arrays' contents may change between replays.

@@ -280,14 +280,6 @@ class KeyframeArchive:
         self.rgb.append(buffer.rgb[slot].numpy().copy())
         self.depth.append(buffer.depth[slot].numpy().copy())
 
-    def update_exposures(self, buffer: KeyframeBuffer) -> None:
-        """The exposures of the keyframes still in ``buffer`` (mapping may have refined them)."""
-        where = {f: i for i, f in enumerate(self.frame_ids)}
-        for slot in buffer.slots():
-            i = where.get(int(buffer.frame_ids[slot]))
-            if i is not None:
-                self.exposure[i] = buffer.exposure[slot].copy()
-
     def load_into(self, buffer: KeyframeBuffer, i: int) -> int:
         """Keyframe ``i`` into ``buffer`` (its oldest slot when full); returns the slot."""
         return buffer.add(self.frame_ids[i], self.poses[i], self.rgb[i], self.depth[i], self.exposure[i])

@@ -1,5 +1,5 @@
-"""Monocular keypoint odometry with a windowed local bundle adjustment (issue 22): the SLAM's monocular
-front end.  Photometric tracking against the SLAM's own Gaussian map loses the scale in monocular mode;
+"""Monocular keypoint odometry with a windowed local bundle adjustment: the SLAM's monocular front
+end.  Photometric tracking against the SLAM's own Gaussian map loses the scale in monocular mode;
 this odometry shares nothing with the map and held it over the synthetic office's first 150 frames
 (0.40 cm Sim(3) ATE at 1200x680; not yet over 300: experiments/results/mono.md).
 
@@ -14,22 +14,32 @@ Host only (NumPy / OpenCV / SciPy), float64:
   that the frame is lost and leaves no trace;
 - keyframes by tracked fraction, usable landmarks and parallax; landmarks triangulated from all of a
   track's keyframe observations;
-- local BA over the last keyframes' poses and their landmarks, older keyframes that see them held
-  (the gauge and the scale: the first start keyframe never moves; the second is refined by the first
-  BAs with the start's baseline length kept).
+- local BA (bundle_adjustment.py) over the last keyframes' poses and their landmarks, older keyframes
+  that see them held (the gauge and the scale: the first start keyframe never moves; the second is
+  refined by the first BAs with the start's baseline length kept).
 
 Poses are camera-to-world at the interface (the SLAM's), world-to-camera (``T_CW``) inside.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import csr_matrix
 
+from rgs_warp.bundle_adjustment import (
+    bundle_adjust,
+    centre,
+    centres,
+    cross_matrices,
+    project,
+    rescaled_to_baseline,
+    rigid,
+    shifted,
+)
 from rgs_warp.config import KeypointsConfig
 from rgs_warp.geometry import invert_pose, rotation_angle_deg
 from rgs_warp.types import Camera
@@ -56,7 +66,6 @@ KABSCH_TRIMS = 3  # rotation-only: Kabsch, dropping tracks beyond 3x the median 
 # what those leave free
 CENTRE_PRIOR_WEIGHT = 1e-4
 CENTRE_TRIMS = 3  # rotation-only centre: rows beyond 3x their kind's median residual dropped, 3 times
-MIN_DEPTH = 1e-6  # projection denominators are clamped here (a point behind the camera)
 
 
 @dataclass
@@ -144,7 +153,7 @@ class KeypointOdometry:
         self._add_keyframe(prev, T_last)
         if not self._landmarks:
             raise ValueError("the two start poses triangulate no landmark: too little parallax between them")
-        self._local_ba()  # the two-view start refined (measured: mono.md, session 28)
+        self._local_ba()  # the two-view start refined (experiments/results/mono.md)
         self._forget()
         T_last = self._kf_T[1]
         depth = [(T_last[:3, :3] @ X + T_last[:3, 3])[2] for X in self._landmarks.values()]
@@ -222,6 +231,47 @@ class KeypointOdometry:
         if T_prev_WC is not None:
             self._recent[0] = (invert_pose(np.asarray(T_prev_WC, np.float64)), None)
 
+    def predict(self) -> np.ndarray:
+        """The constant-velocity prediction of the next frame's camera-to-world pose (where ``track`` starts
+        without ``T_pred_WC``)."""
+        return invert_pose(self._motion_prediction())
+
+    def recent_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """The camera-to-world poses of the two frames last tracked, oldest first, that the motion model
+        repeats the step of (a keyframe's as its BA left it)."""
+        return invert_pose(self._recent_pose(-2)), invert_pose(self._recent_pose(-1))
+
+    def tracked_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The landmarks followed into the frame last tracked: their world points (n, 3) and their tracks'
+        pixels in that frame (n, 2)."""
+        use = self._usable()
+        X = np.array([self._landmarks[t] for t in self._ids[use].tolist()]).reshape(-1, 3)
+        return X, self._pts[use].astype(np.float64)
+
+    @property
+    def landmarks(self) -> Mapping[int, np.ndarray]:
+        """Track id -> world point of every landmark held (read-only)."""
+        return MappingProxyType(self._landmarks)
+
+    @property
+    def observations(self) -> Mapping[int, list[tuple[int, np.ndarray]]]:
+        """Track id -> its keyframe observations [(keyframe index, pixel)] of every track held (read-only)."""
+        return MappingProxyType(self._obs)
+
+    @property
+    def keyframe_count(self) -> int:
+        return len(self._kf_T)
+
+    @property
+    def keyframe_tracks(self) -> frozenset[int]:
+        """The tracks alive at the last keyframe."""
+        return frozenset(self._kf_tracks)
+
+    @property
+    def pixel_scale(self) -> float:
+        """Image px per px at ``REFERENCE_WIDTH_PX``: the factor KeypointsConfig's pixel quantities are scaled by."""
+        return self._px
+
     # ------------------------------------------------------------------------------------- tracks
     def _detect(self, img: np.ndarray) -> None:
         want = self._max_features - len(self._pts)
@@ -275,7 +325,7 @@ class KeypointOdometry:
         guess = q[:, :2] / q[:, 2:3]
         has = self._usable()
         if has.any():
-            uv, z = _project(self.K, T_pred, np.array([self._landmarks[t] for t in self._ids[has].tolist()]))
+            uv, z = project(self.K, T_pred, np.array([self._landmarks[t] for t in self._ids[has].tolist()]))
             uv[z <= 0] = guess[has][z <= 0]
             guess[has] = uv
         return guess
@@ -305,7 +355,7 @@ class KeypointOdometry:
         sel = np.array([t in self._landmarks for t in ids.tolist()], bool)
         if sel.sum() < 6:
             return T_before
-        origin = _centre(T_before)  # PnP about the camera, not a world origin metres away
+        origin = centre(T_before)  # PnP about the camera, not a world origin metres away
         obj = np.array([self._landmarks[t] for t in ids[sel].tolist()]) - origin
         ok, rv, tv, _ = cv2.solvePnPRansac(
             obj,
@@ -315,7 +365,7 @@ class KeypointOdometry:
             reprojectionError=self.cfg.pnp_px * self._px,
             flags=cv2.SOLVEPNP_AP3P,
         )
-        return _shifted(_rigid(cv2.Rodrigues(rv)[0], tv)[None], -origin)[0] if ok else T_before
+        return shifted(rigid(cv2.Rodrigues(rv)[0], tv)[None], -origin)[0] if ok else T_before
 
     def _estimate_pose(self, T_pred, T_prev, prev_uv) -> tuple[np.ndarray | None, str, int, str]:
         """(T_CW, 'ok' | 'rotation' | 'lost', landmarks agreeing, reason)."""
@@ -323,18 +373,18 @@ class KeypointOdometry:
         use = self._usable()
         # PnP about the last camera's centre, not a world origin metres away (conditioning; the poses then do
         # not depend on where the world's origin is): landmarks and poses in that frame, the pose moved back
-        origin = _centre(T_prev)
+        origin = centre(T_prev)
         obj = np.array([self._landmarks[t] for t in self._ids[use].tolist()]).reshape(-1, 3) - origin
         uv = self._pts[use].astype(np.float64)
         limit = cfg.pnp_px * self._px
 
         def agreeing(T):
-            p, z = _project(self.K, T, obj)
+            p, z = project(self.K, T, obj)
             return (np.linalg.norm(p - uv, axis=1) < limit) & (z > 0)
 
         T, reason = None, f"{len(obj)} landmarks tracked, fewer than {cfg.min_inliers}"
         if len(obj) >= cfg.min_inliers:
-            candidates = [_shifted(T_pred[None], origin)[0]]
+            candidates = [shifted(T_pred[None], origin)[0]]
             ok, rv, tv, _ = cv2.solvePnPRansac(
                 obj,
                 uv,
@@ -346,7 +396,7 @@ class KeypointOdometry:
                 flags=cv2.SOLVEPNP_AP3P,
             )
             if ok:
-                candidates.append(_rigid(cv2.Rodrigues(rv)[0], tv))
+                candidates.append(rigid(cv2.Rodrigues(rv)[0], tv))
             best = max(candidates, key=lambda c: agreeing(c).sum())
             inl = agreeing(best)
             for _ in range(PNP_REFINEMENTS):
@@ -355,30 +405,30 @@ class KeypointOdometry:
                 rv, tv = cv2.solvePnPRefineLM(
                     obj[inl], uv[inl], self.K, None, cv2.Rodrigues(best[:3, :3])[0], best[:3, 3].reshape(3, 1).copy()
                 )
-                best = _rigid(cv2.Rodrigues(rv)[0], tv)
+                best = rigid(cv2.Rodrigues(rv)[0], tv)
                 inl = agreeing(best)
             if inl.sum() >= cfg.min_inliers:
-                T = _shifted(best[None], -origin)[0]
+                T = shifted(best[None], -origin)[0]
             else:
                 reason = f"{int(inl.sum())} of {len(obj)} landmarks agree on a pose, fewer than {cfg.min_inliers}"
         if T is not None:
             # a pose far from the motion model is a wrong PnP solution more often than a real jump
-            step = np.linalg.norm(_centre(T_prev) - _centre(T_pred))
-            dt = np.linalg.norm(_centre(T) - _centre(T_pred))
+            step = np.linalg.norm(centre(T_prev) - centre(T_pred))
+            dt = np.linalg.norm(centre(T) - centre(T_pred))
             dr = rotation_angle_deg(T[:3, :3] @ T_pred[:3, :3].T)
             if dr > cfg.max_dev_deg or dt > cfg.max_dev_step * step + cfg.max_dev_depth * self._scene_depth:
                 T, reason = None, f"PnP pose {dt:.3g} / {dr:.1f} deg from the motion model's"
         if T is not None:
             # landmark tracks that do not fit the pose slide (stripes, occlusion edges): drop them
-            r = np.linalg.norm(_project(self.K, T, obj + origin)[0] - uv, axis=1)
+            r = np.linalg.norm(project(self.K, T, obj + origin)[0] - uv, axis=1)
             cut = cfg.residual_px * self._px if cfg.residual_px > 0 else limit
             self._drop_tracks(self._ids[use][r > cut])
             return T, "ok", int((r <= cut).sum()), ""
         R = self._rotation(prev_uv)
         if R is None:
             return None, "lost", 0, reason + f"; fewer than {cfg.rotation_min_tracks} tracks for a rotation"
-        T = _rigid(R, -R @ self._centre_given_rotation(R, _centre(T_pred), obj + origin, uv))
-        return T, "rotation", int(agreeing(_shifted(T[None], origin)[0]).sum()), reason
+        T = rigid(R, -R @ self._centre_given_rotation(R, centre(T_pred), obj + origin, uv))
+        return T, "rotation", int(agreeing(shifted(T[None], origin)[0]).sum()), reason
 
     def _centre_given_rotation(self, R: np.ndarray, c_pred: np.ndarray, obj: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """The camera centre of a rotation-only frame: the landmarks still tracked and the epipolar planes
@@ -393,7 +443,7 @@ class KeypointOdometry:
         b_kf = self._bearings(np.array([at_kf[t] for t in self._ids[now].tolist()]).reshape(-1, 2)) @ T_kf[:3, :3]
         b_now = self._bearings(self._pts[now].astype(np.float64).reshape(-1, 2)) @ R
         b_obj = self._bearings(uv) @ R
-        return _centre_from_bearings(_centre(T_kf), b_kf, b_now, obj, b_obj, c_pred)
+        return centre_from_bearings(centre(T_kf), b_kf, b_now, obj, b_obj, c_pred)
 
     def _rotation(self, prev_uv: dict) -> np.ndarray | None:
         """The rotation from the previous frame (Kabsch on the bearings of the tracks seen in both),
@@ -421,7 +471,7 @@ class KeypointOdometry:
         if not seen:
             return 0.0
         X = np.array([self._landmarks[t] for t in seen])
-        r0, r1 = X - _centre(T_kf), X - _centre(T)
+        r0, r1 = X - centre(T_kf), X - centre(T)
         cos = np.sum(r0 * r1, axis=1) / np.linalg.norm(r0, axis=1) / np.linalg.norm(r1, axis=1)
         return float(np.degrees(np.median(np.arccos(np.clip(cos, -1, 1)))))
 
@@ -459,7 +509,7 @@ class KeypointOdometry:
             obs = self._obs.get(t, ())
             if t in self._landmarks or len(obs) < 2:
                 continue
-            X = _triangulate(
+            X = triangulate(
                 np.stack([self._kf_T[k] for k, _ in obs]),
                 np.array([uv for _, uv in obs]),
                 self.K,
@@ -506,7 +556,7 @@ class KeypointOdometry:
                     uv.append(u)
         cam, land, uv = np.array(cam), np.array(land), np.array(uv)
         huber_px = cfg.ba_huber_px * self._px
-        T_free, X, residual = _bundle_adjust(
+        T_free, X, residual = bundle_adjust(
             np.stack([self._kf_T[k] for k in cams]),
             len(free),
             np.stack([self._landmarks[t] for t in tracks]),
@@ -518,7 +568,7 @@ class KeypointOdometry:
             cfg.ba_iters,
         )
         if refine_start:
-            T_free, X = _rescaled_to_baseline(self._kf_T[0], self._kf_T[1], T_free, free.index(1), X)
+            T_free, X = rescaled_to_baseline(self._kf_T[0], self._kf_T[1], T_free, free.index(1), X)
         for k, T in zip(free, T_free, strict=True):
             self._kf_T[k] = T
         for t, x in zip(tracks, X, strict=True):
@@ -538,26 +588,7 @@ class KeypointOdometry:
 
 
 # ----------------------------------------------------------------------------------------- geometry
-def _rescaled_to_baseline(
-    T_held: np.ndarray, T_start: np.ndarray, T_free: np.ndarray, j_start: int, X: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The free cameras T_free (world-to-camera) and landmarks X scaled about the held camera's centre
-    so that free camera j_start is as far from it as T_start was: a similarity that leaves every
-    reprojection as it is (a BA with one camera held leaves the scale free)."""
-    c0 = _centre(T_held)
-    before = np.linalg.norm(_centre(T_start) - c0)
-    after = np.linalg.norm(_centre(T_free[j_start]) - c0)
-    if after < 1e-12:
-        return T_free, X
-    s = before / after
-    out = T_free.copy()
-    for j, T in enumerate(T_free):
-        c = c0 + s * (_centre(T) - c0)
-        out[j, :3, 3] = -T[:3, :3] @ c
-    return out, c0 + s * (X - c0)
-
-
-def _centre_from_bearings(
+def centre_from_bearings(
     c_kf: np.ndarray, b_kf: np.ndarray, b_now: np.ndarray, X: np.ndarray, b_X: np.ndarray, c_prior: np.ndarray
 ) -> np.ndarray:
     """A camera centre of known rotation by linear least squares: world bearings b_now (n, 3) of points
@@ -567,7 +598,7 @@ def _centre_from_bearings(
     only what they leave free; without two landmarks c_prior's distance from c_kf is the baseline's
     length).  Pairs and landmarks beyond 3x their kind's median residual are dropped, CENTRE_TRIMS times."""
     n = np.cross(b_kf, b_now)
-    S = _skew(b_X)
+    S = cross_matrices(b_X)
     A = np.concatenate([n, S.reshape(-1, 3), CENTRE_PRIOR_WEIGHT * np.eye(3)])
     b = np.concatenate([n @ c_kf, np.einsum("nij,nj->ni", S, X).ravel(), CENTRE_PRIOR_WEIGHT * c_prior])
     # a landmark's two independent rows of its three are dropped together with it
@@ -598,69 +629,7 @@ def _grey(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.clip(np.asarray(rgb) * 255 + 0.5, 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
 
 
-def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.ravel(t)
-    return T
-
-
-def _centres(T_CW: np.ndarray) -> np.ndarray:
-    """The camera centres of world-to-camera poses (n, 4, 4): (n, 3)."""
-    return -np.einsum("nji,nj->ni", T_CW[:, :3, :3], T_CW[:, :3, 3])
-
-
-def _shifted(T_CW: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """World-to-camera poses (n, 4, 4) for a world whose origin is moved to ``origin`` (X' = X - origin)."""
-    out = T_CW.copy()
-    out[:, :3, 3] += np.einsum("nij,j->ni", T_CW[:, :3, :3], origin)
-    return out
-
-
-def _centre(T_CW: np.ndarray) -> np.ndarray:
-    return -T_CW[:3, :3].T @ T_CW[:3, 3]
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3) vectors -> (n, 3, 3) cross-product matrices."""
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """(n, 3) rotation vectors -> (n, 3, 3) rotations."""
-    theta = np.linalg.norm(w, axis=1)
-    small = theta < 1e-12
-    W = _skew(w / np.where(small, 1.0, theta)[:, None])
-    R = np.eye(3) + np.sin(theta)[:, None, None] * W + (1 - np.cos(theta))[:, None, None] * (W @ W)
-    R[small] = np.eye(3)
-    return R
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    """(n, 3) rotation vectors -> (n, 3, 3) left Jacobians of SO(3): exp(w + d) = exp(J d) exp(w) to first
-    order in d."""
-    theta = np.linalg.norm(w, axis=1)
-    small = theta < 1e-6
-    th = np.where(small, 1.0, theta)
-    a = np.where(small, 0.5, (1 - np.cos(th)) / th**2)  # series limits at 0: 1/2, 1/6
-    b = np.where(small, 1.0 / 6.0, (th - np.sin(th)) / th**3)
-    W = _skew(w)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
-
-
-def _project(K: np.ndarray, T_CW: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels and depths of world points X (n, 3) in the camera T_CW."""
-    Xc = X @ T_CW[:3, :3].T + T_CW[:3, 3]
-    z = Xc[:, 2]
-    uv = Xc[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[:, None]
-    return uv * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]], z
-
-
-def _triangulate(
+def triangulate(
     T_CW: np.ndarray, uv: np.ndarray, K: np.ndarray, min_parallax_deg: float, max_reproj_px: float
 ) -> np.ndarray | None:
     """The world point seen at pixels uv (n, 2) from the cameras T_CW (n, 4, 4): linear multi-view
@@ -674,117 +643,15 @@ def _triangulate(
         return None
     # solved about the cameras' mean centre: the homogeneous DLT is not invariant to where the world's
     # origin is, and a world metres from the cameras conditions it poorly
-    origin = _centres(T_CW).mean(axis=0)
-    P = _shifted(T_CW, origin)[:, :3]
+    origin = centres(T_CW).mean(axis=0)
+    P = shifted(T_CW, origin)[:, :3]
     A = np.concatenate([x[:, :1] * P[:, 2] - P[:, 0], x[:, 1:2] * P[:, 2] - P[:, 1]])
     Xh = np.linalg.svd(A)[2][-1]
     if abs(Xh[3]) < 1e-12:
         return None
     X = Xh[:3] / Xh[3] + origin
     for T, u in zip(T_CW, uv, strict=True):
-        p, z = _project(K, T, X[None])
+        p, z = project(K, T, X[None])
         if z[0] <= 0 or np.linalg.norm(p[0] - u) > max_reproj_px:
             return None
     return X
-
-
-class _Reprojection:
-    """The BA's residuals and their analytic sparse Jacobian.  Parameters: per free camera a rotation
-    vector w and a translation step d (R = exp(w) R0, t = t0 + d), then every landmark's world point;
-    residuals: per observation the pixel minus the projection of its landmark in its camera."""
-
-    def __init__(self, T_CW, n_free, n_landmarks, cam, land, uv, K):
-        self.R0, self.t0 = T_CW[:, :3, :3], T_CW[:, :3, 3]
-        self.n_free, self.cam, self.land, self.uv = n_free, cam, land, uv
-        self.f, self.c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
-        n_obs = len(cam)
-        self.n_params = 6 * n_free + 3 * n_landmarks
-        # the Jacobian's pattern: rows 2i, 2i+1 of observation i; the free camera's 6 columns (held
-        # cameras have none), then its landmark's 3
-        row = 2 * np.arange(n_obs)[:, None, None] + np.arange(2)[None, :, None]
-        self.on_free = cam < n_free
-        cam_cols = 6 * cam[self.on_free][:, None, None] + np.arange(6)[None, None, :]
-        land_cols = 6 * n_free + 3 * land[:, None, None] + np.arange(3)[None, None, :]
-        self.rows = np.concatenate(
-            [
-                np.broadcast_to(row[self.on_free], cam_cols.shape[:1] + (2, 6)).ravel(),
-                np.broadcast_to(row, (n_obs, 2, 3)).ravel(),
-            ]
-        )
-        self.cols = np.concatenate(
-            [
-                np.broadcast_to(cam_cols, cam_cols.shape[:1] + (2, 6)).ravel(),
-                np.broadcast_to(land_cols, (n_obs, 2, 3)).ravel(),
-            ]
-        )
-
-    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        step = x[: 6 * self.n_free].reshape(-1, 6)
-        R, t = self.R0.copy(), self.t0.copy()
-        R[: self.n_free] = _rodrigues(step[:, :3]) @ self.R0[: self.n_free]
-        t[: self.n_free] += step[:, 3:]
-        return R, t, x[6 * self.n_free :].reshape(-1, 3)
-
-    def _camera_points(self, x):
-        R, t, X = self.unpack(x)
-        RX = np.einsum("nij,nj->ni", R[self.cam], X[self.land])
-        return R, RX, RX + t[self.cam]
-
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        _, _, Y = self._camera_points(x)
-        z = np.maximum(Y[:, 2], MIN_DEPTH)
-        return (self.f * Y[:, :2] / z[:, None] + self.c - self.uv).ravel()
-
-    def jacobian(self, x: np.ndarray) -> csr_matrix:
-        R, RX, Y = self._camera_points(x)
-        clamped = Y[:, 2] <= MIN_DEPTH
-        z = np.where(clamped, MIN_DEPTH, Y[:, 2])
-        # d pixel / d camera point; a clamped depth is a constant
-        D = np.zeros((len(Y), 2, 3))
-        D[:, 0, 0], D[:, 1, 1] = self.f[0] / z, self.f[1] / z
-        D[:, :, 2] = np.where(clamped[:, None], 0.0, -self.f * Y[:, :2] / z[:, None] ** 2)
-        # exp(w + d) R0 X = exp(J_l(w) d) R X: d (R X) / d w = -[R X]x J_l(w)
-        J_l = _left_jacobian(x[: 6 * self.n_free].reshape(-1, 6)[:, :3])
-        free = self.on_free
-        d_w = -D[free] @ _skew(RX[free]) @ J_l[self.cam[free]]
-        d_camera = np.concatenate([d_w, D[free]], axis=2)
-        d_point = D @ R[self.cam]
-        data = np.concatenate([d_camera.ravel(), d_point.ravel()])
-        return csr_matrix((data, (self.rows, self.cols)), shape=(2 * len(Y), self.n_params))
-
-
-def _bundle_adjust(
-    T_CW: np.ndarray,
-    n_free: int,
-    X: np.ndarray,
-    cam: np.ndarray,
-    land: np.ndarray,
-    uv: np.ndarray,
-    K: np.ndarray,
-    huber_px: float,
-    max_evals: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reprojection BA in float64 (trust-region reflective, Huber loss of huber_px): the first n_free of
-    the cameras T_CW (m, 4, 4) move, the others are held; X (l, 3) the landmarks; observation i is
-    landmark land[i] at pixel uv[i] in camera cam[i].  Returns the free cameras' T_CW, the landmarks and
-    the residuals (n, 2) after it."""
-    # solved about the free cameras' mean centre (the steps rotate each camera about the origin, and
-    # translate it, so a world metres away couples rotation and translation), then moved back
-    origin = _centres(T_CW[:n_free]).mean(axis=0)
-    problem = _Reprojection(_shifted(T_CW, origin), n_free, len(X), cam, land, uv, K)
-    x0 = np.concatenate([np.zeros(6 * n_free), (X - origin).ravel()])
-    fit = least_squares(
-        problem.residuals,
-        x0,
-        jac=problem.jacobian,
-        loss="huber",
-        f_scale=huber_px,
-        x_scale="jac",
-        method="trf",
-        max_nfev=max_evals,
-        ftol=1e-6,
-        xtol=1e-8,
-    )
-    R, t, X_out = problem.unpack(fit.x)
-    T_free = _shifted(np.stack([_rigid(R[j], t[j]) for j in range(n_free)]), -origin)
-    return T_free, X_out + origin, fit.fun.reshape(-1, 2)

@@ -164,29 +164,19 @@ class Mapper:
         return GaussianGrads(*(self.gmap.column(f"grad.{name}") for name in GaussianMap.PARAMETERS))
 
     def _upload_window(
-        self,
-        keyframes: KeyframeBuffer,
-        window: list[int],
-        fixed_exposure: Sequence[int] = (),
-        history: Sequence[tuple[KeyframeBuffer, int]] = (),
+        self, keyframes: KeyframeBuffer, window: list[int], history: Sequence[tuple[KeyframeBuffer, int]] = ()
     ) -> None:
         """The window's camera-to-world poses as the renderer's float32 device matrices, ``_T_WC[j]``,
-        and its keyframes' exposures (g, b) ``_exposure[j]`` (held where ``_exposure_fixed[j]``); the
-        ``history`` views (buffer, slot) follow the window's at ``j >= len(window)``, always held."""
+        and its keyframes' exposures (g, b) ``_exposure[j]``; the ``history`` views (buffer, slot) follow
+        the window's at ``j >= len(window)``."""
         views = [(keyframes, s) for s in window] + list(history)
         k, dev = len(views), self.device
         if k > self._window_capacity:
             self._window_capacity = cap = grown_capacity(self._window_capacity, k, minimum=8)
             self._T_WC = wp.zeros(cap, dtype=wp.mat44, device=dev)
             self._exposure = wp.zeros(cap, dtype=wp.vec2, device=dev)
-            self._exposure_fixed = wp.zeros(cap, dtype=wp.int32, device=dev)
-            self._exposure_grad = wp.zeros(cap, dtype=wp.vec2d, device=dev)
-            self._exposure_m = wp.zeros(cap, dtype=wp.vec2, device=dev)
-            self._exposure_v = wp.zeros(cap, dtype=wp.vec2, device=dev)
         self._T_WC[:k].assign(np.stack([b.poses[s] for b, s in views]).astype(np.float32))
         self._exposure[:k].assign(np.stack([b.exposure[s] for b, s in views]).astype(np.float32))
-        held = [int(s in fixed_exposure) for s in window] + [1] * len(history)
-        self._exposure_fixed[:k].assign(np.array(held, dtype=np.int32))
 
     def _view_loss(self, keyframes, slot, j, weight, use_depth, blocks, graph_capacity=None) -> RenderResult:
         """Render window view j (keyframe ``slot``) and leave dL/d(image) of its share ``weight`` of the
@@ -217,15 +207,6 @@ class Mapper:
             outputs=[self._d_color],
             device=dev,
         )
-        if cfg.lr_exposure > 0.0:
-            wp.launch_tiled(
-                km.exposure_grad,
-                dim=blocks,
-                inputs=[self._grad_x, res.color, j],
-                outputs=[self._exposure_grad],
-                block_dim=REDUCE_BLOCK,
-                device=dev,
-            )
         return res
 
     # ---- optimisation --------------------------------------------------------------------------
@@ -235,22 +216,19 @@ class Mapper:
         window: Sequence[int],
         iters: int,
         psnr_every: int = 0,
-        fixed_exposure: Sequence[int] = (),
         pause: Callable[[], None] | None = None,
         history: Sequence[tuple[KeyframeBuffer, int]] = (),
         stop: Callable[[int], bool] | None = None,
     ) -> MappingResult:
-        """``iters`` mapping iterations over the keyframe ``window`` (buffer slots).  The exposures (g, b)
-        of the window's keyframes are refined with the map (``mapping.lr_exposure``) and written back
-        to ``keyframes.exposure``, except those of the slots in ``fixed_exposure`` (the gauge: the
-        first keyframe's exposure is the map's colour).  ``psnr_every`` > 0: after every iteration
-        whose cumulative count ``total_iters`` is a multiple of it, the mean PSNR of the window
-        (``window_psnr``) goes to ``MappingResult.psnr_curve`` (measured before that iteration's
-        densification, whose fresh clones and split children the following iterations have yet to
-        fit).  ``pause``: called after every iteration but the last (asynchronous mapping: where
-        tracking may take the device).  ``history``: older keyframes as (buffer, slot); each view an
-        iteration renders is one of them, drawn at random, with probability ``mapping.history``
-        (their exposures held), so that the window's steps do not undo what earlier windows fitted.
+        """``iters`` mapping iterations over the keyframe ``window`` (buffer slots), each keyframe's render
+        at its exposure (g, b) from tracking.  ``psnr_every`` > 0: after every iteration whose cumulative
+        count ``total_iters`` is a multiple of it, the mean PSNR of the window (``window_psnr``) goes to
+        ``MappingResult.psnr_curve`` (measured before that iteration's densification, whose fresh clones
+        and split children the following iterations have yet to fit).  ``pause``: called after every
+        iteration but the last (asynchronous mapping: where tracking may take the device).  ``history``:
+        older keyframes as (buffer, slot); each view an iteration renders is one of them, drawn at random,
+        with probability ``mapping.history``, so that the window's steps do not undo what earlier windows
+        fitted.
         ``stop``: called with the iterations done after every iteration but the last; True ends the call
         there (asynchronous mapping keeping pace with the camera: ``mapping.min_iters``), and the result
         then holds the iterations that ran."""
@@ -264,11 +242,9 @@ class Mapper:
         if iters <= 0 or len(gmap) == 0:
             return MappingResult(0, np.zeros(0), np.zeros(0), np.zeros(0))
         k_win, history = len(window), list(history) if self.cfg.history > 0.0 else []
-        self._upload_window(keyframes, window, fixed_exposure, history)
+        self._upload_window(keyframes, window, history)
         buffers = [keyframes] * k_win + [b for b, _ in history]
         slots = window + [s for _, s in history]
-        self._exposure_m.zero_()
-        self._exposure_v.zero_()
         if self._loss.shape[0] < iters:
             self._loss = wp.zeros((iters, km.L_COLUMNS), dtype=wp.float64, device=dev)
         self._loss.zero_()
@@ -289,11 +265,10 @@ class Mapper:
                 older = self.rng.random(len(views)) < self.cfg.history
                 picks = self.rng.integers(len(history), size=len(views))
                 views = [k_win + int(p) if o else v for v, o, p in zip(views, older, picks, strict=True)]
-            lr_factor = cosine_factor(it, iters, self.cfg.lr_final_factor)
             if graphs is not None:
                 graphs.step(buffers, slots, views[0], use_depth, blocks, result)
             else:
-                self._map_step(buffers, slots, views, it, use_depth, blocks, lr_factor)
+                self._map_step(buffers, slots, views, use_depth, blocks)
             self.total_iters += 1
             if psnr_every > 0 and self.total_iters % psnr_every == 0:
                 psnr_db = self._window_psnr(keyframes, window, self._T_WC)
@@ -306,8 +281,6 @@ class Mapper:
             if pause is not None and it + 1 < iters:
                 pause()
 
-        if self.cfg.lr_exposure > 0.0:
-            keyframes.exposure[window] = self._exposure[:k_win].numpy()
         if graphs is not None and result.graph_steps["captured"]:
             result.graph_overflows = int(self._overflows.numpy()[0])
             self.renderer.overflowed_renders += result.graph_overflows
@@ -327,15 +300,9 @@ class Mapper:
         """Whether this call's steps run as captured graphs (``mapping.graph``): one view per step, and
         nothing a step does on the host that a replay would not repeat."""
         cfg = self.cfg
-        return (
-            self.use_graph
-            and cfg.views_per_iter == 1
-            and self.densifier is None
-            and cfg.lr_exposure == 0.0
-            and not cfg.asynchronous
-        )
+        return self.use_graph and cfg.views_per_iter == 1 and self.densifier is None and not cfg.asynchronous
 
-    def _map_step(self, buffers, slots, views, it, use_depth, blocks, lr_factor, graph_capacity=None) -> None:
+    def _map_step(self, buffers, slots, views, use_depth, blocks, graph_capacity=None) -> None:
         """One Adam step on the map from the gradients of ``views`` (positions j of the uploaded views:
         keyframe ``slots[j]`` of ``buffers[j]``), averaged; the step counter advances at its end (the loss
         row and the learning rates are read from it).  ``graph_capacity``: the step is being captured
@@ -344,7 +311,6 @@ class Mapper:
         n = len(gmap)
         share = 1.0 / len(views)
         grads = self.grads()
-        self._exposure_grad.zero_()
         before = gmap.column("grad.opacity_before")
         obs_count, vis_count = gmap.column("obs_count"), gmap.column("vis_count")
         for v, j in enumerate(views):
@@ -377,15 +343,6 @@ class Mapper:
         )
         self.adam.step(grads, counter=self._step)
         wp.launch(km.update_ema, dim=n, inputs=[gmap.means, cfg.ema_eta], outputs=[ema_means], device=dev)
-        if cfg.lr_exposure > 0.0:
-            wp.launch(
-                km.adam_exposure_step,
-                dim=len(slots),
-                inputs=[self._exposure_grad, self._exposure_fixed, it + 1, cfg.lr_exposure * lr_factor]
-                + [cfg.adam_beta1, cfg.adam_beta2],
-                outputs=[self._exposure_m, self._exposure_v, self._exposure],
-                device=dev,
-            )
         wp.launch(advance_step, dim=1, inputs=[self._step], device=dev)
 
     def _densify(self, result: MappingResult) -> None:
@@ -407,7 +364,7 @@ class Mapper:
 
     def refine_all(self, archive: KeyframeArchive, iters: int, window: int, round_iters: int = 10) -> dict:
         """``iters`` iterations over every keyframe of ``archive``: rounds of ``round_iters`` over a
-        window of ``window`` keyframes drawn at random (``rng``), exposures held.  Returns iterations,
+        window of ``window`` keyframes drawn at random (``rng``).  Returns iterations,
         keyframes and the mean keyframe PSNR (``window_psnr``) over all of them before and after."""
         n, cam = len(archive), self.camera
         buffer = KeyframeBuffer(max(1, min(window, n)), cam.width, cam.height, str(self.device))
@@ -425,7 +382,7 @@ class Mapper:
             chosen = self.rng.choice(n, size=buffer.capacity, replace=False)
             slots = [archive.load_into(buffer, int(i)) for i in chosen]
             step = min(round_iters, iters - done)
-            self.optimize(buffer, slots, step, fixed_exposure=slots)
+            self.optimize(buffer, slots, step)
             done += step
         return {"iters": done, "keyframes": n, "keyframe_psnr_before_db": before, "keyframe_psnr_after_db": mean_psnr()}
 
@@ -515,14 +472,14 @@ class _StepGraphs:
         # (settles the latest eager render's count under its view: the capture's forward cannot)
         needed = renderer.view_intersections(view) if j in self._seen else 0
         if needed <= 0:
-            m._map_step(buffers, slots, [j], 0, use_depth, blocks, 1.0)
+            m._map_step(buffers, slots, [j], use_depth, blocks)
             self._seen.add(j)
             result.graph_steps["eager"] += 1
             return
         renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * needed))
         capacity, version = renderer.intersection_capacity, renderer.buffers_version
         with wp.ScopedCapture(device=m.device) as capture:
-            m._map_step(buffers, slots, [j], 0, use_depth, blocks, 1.0, graph_capacity=capacity)
+            m._map_step(buffers, slots, [j], use_depth, blocks, graph_capacity=capacity)
         self._graphs[j] = (capture.graph, version)
         wp.capture_launch(capture.graph)  # the captured step itself (Adam counted it while capturing)
         result.graph_steps["captured"] += 1

@@ -251,6 +251,8 @@ class Seeder:
     scale of triangulated seeds are in these units, those of depth seeds in ``depth_stride``).
     ``max_gaussians`` (``mapping.max_gaussians``, 0 = none): a seeding that would take the map (with
     the waiting seeds) over it keeps only its most confident seeds (``_within_cap``).
+    ``graphs``: where the depth extrapolation's launches are kept as captured graphs (default: a
+    ``GraphCache`` of 16 on ``device``, on with CUDA).
     """
 
     def __init__(
@@ -265,6 +267,7 @@ class Seeder:
         sh_degree: int = 2,
         renderer: Renderer | None = None,
         max_gaussians: int = 0,
+        graphs: GraphCache | None = None,
     ):
         self.cfg, self.camera, self.mode = cfg, camera, mode
         self.max_gaussians = max_gaussians
@@ -290,14 +293,15 @@ class Seeder:
             self._detail_points = TriangulatedPoints.zeros(n_detail, dev)
             self._detail_confidence = wp.full(n_detail, 1.0, dtype=wp.float32, device=dev)
         shape = (camera.height, camera.width)
-        # monocular: the first keyframe's plane; RGB-D: the far layer's depth image (far_layer_depth)
-        self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev)
+        # monocular: the first keyframe's plane at scene_depth_m
+        self._plane_depth = wp.full(shape, scene_depth_m, dtype=wp.float32, device=dev) if mode != "rgbd" else None
         self._zero_alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
         # RGB-D: measured depth carried into the pixels without it (depth_extrapolate_px), two buffers
         self._extrapolated = None
         if mode == "rgbd" and cfg.depth_extrapolate_px > 0:
             self._extrapolated = tuple(wp.zeros(shape, dtype=wp.float32, device=dev) for _ in range(2))
-        self._graphs = GraphCache(dev, size=16)  # the extrapolation of each source image (keyframe slots, fills)
+        # the extrapolation of each source image (keyframe slots, fills)
+        self._graphs = GraphCache(dev, size=16) if graphs is None else graphs
         self._alpha = wp.zeros(shape, dtype=wp.float32, device=dev)
 
     def _point_seeders(self) -> list[tuple[str, PointSeeder]]:
@@ -369,8 +373,7 @@ class Seeder:
     def seed_depth(self, gmap: GaussianMap, keyframes: KeyframeBuffer, slot: int) -> int:
         """Measured-depth seeds where the map does not cover keyframe ``slot`` (RGB-D with
         ``depth_fill``, and the first seeds of an empty map; monocular: the first keyframe's plane at
-        ``scene_depth_m``), then with ``far_layer_m`` a far layer where nothing was measured; returns
-        how many."""
+        ``scene_depth_m``); returns how many."""
         if len(gmap) == 0:
             alpha = self._zero_alpha
             if self.mode != "rgbd":
@@ -379,13 +382,7 @@ class Seeder:
             alpha = self.renderer.forward(gmap, self.camera, keyframes.poses[slot]).alpha
         else:
             return 0
-        added = self._seed_depth(keyframes, slot, alpha, None, gmap, self.max_gaussians)
-        if self.cfg.far_layer_m > 0.0:  # where nothing was measured: not where the depth seeds just went
-            far = self._plane_depth
-            launch_inputs = [self._depth_to_seed(keyframes, slot), self.cfg.far_layer_m]
-            wp.launch(ks.far_layer_depth, dim=far.shape, inputs=launch_inputs, outputs=[far], device=self.device)
-            added += self._seed_depth(keyframes, slot, alpha, far, gmap, self.max_gaussians)
-        return added
+        return self._seed_depth(keyframes, slot, alpha, None, gmap, self.max_gaussians)
 
     def wants_fill(self, coverage: float) -> bool:
         """Whether a tracked frame that is not a keyframe, of which the map covers the fraction
@@ -447,7 +444,7 @@ class Seeder:
         target.remove(mask)
         return keep
 
-    def _depth_to_seed(self, frames: KeyframeBuffer, slot: int) -> wp.array:
+    def depth_to_seed(self, frames: KeyframeBuffer, slot: int) -> wp.array:
         """The depth image the depth seeds of ``frames`` slot ``slot`` come from: its measured depth,
         carried ``depth_extrapolate_px`` pixels into those without a measurement when that is on (RGB-D)."""
         if self._extrapolated is None:
@@ -484,7 +481,7 @@ class Seeder:
         wp.launch(
             ks.depth_points,
             dim=self._depth_grid,
-            inputs=[self._depth_to_seed(frames, slot) if depth is None else depth]
+            inputs=[self.depth_to_seed(frames, slot) if depth is None else depth]
             + [cam.fx, cam.fy, cam.cx, cam.cy, wp.mat44d(frames.poses[slot]), cfg.depth_stride]
             + [cfg.depth_max_rel_jump, cfg.min_residual_px, 90.0, alpha, cfg.covered_alpha],
             outputs=[p.X, p.residual_px, p.parallax_deg, p.support, p.valid],

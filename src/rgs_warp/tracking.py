@@ -1,9 +1,9 @@
 """Camera tracking against a fixed Gaussian map (supplement §4.2, §4.6).
 
 Per frame: start from a constant-velocity prediction (or a given pose), align the frame to one render
-of the map there by Gauss-Newton on an image pyramid (``direct_levels``, kernels/direct.py), then
+of the map there by Gauss-Newton on an image pyramid (``direct_levels``, direct_align.py), then
 ``iters`` Adam steps on the twist xi = (rho, phi) with ``T_CW <- Exp(xi) T_CW``.  Each step renders the
-map, solves the affine brightness (g, b) of Eq. 3-4 in closed form, evaluates the weighted L1 loss of
+map, solves the brightness gain g of Eq. 3 in closed form (b = 0), evaluates the weighted L1 loss of
 Eq. 5-8 (plus, for RGB-D, a depth L1 term) and takes the twist gradient from the renderer's pose-only
 backward.
 The map is only read.  Adam works on the twist taken about a pivot on the optical axis at the mean
@@ -18,22 +18,22 @@ intersection capacity reserved beforehand, ``Renderer.reserve_intersections``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from rgs_warp.config import TrackingConfig
-from rgs_warp.frame_check import as_float_image
-from rgs_warp.geometry import invert_pose, rotation_angle_deg
-from rgs_warp.kernels import direct as dk
+from rgs_warp.direct_align import DirectAlignment
+from rgs_warp.frame_check import Uploads, as_float_image
+from rgs_warp.geometry import invert_pose
 from rgs_warp.kernels import tracking as tk
 from rgs_warp.kernels.math import REDUCE_BLOCK, reduce_blocks
+from rgs_warp.motion_model import JUMPED, SPED_UP, MotionModel, nearest_rigid, pose_error
 from rgs_warp.render import GRAPH_HEADROOM, Renderer
 from rgs_warp.types import Camera, GaussianMap
 
-__all__ = ["Tracker", "TrackingResult", "motion_inconsistency", "pose_error"]
+__all__ = ["Tracker", "TrackingResult", "settled_iters"]
 
 
 @dataclass
@@ -42,7 +42,7 @@ class TrackingResult:
 
     T_WC: 4x4 float64 camera-to-world pose; loss: Eq. 5 (+ depth term) per pixel at the last
     iteration; valid_ratio: fraction of pixels whose rendered opacity reaches tau_alpha; gain, bias:
-    Eq. 3-4 at the last iteration; converged: over the last quarter of the steps the twist
+    Eq. 3 at the last iteration (bias 0: the gain model); converged: over the last quarter of the steps the twist
     gradient kept flipping sign (Adam's |m_hat| / sqrt(v_hat) below ``CONVERGED_CONSISTENCY``) and
     the frame is not lost; lost: the map does not
     explain the frame (too little coverage, too large a residual), the estimate diverged, or its motion
@@ -53,7 +53,7 @@ class TrackingResult:
     loss per iteration; alpha, depth: the accumulated opacity and expected depth (not normalised) of the
     last render (tracking resolution), for the keyframe selector, valid until the tracker's renderer
     renders again; motion_inconsistent: lost by
-    the motion check (``tracking.motion_check``, ``motion_inconsistency``): the translation collapsed
+    the motion check (``tracking.motion_check``, ``motion_model.motion_inconsistency``): the translation collapsed
     while the rotation went on as predicted, or the pose jumped away from the prediction (then ``T_WC``
     is the prediction), so the pose is not to be mapped; settled_iters: the steps
     after which the pose stayed put (``settled_iters``), what an early stop could save.
@@ -89,25 +89,10 @@ CONVERGED_CONSISTENCY = 0.4
 # Adam steps is an optimisation that ran away (e.g. a far too high tracking.lr), not camera motion.
 MAX_CORRECTION_M = 1.0
 MAX_CORRECTION_DEG = 45.0
-# Motion check: the camera "still turns" when its tracked rotation since the last frame is at least
-# this fraction of the constant-velocity prediction's (a camera that stops turns far less; the office's
-# collapsed runs kept turning at 0.65-1.0 of the truth's rate, slam.md runs 32-35)
-STILL_TURNING = 0.5
-# how ``motion_inconsistency``'s reason for a pose that ran away from the prediction begins
-JUMPED = "motion check: the pose jumped"
-SPED_UP = "motion check: the camera sped up to"
-# the tracked steps (length, turn) the motion check's speed bound takes its median of; it waits for
-# MOTION_HISTORY_MIN of them (after a start, a reset or a relocalisation)
-MOTION_HISTORY = 10
-MOTION_HISTORY_MIN = 3
-# the direct alignment's coarsest level must keep this many pixels a side (its sampler reads one pixel
-# either side of the warped point)
-DIRECT_MIN_PX = 8
 SWITCHES = ("auto", "on", "off")  # tracking.motion_check, tracking.graph, tracking.colour_per_opacity
 # Captured graphs of the frame's steps kept at once: asynchronous mapping publishes the map into three
 # buffers in turn, each its own graph (different addresses)
 GRAPHS_KEPT = 3
-BRIGHTNESS_MODELS = {"off": tk.BRIGHTNESS_OFF, "affine": tk.BRIGHTNESS_AFFINE, "gain": tk.BRIGHTNESS_GAIN}
 
 
 class Tracker:
@@ -131,10 +116,6 @@ class Tracker:
     ):
         if mode not in ("rgbd", "mono"):
             raise ValueError(f"mode must be 'rgbd' or 'mono', got {mode!r}")
-        if cfg.brightness not in BRIGHTNESS_MODELS:
-            raise ValueError(
-                f"tracking.brightness must be one of {', '.join(BRIGHTNESS_MODELS)}, got {cfg.brightness!r}"
-            )
         for key in ("motion_check", "graph", "colour_per_opacity"):
             if getattr(cfg, key) not in SWITCHES:
                 raise ValueError(f"tracking.{key} must be one of {', '.join(SWITCHES)}, got {getattr(cfg, key)!r}")
@@ -160,8 +141,7 @@ class Tracker:
         full = (camera.height, camera.width)
         shape = (self.track_camera.height, self.track_camera.width)
         pinned = dev.is_cuda
-        self._rgb_host = wp.zeros(full, dtype=wp.vec3, device="cpu", pinned=pinned)
-        self._depth_host = wp.zeros(full, dtype=wp.float32, device="cpu", pinned=pinned)
+        self._uploads = Uploads(dev)  # NumPy frames given to ``track`` / ``load_frame``
         if cfg.downscale > 1:
             self._rgb_full = wp.zeros(full, dtype=wp.vec3, device=dev)
             self._depth_full = wp.zeros(full, dtype=wp.float32, device=dev)
@@ -185,9 +165,8 @@ class Tracker:
         # the pose the Adam steps start from (the start pose, or the direct alignment's)
         self._T_CW_start = wp.zeros(1, dtype=wp.mat44d, device=dev)
         self._T_WC_start = wp.zeros(1, dtype=wp.mat44, device=dev)
-        self._init_direct(shape)
-        self._poses: list[np.ndarray] = []
-        self._motion_steps: list[tuple[float, float]] = []  # the last tracked steps (metres, degrees), oldest first
+        self._direct = DirectAlignment(cfg, self.track_camera, (self._rgb, self._depth), dev)
+        self._motion = MotionModel(cfg, self.motion_check)
         self._last_render = None
         self._frame: tuple | None = None
         # the frame's steps as captured graphs (``_steps``): by what they were captured against
@@ -198,52 +177,19 @@ class Tracker:
         self._no_step = wp.zeros(1, dtype=wp.int32, device=dev)
         self.graph_counts = {"eager": 0, "captured": 0, "replayed": 0, "overflowed": 0}
 
-    def _init_direct(self, shape: tuple[int, int]) -> None:
-        """Buffers of the direct alignment (``tracking.direct_levels``): the frame's and the reference's
-        image pyramids (level 0 at the tracking resolution, each level half the one before), its unknowns
-        and sums."""
-        levels, dev = self.cfg.direct_levels, self.device
-        self._levels: list[tuple] = []
-        for level in range(levels):
-            cam = self.track_camera.scaled(2**level)
-            if min(cam.width, cam.height) < DIRECT_MIN_PX:
-                raise ValueError(
-                    f"tracking.direct_levels = {levels}: level {level} of the {shape[1]}x{shape[0]} tracking images "
-                    f"is {cam.width}x{cam.height}, below {DIRECT_MIN_PX} px a side; use fewer levels"
-                )
-            size = (cam.height, cam.width)
-            frame = (self._rgb, self._depth) if level == 0 else _rgbd_images(size, dev)
-            reference = _rgbd_images(size, dev)
-            self._levels.append((cam, frame, reference))
-        if levels:
-            self._T_rel = wp.zeros(1, dtype=wp.mat44d, device=dev)
-            self._T_CW_ref = wp.zeros(1, dtype=wp.mat44d, device=dev)
-            self._affine = wp.zeros(2, dtype=wp.float64, device=dev)
-            self._identity = wp.array([np.eye(4)], dtype=wp.mat44d, device=dev)
-            self._affine_identity = wp.array([1.0, 0.0], dtype=wp.float64, device=dev)
-            self._sums = wp.zeros(dk.N_COLUMNS, dtype=wp.float64, device=dev)
-            self._direct_blocks = [(cam.width * cam.height + dk.BLOCK - 1) // dk.BLOCK for cam, _, _ in self._levels]
-
     # ---- motion model ------------------------------------------------------------------------
     def reset(self, T_WC: np.ndarray | None = None, T_prev_WC: np.ndarray | None = None) -> None:
         """Forget the tracked poses; with ``T_WC``, make it the latest (e.g. the first frame's pose),
         with ``T_prev_WC`` also the one before (the motion model resumes, e.g. after loading)."""
-        poses = [T_prev_WC, T_WC] if T_prev_WC is not None and T_WC is not None else [T_WC]
-        self._poses = [np.array(T, dtype=np.float64) for T in poses if T is not None]
-        self._motion_steps = []
+        self._motion.reset(T_WC, T_prev_WC)
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """The motion model's poses (the last two tracked, or a lost frame's start pose in its place),
         which ``reset`` alone cannot tell; ``load_state_dict`` restores them."""
-        return {
-            "motion_poses": np.array(self._poses, dtype=np.float64).reshape(-1, 4, 4),
-            "motion_steps": np.array(self._motion_steps, dtype=np.float64).reshape(-1, 2),
-        }
+        return self._motion.state_dict()
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        self._poses = [np.array(T, dtype=np.float64) for T in state["motion_poses"]]
-        # states saved before the steps were kept: the check waits for new ones
-        self._motion_steps = [(float(m), float(d)) for m, d in state.get("motion_steps", np.zeros((0, 2)))]
+        self._motion.load_state_dict(state)
 
     @property
     def alpha(self) -> wp.array:
@@ -261,36 +207,29 @@ class Tracker:
         return self._last_render.depth
 
     @property
-    def frame(self) -> tuple[wp.array, wp.array | None]:
-        """The last tracked frame's (rgb, depth) on the device at the input resolution (depth None in
-        "mono"); valid until the next ``track``."""
-        if self._frame is None:
-            raise RuntimeError("no frame tracked yet")
-        return self._frame
+    def frame_buffers(self) -> tuple[wp.array, wp.array]:
+        """The (rgb, depth) device arrays at the camera's resolution that ``load_frame`` copies a NumPy frame
+        into: a frame given as these arrays is read in place (the SLAM's frame check stages frames there)."""
+        if self.cfg.downscale == 1:
+            return self._rgb, self._depth
+        return self._rgb_full, self._depth_full
 
     def skip(self, T_WC: np.ndarray | None = None) -> None:
         """A frame that is not tracked (its input unusable): the motion model goes on as after a lost
         frame, with the prediction as its latest pose, or ``T_WC`` when that is known."""
         T = self.predict() if T_WC is None else np.array(T_WC, dtype=np.float64)
         if T is not None:
-            self._poses = (self._poses + [T])[-2:]
+            self._motion.push(T, tracked=False)
 
     def motion_inconsistency(self, T_WC: np.ndarray) -> str:
         """Why ``T_WC`` (a pose from elsewhere, e.g. the monocular keypoint odometry's) would fail this
         tracker's motion check against its last two poses, or "" (also with the check off or fewer poses)."""
-        if not self.motion_check or len(self._poses) < 2:
-            return ""
-        return motion_inconsistency(*self._poses, T_WC, self.cfg, self._motion_steps)
+        return self._motion.inconsistency(T_WC)
 
     def predict(self) -> np.ndarray | None:
         """Constant-velocity prediction T_k = T_{k-1} T_{k-2}^-1 T_{k-1} (the last relative motion
         repeated in the camera frame); the last pose when only one is known; None before any."""
-        if not self._poses:
-            return None
-        if len(self._poses) == 1:
-            return self._poses[-1].copy()
-        prev, last = self._poses[-2], self._poses[-1]
-        return _nearest_rigid(last @ invert_pose(prev) @ last)
+        return self._motion.predict()
 
     # ---- tracking ----------------------------------------------------------------------------
     def track(self, rgb, depth, gmap: GaussianMap, T_init_WC: np.ndarray | None = None) -> TrackingResult:
@@ -340,7 +279,7 @@ class Tracker:
         return result, k
 
     def load_frame(self, rgb, depth) -> None:
-        """Stage a frame on the device without tracking it (``frame`` then returns it); ``track``
+        """Stage a frame on the device without tracking it (for ``exposure`` or ``prepare``); ``track``
         does this itself.  ``depth`` is ignored in "mono"."""
         if self.mode != "rgbd":
             depth = None
@@ -349,9 +288,9 @@ class Tracker:
         full = (self.camera.height, self.camera.width)
         rgb_dst = self._rgb if cfg.downscale == 1 else self._rgb_full
         depth_dst = self._depth if cfg.downscale == 1 else self._depth_full
-        rgb = self._stage(rgb, self._rgb_host, rgb_dst, full, wp.vec3, "rgb")
+        rgb = self._stage(rgb, rgb_dst, full, wp.vec3, "rgb")
         if depth is not None:
-            depth = self._stage(depth, self._depth_host, depth_dst, full, wp.float32, "depth")
+            depth = self._stage(depth, depth_dst, full, wp.float32, "depth")
         self._frame = (rgb, depth)
         if cfg.downscale > 1:
             has_depth = depth is not None
@@ -374,22 +313,10 @@ class Tracker:
             outputs=[self._w_grad],
             device=dev,
         )
-        self._downsample_pyramid(1, depth is not None)
-
-    def _downsample_pyramid(self, which: int, has_depth: bool) -> None:
-        """Levels 1.. of the direct alignment's frame (``which`` 1) or reference (2) pyramid from level 0."""
-        for level in range(1, len(self._levels)):
-            src, dst = self._levels[level - 1][which], self._levels[level][which]
-            wp.launch(
-                tk.downsample_rgbd,
-                dim=dst[0].shape,
-                inputs=[src[0], src[1], 2, int(has_depth), self.cfg.depth_edge_spread],
-                outputs=[dst[0], dst[1]],
-                device=self.device,
-            )
+        self._direct.downsample_frame(depth is not None)
 
     def exposure(self, gmap: GaussianMap, T_WC: np.ndarray) -> tuple[float, float]:
-        """Eq. 3-4 brightness (gain, bias) of the frame last loaded (``load_frame``) against the map
+        """Eq. 3 brightness (gain, bias 0) of the frame last loaded (``load_frame``) against the map
         rendered at ``T_WC``, in closed form, without moving the pose; ``alpha`` is then that render's."""
         if self._frame is None:
             raise RuntimeError("no frame loaded")
@@ -404,9 +331,9 @@ class Tracker:
         row = self._history_host.numpy()[0]
         return float(row[tk.H_GAIN]), float(row[tk.H_BIAS])
 
-    def _stage(self, image, host: wp.array, dst: wp.array, shape: tuple[int, int], dtype, name: str) -> wp.array:
+    def _stage(self, image, dst: wp.array, shape: tuple[int, int], dtype, name: str) -> wp.array:
         """The frame image as a device array at the camera's resolution: a device array is checked and
-        used in place, a NumPy array goes through the (pinned) staging buffer into ``dst``."""
+        used in place, a NumPy array is copied into ``dst``."""
         if isinstance(image, wp.array):
             if image.shape != shape or image.dtype != dtype or image.device != self.device:
                 raise ValueError(
@@ -415,10 +342,7 @@ class Tracker:
                 )
             return image
         expected = shape + ((3,) if dtype is wp.vec3 else ())
-        image = as_float_image(image, expected, name)
-        np.copyto(host.numpy().reshape(expected), image)
-        wp.copy(dst, host)
-        return dst
+        return self._uploads.copy(as_float_image(image, expected, name), dst)
 
     def _begin(self, T_init_WC: np.ndarray) -> None:
         T_CW = invert_pose(T_init_WC)
@@ -437,49 +361,9 @@ class Tracker:
         self._history.zero_()
 
     def _align(self, gmap: GaussianMap, use_depth: bool) -> None:
-        """The direct alignment (``tracking.direct_levels``, kernels/direct.py): the map rendered once at
-        the start pose is the reference; ``direct_iters`` Gauss-Newton steps a pyramid level, coarse to
-        fine, move the pose on the device, and the Adam steps start where they end."""
-        dev, cfg = self.device, self.cfg
-        # sized by its own needs: sized by the previous render's, after a view that saw little of the map
-        # (a lost try, a relocalisation's candidate) it dropped intersections, and the whole alignment
-        # followed a wrong reference (3.6 cm off in the relocalisation test); a captured render has its
-        # room reserved before the capture
-        res = self.renderer.forward(gmap, self.track_camera, self._T_WC, fit=True)
-        ref_rgb, ref_depth = self._levels[0][2]
-        wp.launch(
-            dk.reference_image,
-            dim=ref_rgb.shape,
-            inputs=[res.color, res.depth, res.alpha, cfg.tau_alpha],
-            outputs=[ref_rgb, ref_depth],
-            block_dim=dk.BLOCK,
-            device=dev,
-        )
-        self._downsample_pyramid(2, True)
-        wp.copy(self._T_CW_ref, self._T_CW)
-        wp.copy(self._T_rel, self._identity)
-        wp.copy(self._affine, self._affine_identity)
-        for level in range(len(self._levels) - 1, -1, -1):
-            cam, (rgb, depth), (ref_rgb, ref_depth) = self._levels[level]
-            intrinsics = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
-            for _ in range(cfg.direct_iters):
-                self._sums.zero_()
-                wp.launch_tiled(
-                    dk.normal_equations,
-                    dim=[self._direct_blocks[level]],
-                    inputs=[ref_rgb, ref_depth, rgb, depth, int(use_depth), intrinsics, self._T_rel, self._affine],
-                    outputs=[self._sums],
-                    block_dim=dk.BLOCK,
-                    device=dev,
-                )
-                wp.launch(
-                    dk.solve_step,
-                    dim=1,
-                    inputs=[self._sums, self._T_CW_ref],
-                    outputs=[self._T_rel, self._affine, self._T_CW, self._T_WC],
-                    block_dim=dk.BLOCK,
-                    device=dev,
-                )
+        """The direct alignment (``tracking.direct_levels``, ``DirectAlignment``) from the start pose: the Adam
+        steps start where it ends."""
+        self._direct.align(self.renderer, gmap, use_depth, self._T_CW, self._T_WC)
         wp.copy(self._T_CW_start, self._T_CW)
         wp.copy(self._T_WC_start, self._T_WC)
 
@@ -535,7 +419,7 @@ class Tracker:
         renderer.reserve_intersections(math.ceil(GRAPH_HEADROOM * renderer.intersection_count()))
         key = self._graph_key(gmap, use_depth)
         align = None
-        if self._levels:
+        if self._direct.levels:
             with wp.ScopedCapture(device=self.device) as capture:
                 self._align(gmap, use_depth)
             align = capture.graph
@@ -567,7 +451,7 @@ class Tracker:
         self._capture(gmap, use_depth)
 
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
-        if self._levels and len(gmap) > 0:
+        if self._direct.levels and len(gmap) > 0:
             self._align(gmap, use_depth)
         for k in range(self.cfg.iters):
             self._iteration(gmap, k, use_depth)
@@ -583,7 +467,7 @@ class Tracker:
         self, gmap: GaussianMap, k: int, tile_stride: int = 1, step: wp.array | None = None, fit: bool = False
     ):
         """Render the map at the current pose (one tile in ``tile_stride``, shifting with the step) and
-        solve Eq. 3-4's (g, b) into history row ``k`` + ``step[0]`` (``step``: the device step counter of a
+        solve Eq. 3's (g, b) into history row ``k`` + ``step[0]`` (``step``: the device step counter of a
         captured step, ``tk.advance_step``; None: a counter at 0); ``fit``: ``Renderer.forward``'s."""
         cfg, dev = self.cfg, self.device
         step = self._no_step if step is None else step
@@ -606,13 +490,7 @@ class Tracker:
             block_dim=REDUCE_BLOCK,
             device=dev,
         )
-        wp.launch(
-            tk.solve_brightness,
-            dim=1,
-            inputs=[BRIGHTNESS_MODELS[cfg.brightness], k, step],
-            outputs=[self._history],
-            device=dev,
-        )
+        wp.launch(tk.solve_brightness, dim=1, inputs=[k, step], outputs=[self._history], device=dev)
         return res
 
     def _iteration(
@@ -649,9 +527,10 @@ class Tracker:
         if step is not None:
             wp.launch(tk.advance_step, dim=1, inputs=[step], device=dev)
 
-    def _read_back(self) -> tuple[np.ndarray, np.ndarray]:
-        """The frame's one read-back: the per-iteration sums (``tk.H_*`` columns) and the
-        world-to-camera pose after each step."""
+    def step_history(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last ``track``'s steps read back from the device (``track`` does so once, at its end): the
+        per-step sums (``kernels.tracking.H_*`` columns) and the world-to-camera pose after each step.
+        ``exposure`` overwrites the sums."""
         wp.copy(self._history_host, self._history)
         wp.copy(self._pose_history_host, self._pose_history)
         wp.synchronize_device(self.device)
@@ -659,11 +538,9 @@ class Tracker:
 
     def _finish(self, T_init_WC: np.ndarray) -> TrackingResult:
         cfg = self.cfg
-        hist, poses_CW = self._read_back()
+        hist, poses_CW = self.step_history()
         T_WC = (
-            _nearest_rigid(invert_pose(poses_CW[-1]))
-            if np.all(np.isfinite(poses_CW[-1]))
-            else invert_pose(poses_CW[-1])
+            nearest_rigid(invert_pose(poses_CW[-1])) if np.all(np.isfinite(poses_CW[-1])) else invert_pose(poses_CW[-1])
         )
         last = hist[-1]
         n_pixels = self._rgb.shape[0] * self._rgb.shape[1]
@@ -687,11 +564,7 @@ class Tracker:
             reason = f"map covers {valid_ratio:.1%} of the view (< {cfg.min_valid_ratio:.0%})"
         elif residual > cfg.max_residual:
             reason = f"photometric residual {residual:.3f} > {cfg.max_residual}"
-        elif (
-            self.motion_check
-            and len(self._poses) == 2
-            and (why := motion_inconsistency(*self._poses, T_WC, cfg, self._motion_steps))
-        ):
+        elif why := self._motion.inconsistency(T_WC):
             reason, motion_inconsistent = why, True
             if why.startswith((JUMPED, SPED_UP)):  # the prediction is the better guess than a pose that ran away
                 T_WC = np.array(T_init_WC, dtype=np.float64)
@@ -706,9 +579,7 @@ class Tracker:
             )
         if diverged:
             T_WC = np.array(T_init_WC, dtype=np.float64)
-        if self.motion_check and not lost and self._poses:  # the steps the speed bound takes its median of
-            self._motion_steps = [*self._motion_steps, _step_size(self._poses[-1], T_WC)][-MOTION_HISTORY:]
-        self._poses = (self._poses + [T_init_WC.copy() if lost else T_WC])[-2:]
+        self._motion.push(T_init_WC.copy() if lost else T_WC, tracked=not lost)
         return TrackingResult(
             T_WC=T_WC,
             loss=float(last[tk.H_LOSS]),
@@ -751,92 +622,3 @@ def settled_iters(poses_CW: np.ndarray) -> int:
         if moved_m > SETTLED_M or moved_deg > SETTLED_DEG:
             return k + 1
     return 0
-
-
-def motion_inconsistency(
-    T_prev_WC: np.ndarray,
-    T_last_WC: np.ndarray,
-    T_WC: np.ndarray,
-    cfg: TrackingConfig,
-    steps: Sequence[tuple[float, float]] = (),
-) -> str:
-    """Why the tracked pose ``T_WC`` breaks the constant-velocity motion of the two poses before it
-    (camera-to-world), or "" where it does not or the motion is too small to tell.
-
-    The prediction repeats the last step ``T_prev^-1 T_last`` from ``T_last``; the tracked step is
-    ``T_last^-1 T_WC``.  Inconsistent:
-
-    * a jump: ``T_WC`` lies more than ``cfg.motion_max_ratio`` x the predicted step plus
-      ``cfg.motion_max_jump_m`` from the prediction, or turned more than ``cfg.motion_max_ratio`` x the
-      predicted turn plus ``cfg.motion_max_jump_deg`` away from it (monocular tracking running away
-      where the map lacks the surface in view);
-    * a speed-up: with ``steps`` (the last tracked steps' lengths and turns, at least
-      ``MOTION_HISTORY_MIN``), the tracked step is longer than ``cfg.motion_max_ratio`` x their median
-      plus ``cfg.motion_max_jump_m``, or turns more than ``cfg.motion_max_ratio`` x their median plus
-      ``cfg.motion_max_jump_deg`` (a run-away at a steady speed matches its own prediction);
-    * a collapse: the tracked step's translation is below ``cfg.motion_min_ratio`` x the predicted
-      step's while the camera still turns (its rotation at least ``STILL_TURNING`` x the predicted one's):
-      the image moves on but the pose hardly travels, the monocular collapse of issue 22 (scale is
-      defined only by the map there).  A camera that stops stops turning too, and passes.  Only steps
-      of at least ``cfg.motion_min_step_m`` and ``cfg.motion_min_rotation_deg`` are judged."""
-    predicted_m, predicted_deg = _step_size(T_prev_WC, T_last_WC)
-    step_m, step_deg = _step_size(T_last_WC, T_WC)
-    jump = pose_error(T_WC, T_last_WC @ invert_pose(T_prev_WC) @ T_last_WC)
-    if why := _beyond(jump, (predicted_m, predicted_deg), cfg):
-        return f"{JUMPED} {why[0]} from the constant-velocity prediction ({why[1]} the predicted step of {why[2]})"
-    if len(steps) >= MOTION_HISTORY_MIN:
-        usual = tuple(float(v) for v in np.median(np.asarray(steps, dtype=np.float64), axis=0))
-        if why := _beyond((step_m, step_deg), usual, cfg):
-            return f"{SPED_UP} {why[0]} ({why[1]} the median of the last {len(steps)} steps, {why[2]})"
-    if predicted_m < cfg.motion_min_step_m or predicted_deg < cfg.motion_min_rotation_deg:
-        return ""
-    ratio = step_m / predicted_m
-    if ratio >= cfg.motion_min_ratio or step_deg < STILL_TURNING * predicted_deg:
-        return ""
-    return (
-        f"motion check: the translation collapsed to {ratio:.2f} x the constant-velocity prediction "
-        f"({1e3 * step_m:.1f} of {1e3 * predicted_m:.1f} mm; < {cfg.motion_min_ratio:g}) while the camera "
-        f"still turns ({step_deg:.2f} deg against {predicted_deg:.2f} deg predicted)"
-    )
-
-
-def _step_size(T_from_WC: np.ndarray, T_to_WC: np.ndarray) -> tuple[float, float]:
-    """(metres, degrees) of the step between two camera-to-world poses."""
-    step = invert_pose(T_from_WC) @ T_to_WC
-    return float(np.linalg.norm(step[:3, 3])), rotation_angle_deg(step[:3, :3])
-
-
-def _beyond(moved: tuple[float, float], reference: tuple[float, float], cfg: TrackingConfig) -> tuple[str, ...]:
-    """The motion check's run-away bound: where ``moved`` (metres, degrees) exceeds
-    ``cfg.motion_max_ratio`` x ``reference`` plus (``motion_max_jump_m``, ``motion_max_jump_deg``) in either,
-    the reason's parts (what moved, the bound and its factor, the reference); () within it."""
-    ratio, floor_m, floor_deg = cfg.motion_max_ratio, cfg.motion_max_jump_m, cfg.motion_max_jump_deg
-    bound_m, bound_deg = ratio * reference[0] + floor_m, ratio * reference[1] + floor_deg
-    if moved[0] <= bound_m and moved[1] <= bound_deg:
-        return ()
-    return (
-        f"{1e3 * moved[0]:.1f} mm and {moved[1]:.2f} deg",
-        f"at most {1e3 * bound_m:.1f} mm and {bound_deg:.2f} deg: {ratio:g} x",
-        f"{1e3 * reference[0]:.1f} mm and {reference[1]:.2f} deg, plus {1e3 * floor_m:g} mm and {floor_deg:g} deg",
-    )
-
-
-def _rgbd_images(shape: tuple[int, int], device) -> tuple[wp.array, wp.array]:
-    return wp.zeros(shape, dtype=wp.vec3, device=device), wp.zeros(shape, dtype=wp.float32, device=device)
-
-
-def _nearest_rigid(T: np.ndarray) -> np.ndarray:
-    """``T`` with its rotation projected onto SO(3) (nearest in Frobenius norm).  Rounding leaves
-    ~1e-16 of non-orthogonality per step, and the constant-velocity extrapolation T R_prev^T T
-    amplifies it about 2.4x a frame (measured: 5e-7 after 24 frames, diverging by 40); projecting
-    every pose handed out keeps it at rounding level."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return out
-
-
-def pose_error(T_est_WC: np.ndarray, T_ref_WC: np.ndarray) -> tuple[float, float]:
-    """(translation error in metres, rotation error in degrees) between two camera-to-world poses."""
-    rel = invert_pose(T_ref_WC) @ T_est_WC
-    return float(np.linalg.norm(T_est_WC[:3, 3] - T_ref_WC[:3, 3])), rotation_angle_deg(rel[:3, :3])

@@ -84,7 +84,3 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print(f"mesh      {path}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,9 +1,9 @@
-"""The viewer (issue 21): a viser web page that shows the Gaussian map rendered by our own
+"""The viewer: a viser web page that shows the Gaussian map rendered by our own
 ``Renderer`` from the browser's camera, the estimated and ground-truth trajectories, the keyframe
 frustums, the current frame beside its render and residual, and the run's counters.
 
     python -m rgs_warp.slam ... viewer=true          # live, during a run (then waits for Ctrl-C)
-    python -m rgs_warp.view RUN_DIR [--port 8080]    # a saved run
+    python -m rgs_warp.view RUN_DIR [--port 8080]    # a saved run (--host: the address it listens on)
 
 ``Viewer.update(slam, result, rgb, gt_poses, lost_frames)`` is the run loop's hook, called after each
 frame.  It does all the viewer's work itself, in the caller's thread, between two frames: the
@@ -44,6 +44,8 @@ from rgs_warp.geometry import matrix_to_quat, quat_to_matrix
 from rgs_warp.types import Camera
 
 INSTALL_HINT = 'pip install "rgs_warp[viewer]"'
+LOCAL_HOST = "127.0.0.1"  # not viser's default 0.0.0.0, which serves every interface with no access control
+LOOPBACK_HOSTS = (LOCAL_HOST, "localhost", "::1")
 MIN_VIEW_PX = 16  # a browser canvas folded to nothing still gets an image the renderer can make
 
 
@@ -127,12 +129,13 @@ class Viewer:
     """A viser server showing a SLAM (live: ``update`` per frame; saved: ``serve``).
 
     ``port``: the server's port (0: a free one; viser takes the next free port when it is in use:
-    ``url`` says which).  The other arguments bound the work per ``update`` (module docstring)."""
+    ``url`` says which); ``host``: the address it listens on (default: this machine only).  The other
+    arguments bound the work per ``update`` (module docstring)."""
 
     def __init__(
         self,
         port: int = 8080,
-        host: str = "0.0.0.0",
+        host: str = LOCAL_HOST,
         max_width: int = 640,
         max_fps: float = 15.0,
         refresh_s: float = 1.0,
@@ -206,6 +209,11 @@ class Viewer:
     def url(self) -> str:
         host = self.server.get_host()
         return f"http://{'localhost' if host in ('0.0.0.0', '::', '') else host}:{self.port}"
+
+    @property
+    def slam(self):
+        """The SLAM shown: the last one ``update`` saw."""
+        return self._slam
 
     @property
     def clients(self) -> int:
@@ -368,7 +376,7 @@ class Viewer:
             return
         import cv2
 
-        from rgs_warp.run import error_image
+        from rgs_warp.app.evaluate import error_image
 
         self._panel_key, self._panel_at = key, now
         self.stats.panels += 1
@@ -419,9 +427,18 @@ class Viewer:
         client.flush()
 
 
-def open_viewer(port: int) -> Viewer:
-    """The viewer of ``viewer=true`` (``viewer_port``), announced on the console."""
-    viewer = Viewer(port=port)
+def open_viewer(port: int, host: str = LOCAL_HOST) -> Viewer:
+    """The viewer of ``viewer=true`` (``viewer_port``, ``viewer_host``), announced on the console: its
+    URL, the port it took instead of a busy ``port``, and a warning when it listens beyond this machine."""
+    viewer = Viewer(port=port, host=host)
+    if port and viewer.port != port:
+        print(f"viewer: port {port} is in use; serving on port {viewer.port} instead", file=sys.stderr)
+    if host not in LOOPBACK_HOSTS:
+        print(
+            f"warning: the viewer listens on {host}: anyone who reaches this machine on port {viewer.port} sees "
+            f"the run (no access control); viewer_host={LOCAL_HOST} keeps it to this machine",
+            file=sys.stderr,
+        )
     tunnel = f"ssh -L {viewer.port}:localhost:{viewer.port} HOST"
     print(f"viewer: {viewer.url} (open it in a browser; from another machine: {tunnel})", file=sys.stderr)
     return viewer
@@ -548,6 +565,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m rgs_warp.view", description="Show a saved run in the browser.")
     ap.add_argument("run_dir", type=Path, help="a run folder (python -m rgs_warp.slam writes one under runs/)")
     ap.add_argument("--port", type=int, default=8080, help="the server's port (default 8080; 0: a free one)")
+    ap.add_argument(
+        "--host",
+        default=LOCAL_HOST,
+        help=f"the address it listens on (default {LOCAL_HOST}: this machine only; 0.0.0.0: every interface, "
+        "with no access control)",
+    )
     ap.add_argument("--device", default="auto", help="where to render (default: cuda:0 when there is one, else cpu)")
     ap.add_argument(
         "--ground-truth",
@@ -568,7 +591,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 1
     gt_poses = ground_truth_poses(slam, device, args.data_root) if args.ground_truth else None
-    viewer = open_viewer(args.port)
+    viewer = open_viewer(args.port, args.host)
     viewer.update(slam, gt_poses=gt_poses)
     print(
         f"showing {args.run_dir}: {len(slam.poses)} frames, {len(slam.keyframe_indices)} keyframes, "
@@ -582,7 +605,3 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         viewer.close()
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -3,6 +3,7 @@ readers that fail with a clear message, integer downscaling, selection by start/
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -27,8 +28,8 @@ class DatasetWarning(UserWarning):
 # Threads that read frames ahead of the SLAM (``RGBDDataset.__iter__``).  One 1200x680 Replica frame took
 # 23 ms to read on a 2-core CPU; with a consumer at 15 ms a frame and a busy second thread it waited
 # 2.9-4.6 ms a frame with one thread (2 ahead), 0.7-0.8 with two (4 ahead), 1.0-1.3 with three (6 ahead)
-# (session 23, experiments/bench/loader_threads.py; three for the GPU machines' 16 cores, not measured
-# there).  A live office run on the H100 waited 3.1 s of 12.0 s for frames with one thread.
+# (docs/decisions.md, "Prefetch"; three for the GPU machines' 16 cores, not measured there).  A live
+# office run on the H100 waited 3.1 s of 12.0 s for frames with one thread.
 LOAD_THREADS = 3
 
 
@@ -59,6 +60,32 @@ def read_depth(path: Path, scale: float) -> np.ndarray:
             f"{path}: expected a single-channel 16-bit depth PNG, got dtype {img.dtype} with shape {img.shape}"
         )
     return img.astype(np.float32) / np.float32(scale)
+
+
+# a first frame's median depth outside this (m) is in other units than the depth scale says
+PLAUSIBLE_DEPTH_M = (0.1, 20.0)
+KNOWN_DEPTH_SCALES = (1000.0, 5000.0, 6553.5)  # raw units per metre: millimetres, TUM, Replica
+
+
+def check_depth_scale(ds) -> None:
+    """A ``DatasetError`` naming ``dataset.depth_scale`` and a value that fits when the first frame's
+    depth (``ds.depth_scale`` raw units per metre), at the median of its valid pixels, lies outside
+    ``PLAUSIBLE_DEPTH_M``: read in the wrong unit, every frame would be lost."""
+    depth = ds[0].depth
+    valid = depth[depth > 0] if depth is not None else ()
+    if len(valid) == 0:  # no depth: the frame check says so
+        return
+    median_m, (lo, hi) = float(np.median(valid)), PLAUSIBLE_DEPTH_M
+    if lo <= median_m <= hi:
+        return
+    raw = median_m * ds.depth_scale
+    fits = [s for s in KNOWN_DEPTH_SCALES if lo <= raw / s <= hi]
+    fit = min(fits, key=lambda s: abs(math.log(raw / s / 2.0))) if fits else float(f"{raw / 2.0:.3g}")
+    raise DatasetError(
+        f"{ds.root}: the first frame's depth is {median_m:.3g} m at its median ({raw:.4g} raw / depth scale "
+        f"{ds.depth_scale:g}), outside {lo:g}-{hi:g} m: its depth images are in other units; "
+        f"dataset.depth_scale={fit:g} (raw units per metre) reads them as {raw / fit:.2g} m"
+    )
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -185,6 +212,11 @@ class RGBDDataset:
         if not self.root.is_dir():
             raise DatasetError(
                 f"{type(self).__name__}: dataset folder {self.root} does not exist.\n"
+                f"  expected layout: {self.layout}\n  obtain it from: {self.source}"
+            )
+        if next(self.root.iterdir(), None) is None:  # before a loader reads it as a wrong layout or camera
+            raise DatasetError(
+                f"{type(self).__name__}: dataset folder {self.root} is empty.\n"
                 f"  expected layout: {self.layout}\n  obtain it from: {self.source}"
             )
         self.stride, self.start, self.max_frames = stride, start, max_frames

@@ -22,6 +22,7 @@ from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_d
 from rgs_warp.types import Camera, Frame
 
 # The dataset's stated calibration (Kinect v1, 640x480): the depth camera's.
+SEVENSCENES_DEPTH_SCALE = 1000.0  # millimetres
 SEVENSCENES_CAMERA = Camera(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
 # The colour camera (fx, fy, cx, cy) and the depth-to-colour offset (a depth-camera point plus this is
 # the colour-camera point, metres), measured (experiments/results/slam.md, 7-Scenes calibration); the
@@ -47,6 +48,7 @@ class SevenScenesDataset(RGBDDataset):
         """``register_depth=False`` gives the files as they are: colour and depth both on the depth
         camera's calibration (what earlier runs and most papers used), poses unchanged."""
         super().__init__(root, **selection)
+        self.depth_scale = SEVENSCENES_DEPTH_SCALE  # raw units per metre
         pattern = re.compile(r"frame-(\d{6})\.color\.(jpg|png)$")
         colour = {}
         for f in self.root.iterdir():
@@ -108,7 +110,7 @@ class SevenScenesDataset(RGBDDataset):
 
     def _load_full(self, item) -> Frame:
         colour_path, pose = item
-        depth = read_depth(self._sibling(colour_path, ".depth.png"), 1000.0)
+        depth = read_depth(self._sibling(colour_path, ".depth.png"), self.depth_scale)
         depth[depth >= 65.535] = 0.0  # 65535 marks missing depth in 7-Scenes
         if self._offset is not None:
             depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)

@@ -3,7 +3,7 @@ camera SDK) and ``RealSenseSource`` (an Intel RealSense D4xx camera, live or a r
 pyrealsense2).
 
 A source has a ``camera`` and yields ``Frame``s; unlike the dataset loaders it has no length and no
-random access (``rgs_warp.run.run`` keeps the frames its evaluation reads again).  ``open_dataset``
+random access (``rgs_warp.app.runner.run`` keeps the frames its evaluation reads again).  ``open_dataset``
 gives a ``RealSenseSource`` for ``dataset.type=realsense``; ``run(cfg, source=...)`` runs any source.
 """
 
@@ -256,8 +256,8 @@ class RecordingFrames:
     The recording plays back as fast as it is read (``set_real_time(False)``) into each sensor's
     callback, which hands the frame to a queue of ``QUEUE`` frames and waits while it is full: the
     playback waits for the reader, so no frame is dropped however slowly the SLAM takes them.  (The
-    pipeline API drops what its one-set queue cannot hold, and pausing the playback between sets,
-    which session 12 did, lost or repeated sets now and then.)  The playback is paused while the
+    pipeline API drops what its one-set queue cannot hold, and pausing the playback between sets
+    lost or repeated sets now and then.)  The playback is paused while the
     sensors start, so the first frames of the stream started last are not read before it listens.
     A depth and a colour frame within half a frame period of each other are a pair; a frame left
     without a partner (a stream that skipped one) is dropped."""

@@ -1,4 +1,4 @@
-"""Evaluation metrics (supplement §3): ATE, PSNR/SSIM/LPIPS/depth L1, mesh Acc/Comp, run report."""
+"""Evaluation metrics (supplement §3): ATE, PSNR/SSIM/LPIPS/depth L1, mesh Acc/Comp."""
 
 from rgs_warp.eval.ate import ate, ate_keyframes_and_all, umeyama_alignment
 from rgs_warp.eval.photometric import (
@@ -18,7 +18,6 @@ from rgs_warp.eval.photometric import (
     ssim_3dgs,
 )
 from rgs_warp.eval.reconstruction import mesh_metrics, sample_surface, tsdf_fuse
-from rgs_warp.eval.report import plot_trajectory_topview, write_frame_scores, write_report
 
 __all__ = [
     "LPIPS",
@@ -34,8 +33,6 @@ __all__ = [
     "metric_device",
     "ms_ssim",
     "photometric_metrics",
-    "plot_trajectory_topview",
-    "write_frame_scores",
     "psnr",
     "psnr_raw_and_compensated",
     "sample_surface",
@@ -43,5 +40,4 @@ __all__ = [
     "ssim_3dgs",
     "tsdf_fuse",
     "umeyama_alignment",
-    "write_report",
 ]

@@ -1,4 +1,4 @@
-"""Kernels of tracking's direct alignment (tracking.py, ``Tracker._align``): Gauss-Newton of a frame
+"""Kernels of tracking's direct alignment (direct_align.py): Gauss-Newton of a frame
 against one render of the map, coarse to fine on an image pyramid, before the Adam steps.
 
 The render at the start pose is the reference: its colour and depth (divided by the opacity) give a 3D

@@ -107,60 +107,6 @@ def scale_image_grad(
 
 
 @wp.kernel
-def exposure_grad(
-    # in: dL/dx of x = g I_hat + b (L1 and SSIM), the render I_hat, this view's position
-    grad_x: wp.array2d(dtype=wp.vec3),
-    rendered: wp.array2d(dtype=wp.vec3),
-    view: int,
-    # out: (dL/dg, dL/db) of the view, added to
-    grad_out: wp.array(dtype=wp.vec2d),
-):
-    # dL/dg = sum over pixels and channels of dL/dx I_hat, dL/db = sum of dL/dx
-    block, lane = wp.tid()
-    i = block * REDUCE_BLOCK + lane
-    width = grad_x.shape[1]
-    v = wp.vec2(0.0)
-    if i < grad_x.shape[0] * width:
-        y = i // width
-        x = i - y * width
-        g = grad_x[y, x]
-        v = wp.vec2(wp.dot(g, rendered[y, x]), g[0] + g[1] + g[2])
-    total = block_sum(v)
-    if lane == 0:
-        wp.atomic_add(grad_out, view, wp.vec2d(wp.float64(total[0]), wp.float64(total[1])))
-
-
-@wp.kernel
-def adam_exposure_step(
-    # in: (dL/dg, dL/db) of each window view, 1 where its exposure is held (the gauge), step, schedule
-    grad: wp.array(dtype=wp.vec2d),
-    fixed: wp.array(dtype=wp.int32),
-    step: int,
-    lr: float,
-    beta1: float,
-    beta2: float,
-    # in/out: Adam moments and the exposures (g, b)
-    m: wp.array(dtype=wp.vec2),
-    v: wp.array(dtype=wp.vec2),
-    exposure: wp.array(dtype=wp.vec2),
-):
-    j = wp.tid()
-    if fixed[j] != 0:
-        return
-    g = wp.vec2(float(grad[j][0]), float(grad[j][1]))
-    mj = beta1 * m[j] + (1.0 - beta1) * g
-    vj = beta2 * v[j] + (1.0 - beta2) * wp.cw_mul(g, g)
-    m[j] = mj
-    v[j] = vj
-    c1 = 1.0 - wp.pow(beta1, float(step))
-    c2 = 1.0 - wp.pow(beta2, float(step))
-    e = exposure[j]
-    for k in range(2):
-        e[k] = e[k] - lr * (mj[k] / c1) / (wp.sqrt(vj[k] / c2) + 1.0e-8)
-    exposure[j] = e
-
-
-@wp.kernel
 def regularize(
     # in: parameters, EMA positions
     means: wp.array(dtype=wp.vec3),

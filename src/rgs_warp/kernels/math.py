@@ -1,10 +1,13 @@
 """Kernel math shared by the stages' kernel files: constants and types of the Gaussian and rasterizer
-layout, quaternions, SH constants, SE(3) in float64, the pinhole projection's Jacobian, and the block
-size of the per-pixel reductions.  Stage kernel files import from here and never from each other."""
+layout, quaternions, SH constants, SE(3) in float64, the pinhole projection's Jacobian, the block size
+of the per-pixel reductions, and the descriptor similarity, patch ZNCC and sub-pixel fits of the
+matching searches.  Stage kernel files import from here and never from each other."""
 
 from typing import Any
 
 import warp as wp
+
+from rgs_warp.config import MAX_PATCH_RADIUS
 
 # ---- per-pixel reductions ------------------------------------------------------------------------
 # Reductions over pixels sum REDUCE_BLOCK values in a block tile and issue one float64 atomic per
@@ -254,3 +257,131 @@ def rigid_inverse_f32(T: wp.mat44d):
         float(Rt[2, 0]), float(Rt[2, 1]), float(Rt[2, 2]), float(t[2]),
         0.0, 0.0, 0.0, 1.0,
     )  # fmt: skip
+
+
+# ---- descriptor search (kernels/matching.py, kernels/bootstrap.py) ----------------------------------
+# Feature pixel (i, j) of stride s is centred at image coordinates (s*j + (s-1)/2, s*i + (s-1)/2);
+# searches run on the feature grid and return image pixels.
+# Similarity of a query without a match (its segment leaves the image, or it was skipped).
+NO_MATCH = wp.constant(-2.0)
+# A ZNCC query patch, read once per query (``query_patch``): patch radii up to MAX_PATCH_RADIUS
+patch_values = wp.types.vector(length=(2 * MAX_PATCH_RADIUS + 1) ** 2, dtype=wp.float32)
+
+
+@wp.func
+def to_grid(u: float, stride: int) -> float:
+    return (u - 0.5 * float(stride - 1)) / float(stride)
+
+
+@wp.func
+def to_image(g: float, stride: int) -> float:
+    return g * float(stride) + 0.5 * float(stride - 1)
+
+
+@wp.func
+def similarity(
+    query: wp.array2d(dtype=wp.float32), row: int, target: wp.array3d(dtype=wp.float32), y: int, x: int
+) -> float:
+    """Eq. 10: inner product of L2-normalised descriptors."""
+    s = float(0.0)
+    for k in range(query.shape[1]):
+        s += query[row, k] * target[y, x, k]
+    return s
+
+
+@wp.func
+def parabola_peak(s_minus: float, s0: float, s_plus: float) -> float:
+    """Offset in [-0.5, 0.5] of the vertex of the parabola through (-1, s-), (0, s0), (1, s+)."""
+    curvature = s_minus - 2.0 * s0 + s_plus
+    if curvature >= 0.0:
+        return 0.0
+    return wp.clamp(0.5 * (s_minus - s_plus) / curvature, -0.5, 0.5)
+
+
+@wp.func
+def query_patch(grey: wp.array2d(dtype=wp.float32), q: wp.vec2, radius: int):
+    """The (2r+1)^2 grey patch at q (bilinear, row by row; r <= MAX_PATCH_RADIUS), its sum and n
+    times its variance: what ``patch_zncc`` needs of the query, read once for all its shifts."""
+    a = patch_values()
+    sa = float(0.0)
+    saa = float(0.0)
+    k = int(0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            v = grey_sample(grey, q[0] + float(dx), q[1] + float(dy))
+            a[k] = v
+            sa += v
+            saa += v * v
+            k += 1
+    n = float((2 * radius + 1) * (2 * radius + 1))
+    return a, sa, saa - sa * sa / n
+
+
+@wp.func
+def patch_zncc(
+    a: patch_values,
+    sa: float,
+    va: float,
+    target_grey: wp.array2d(dtype=wp.float32),
+    t: wp.vec2,
+    radius: int,
+) -> float:
+    """Zero-mean normalised cross-correlation of the query patch (``query_patch``: values ``a``,
+    sum ``sa``, n times its variance ``va``) with the grey (2r+1)^2 patch at t (bilinear); NO_MATCH
+    when either patch is flat (below 1e-4 grey-level variance: JPEG noise)."""
+    sb = float(0.0)
+    sbb = float(0.0)
+    sab = float(0.0)
+    k = int(0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            b = grey_sample(target_grey, t[0] + float(dx), t[1] + float(dy))
+            sb += b
+            sbb += b * b
+            sab += a[k] * b
+            k += 1
+    n = float((2 * radius + 1) * (2 * radius + 1))
+    vb = sbb - sb * sb / n
+    if va < 1e-4 * n or vb < 1e-4 * n:
+        return NO_MATCH
+    return (sab - sa * sb / n) / wp.sqrt(va * vb)
+
+
+@wp.func
+def refine_zncc(
+    query_grey: wp.array2d(dtype=wp.float32),
+    q: wp.vec2,
+    target_grey: wp.array2d(dtype=wp.float32),
+    coarse: wp.vec2,
+    refine_radius: int,
+    patch_radius: int,
+) -> wp.vec2:
+    """Image-resolution refinement of a match around ``coarse`` by patch ZNCC (see
+    ``kernels.matching.epipolar_search``) on the grey images (``kernels.matching.grey_image``)."""
+    a, sa, va = query_patch(query_grey, q, patch_radius)
+    if va < 1e-4 * float((2 * patch_radius + 1) * (2 * patch_radius + 1)):
+        return coarse  # a flat query patch: no shift correlates
+    best = float(NO_MATCH)
+    bx = int(0)
+    by = int(0)
+    for dy in range(-refine_radius, refine_radius + 1):
+        for dx in range(-refine_radius, refine_radius + 1):
+            c = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(dx), float(dy)), patch_radius)
+            if c > best:
+                best = c
+                bx = dx
+                by = dy
+    if best <= NO_MATCH:
+        return coarse
+    off_x = float(0.0)
+    off_y = float(0.0)
+    r = patch_radius
+    if wp.abs(bx) < refine_radius:
+        left = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx - 1), float(by)), r)
+        right = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx + 1), float(by)), r)
+        off_x = parabola_peak(left, best, right)
+    if wp.abs(by) < refine_radius:
+        up = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx), float(by - 1)), r)
+        down = patch_zncc(a, sa, va, target_grey, coarse + wp.vec2(float(bx), float(by + 1)), r)
+        off_y = parabola_peak(up, best, down)
+    return coarse + wp.vec2(float(bx) + off_x, float(by) + off_y)

@@ -457,7 +457,7 @@ def _tiles_pose_backward(
         count = wp.min(BLOCK, block_last - b * BLOCK)
         for kk in range(count):
             k = count - 1 - kk
-            # the per-pixel step written out rather than through splat_back: 2 % faster here (H100, session 26)
+            # the per-pixel step written out rather than through splat_back: 2 % faster here (H100)
             if b * BLOCK + k < last:
                 xyod = wp.tile_extract(s_xyod, k)
                 con = wp.tile_extract(s_conic, k)
@@ -481,7 +481,7 @@ def _tiles_pose_backward(
 
 # Capping registers (102 -> 80) so that 3 blocks fit per SM instead of 2: 15 % faster on an H100 despite a
 # few spills.  (Two pixels a thread, a splat's data read once for both and their gradients summed before
-# the fold, was 15 % slower: 128 registers, 4 blocks of 128 threads; session 26, raster.md.)
+# the fold, was 15 % slower: 128 registers, 4 blocks of 128 threads; experiments/results/raster.md.)
 rasterize_tiles_pose_backward = wp.Kernel(
     _tiles_pose_backward, key="rasterize_tiles_pose_backward", options={"launch_bounds": (BLOCK, 3)}
 )

@@ -506,18 +506,3 @@ def extrapolate_depth_step(
                 if v >= 0 and v < depth.shape[0] and u >= 0 and u < depth.shape[1]:
                     d = wp.max(d, depth[v, u])
     depth_out[y, x] = d
-
-
-@wp.kernel
-def far_layer_depth(
-    # in: measured depth (0 = none) and the depth of the far layer
-    depth: wp.array2d(dtype=wp.float32),
-    far_m: float,
-    # out: far_m where nothing was measured, 0 (no seed) elsewhere
-    far_out: wp.array2d(dtype=wp.float32),
-):
-    # Windows, the far field and dark or shiny surfaces return no depth; without a seed there they
-    # would render black.  A layer at far_m gives them their colour: seen from near the keyframe, a
-    # surface farther than the sensor's range moves little with the camera.
-    y, x = wp.tid()
-    far_out[y, x] = wp.where(depth[y, x] > 0.0, 0.0, far_m)

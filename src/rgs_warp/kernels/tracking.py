@@ -1,5 +1,5 @@
-"""Kernels of the tracker (supplement §4.2): frame preparation, per-pixel weights (Eq. 6-8), the affine
-brightness normal equations (Eq. 3-4), the tracking loss (Eq. 5 + depth L1) with its image gradients
+"""Kernels of the tracker (supplement §4.2): frame preparation, per-pixel weights (Eq. 6-8), the
+brightness gain (Eq. 3), the tracking loss (Eq. 5 + depth L1) with its image gradients
 for the renderer's backward, and Adam on the pose twist with the left-multiplicative SE(3) update.
 
 Per-iteration quantities go to one row of a float64 history array (columns ``H_*``) so that an
@@ -15,27 +15,24 @@ wp.set_module_options({"enable_backward": False})
 
 
 # History columns (one row per iteration).
-H_S0 = 0  # Eq. 4 normal equations over pixels x channels, weighted by w_alpha: sum w
-H_SX = 1  # sum w * rendered
-H_SY = 2  # sum w * observed
-H_SXX = 3  # sum w * rendered^2
-H_SXY = 4  # sum w * rendered * observed
-H_VALID = 5  # pixels with accumulated opacity >= tau_alpha
-H_GAIN = 6  # g of Eq. 3 used in this iteration
-H_BIAS = 7  # b of Eq. 3
-H_LOSS = 8  # Eq. 5 + depth term, divided by the pixel count
-H_PHOTO = 9  # sum_x w(x) |I - g I_hat - b|_1
-H_WEIGHT = 10  # sum_x w(x)
-H_DEPTH = 11  # sum of the rendered depth sum_i w_i z_i (pivot of the twist, see adam_pose_step)
-H_ALPHA = 12  # sum of the accumulated opacity
-H_CONSISTENCY = 13  # mean over the 6 twist coordinates of Adam's |m_hat| / sqrt(v_hat), in [0, 1]
-H_COLUMNS = 14
+H_SX = 0  # the gain's sums over pixels x channels, weighted (brightness_sums): sum w * rendered
+H_SY = 1  # sum w * observed
+H_VALID = 2  # pixels with accumulated opacity >= tau_alpha
+H_GAIN = 3  # g of Eq. 3 used in this iteration
+H_BIAS = 4  # b of Eq. 3 (0: the gain model)
+H_LOSS = 5  # Eq. 5 + depth term, divided by the pixel count
+H_PHOTO = 6  # sum_x w(x) |I - g I_hat - b|_1
+H_WEIGHT = 7  # sum_x w(x)
+H_DEPTH = 8  # sum of the rendered depth sum_i w_i z_i (pivot of the twist, see adam_pose_step)
+H_ALPHA = 9  # sum of the accumulated opacity
+H_CONSISTENCY = 10  # mean over the 6 twist coordinates of Adam's |m_hat| / sqrt(v_hat), in [0, 1]
+H_COLUMNS = 11
 
 # Below this accumulated opacity the alpha-normalised depth D_hat / alpha is not formed (its weight
 # w_alpha = alpha / tau_alpha is negligible there anyway).
 ALPHA_DEPTH_MIN = 1.0e-3
 
-vec8 = wp.types.vector(length=8, dtype=wp.float32)
+vec5 = wp.types.vector(length=5, dtype=wp.float32)
 
 
 @wp.kernel
@@ -125,22 +122,22 @@ def brightness_sums(
     row: int,
     # the row is row + counter[0] (see advance_step)
     counter: wp.array(dtype=wp.int32),
-    # out: columns H_S0..H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand)
+    # out: columns H_SX, H_SY, H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand)
     history_out: wp.array2d(dtype=wp.float64),
 ):
-    # Eq. 4 as least squares over the pixels the map covers fully (alpha >= min_alpha) and channels:
+    # The gain's sums over the pixels the map covers fully (alpha >= min_alpha) and channels:
     # pixels it does not cover say nothing about the exposure, and partly covered ones render darker
     # by their opacity (over the black background), which would read as a gain > 1; dividing the
     # opacity out instead is biased the other way, since the mapper brightens thin regions to match
     # the keyframes, and either bias is fed back by the mapper frame after frame (GPU office runs:
     # g 1 -> 1.2 -> 20 monocular, 1 -> 0.8 with the division; experiments/results/slam.md).  min_alpha
     # <= 0 falls back to the w_alpha weights of Eq. 7.  w_grad is left out on purpose, flat areas
-    # constrain the gain and bias as well as edges do.
+    # constrain the gain as well as edges do.
     block, lane = wp.tid()
     row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
     width = observed.shape[1]
-    s = vec8()
+    s = vec5()
     if i < observed.shape[0] * width:
         y = i // width
         x = i - y * width
@@ -150,69 +147,40 @@ def brightness_sums(
             w = wp.where(a >= min_alpha, 1.0, 0.0)
         xr = rendered[y, x]
         yo = observed[y, x]
-        s = vec8(
-            3.0 * w,
+        s = vec5(
             w * (xr[0] + xr[1] + xr[2]),
             w * (yo[0] + yo[1] + yo[2]),
-            w * wp.dot(xr, xr),
-            w * wp.dot(xr, yo),
             wp.where(a >= tau_alpha, 1.0, 0.0),
             rendered_depth[y, x],
             a,
         )
     total = block_sum(s)
     if lane == 0:
-        for c in range(6):
-            wp.atomic_add(history_out, row, H_S0 + c, wp.float64(total[c]))
-        wp.atomic_add(history_out, row, H_DEPTH, wp.float64(total[6]))
-        wp.atomic_add(history_out, row, H_ALPHA, wp.float64(total[7]))
-
-
-# Brightness models of solve_brightness
-BRIGHTNESS_OFF = 0
-BRIGHTNESS_AFFINE = 1
-BRIGHTNESS_GAIN = 2
-# pull of the affine (g, b) towards (1, 0), relative to the Eq. 4 weight sum (below)
-BRIGHTNESS_RIDGE = wp.constant(wp.float32(1e-3))
+        for c in range(3):
+            wp.atomic_add(history_out, row, H_SX + c, wp.float64(total[c]))
+        wp.atomic_add(history_out, row, H_DEPTH, wp.float64(total[3]))
+        wp.atomic_add(history_out, row, H_ALPHA, wp.float64(total[4]))
 
 
 @wp.kernel
 def solve_brightness(
-    # in: model (BRIGHTNESS_*), history row
-    model: int,
+    # in: history row
     row: int,
     counter: wp.array(dtype=wp.int32),  # the row is row + counter[0] (see advance_step)
-    # out: columns H_GAIN, H_BIAS of history row `row`, from its H_S* sums
+    # out: columns H_GAIN, H_BIAS of history row `row`, from its H_SX, H_SY sums
     history_out: wp.array2d(dtype=wp.float64),
 ):
+    # g = Sy / Sx, b = 0: the ratio of the weighted means, which blur and small misalignments leave
+    # (nearly) unbiased; auto-exposure is a gain in linear light and, through the sRGB power law, nearly a
+    # gain on the stored values too.  Eq. 4's least squares of y on x is biased towards g < 1 when the
+    # render x has errors of its own (regression dilution), and the mapper feeds that back (g 1 -> 0.83
+    # over 150 frames without any exposure change; docs/decisions.md, "Brightness").
     row = row + counter[0]
-    # BRIGHTNESS_AFFINE, the closed form of Eq. 4: [[Sxx, Sx], [Sx, S0]] (g, b) = (Sxy, Sy), with a
-    # ridge BRIGHTNESS_RIDGE * S0 pulling (g, b) towards (1, 0) so that a nearly uniform render (Sxx S0 - Sx^2 ~
-    # 0) cannot produce a wild gain.  Least squares of y on x is biased towards g < 1 when the render
-    # x has errors of its own (regression dilution: misalignment, unfitted detail), and a
-    # mapper that paints the map with the keyframes' exposure-corrected colours feeds that bias
-    # back (measured: g 1 -> 0.83 over 150 frames of a scene without exposure change).
-    # BRIGHTNESS_GAIN: g = Sy / Sx, b = 0, the ratio of the weighted means, which blur and small
-    # misalignments leave (nearly) unbiased; auto-exposure is a gain in linear light and, through the sRGB
-    # power law, nearly a gain on the stored values too.
     g = wp.float64(1.0)
-    b = wp.float64(0.0)
-    s0 = history_out[row, H_S0]
-    if model == BRIGHTNESS_AFFINE and s0 > wp.float64(0.0):
-        lam = wp.float64(BRIGHTNESS_RIDGE) * s0
-        a11 = history_out[row, H_SXX] + lam
-        a12 = history_out[row, H_SX]
-        a22 = s0 + lam
-        r1 = history_out[row, H_SXY] + lam
-        r2 = history_out[row, H_SY]
-        det = a11 * a22 - a12 * a12
-        if det > wp.float64(0.0):
-            g = (a22 * r1 - a12 * r2) / det
-            b = (a11 * r2 - a12 * r1) / det
-    elif model == BRIGHTNESS_GAIN and history_out[row, H_SX] > wp.float64(0.0):
+    if history_out[row, H_SX] > wp.float64(0.0):
         g = history_out[row, H_SY] / history_out[row, H_SX]
     history_out[row, H_GAIN] = g
-    history_out[row, H_BIAS] = b
+    history_out[row, H_BIAS] = wp.float64(0.0)
 
 
 @wp.func

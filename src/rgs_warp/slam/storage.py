@@ -128,7 +128,7 @@ def _keyframe_arrays(slam) -> dict[str, np.ndarray]:
 
 
 def _state_arrays(slam) -> dict[str, np.ndarray]:
-    if slam.bootstrap is not None and slam._boot_frames:
+    if slam.mono_start is not None and slam.mono_start.frames:
         raise ValueError("the monocular bootstrap is waiting for parallax: its frames are not saved")
     n = len(slam.map)
     columns = [name for name in slam.map.column_names() if name not in GaussianMap.PARAMETERS]
@@ -219,8 +219,8 @@ def load_slam(cls, directory: str | Path, device=None):
         slam.keyframes.add(frame_id, data["poses"][k], data["rgb"][k], depth, data["exposure"][k], slot=slot)
     if "mapping_iters" in data:  # folders saved before it was recorded start the count afresh
         slam.mapper.total_iters = int(data["mapping_iters"])
-    if slam.keyframe_indices and slam.bootstrap is not None:  # a monocular map: its bootstrap is done
-        slam.bootstrap, slam._init_window_end = None, 0
+    if slam.keyframe_indices and slam.mono_start is not None:  # a monocular map: its start is done
+        slam.mono_start, slam._init_window_end = None, 0
         # the keypoint odometry's tracks and landmarks are not saved (they follow the frames, which a
         # saved run no longer has): the resumed frames start tracking from the constant-velocity prediction
         slam.odometry = None

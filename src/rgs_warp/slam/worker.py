@@ -1,8 +1,12 @@
-"""Asynchronous mapping (``mapping.asynchronous``, supplement §3.2): tracking goes on against the
-latest *published* map while a worker thread runs the keyframe work (seeding, window mapping,
-merge / prune) on its own working map.
+"""Where the SLAM's mapping jobs run (keyframes, frame fills, refinements between keyframes): at once in
+the caller's thread (``InlineMapping``), or, with ``mapping.asynchronous`` (supplement §3.2), in a worker
+thread on the working map while tracking goes on against the latest *published* version of it
+(``WorkerMapping``).  The two have the same methods, so the SLAM holds one and does not ask which: they
+run or queue a job, copy the images a queued job keeps, publish, give tracking the map it reads, and
+hold the wait policies of the asynchronous mode (when a frame waits for the worker, when a mapping job
+ends early for one waiting behind it).
 
-Three parts, each usable alone:
+``WorkerMapping`` is built from three parts, each usable alone:
 
 * ``DeviceTurns``: which thread may launch GPU work now.  Warp's current CUDA stream is a property
   of the device, shared by every thread, and the matching chain captures CUDA graphs on it
@@ -25,9 +29,15 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+import numpy as np
+import warp as wp
+
+from rgs_warp.config import MappingConfig
+from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
 
 
@@ -64,6 +74,12 @@ class DeviceTurns:
             yield
         finally:
             self._release()
+
+    @property
+    def tracking_waits(self) -> bool:
+        """Whether tracking waits for the device now."""
+        with self._cv:
+            return self._tracking_waits > 0
 
     def pause(self) -> None:
         """A safe point of the worker: if tracking waits, let it run, then take the device back."""
@@ -212,3 +228,192 @@ class MappingWorker:
                     self._queued[kind] -= 1
                     self._cv.notify_all()
                 self._jobs.task_done()
+
+
+def _never(done: int) -> bool:
+    return False
+
+
+class InlineMapping:
+    """Synchronous mapping: each job runs at once in the caller's thread, on the working map ``map``,
+    which tracking reads too; nothing is queued, published or waited for."""
+
+    def __init__(self, working: GaussianMap, renderer: Renderer):
+        self.map = working
+        self.renderer = renderer  # renders in tracking's turn: keyframe selection, ``SLAM.render``
+
+    def run(self, kind: str, job: Callable, *args) -> None:
+        job(*args)
+
+    def own(self, image):
+        """The image a job keeps: itself, since the job has run before the caller reuses it."""
+        return image
+
+    def queued(self, kind: str) -> int:
+        return 0
+
+    def pause(self) -> None:
+        """A safe point of a mapping job: nothing to give way to."""
+
+    def publish(self) -> int:
+        """Nothing to publish (tracking reads the working map): 0."""
+        return 0
+
+    @contextmanager
+    def tracking_map(self, check: bool = False) -> Iterator[GaussianMap]:
+        yield self.map
+
+    def after_frame(self, index: int, init_window_end: int) -> None:
+        """Nothing to wait for: the frame's jobs have run."""
+
+    def drain(self, check: bool = True, hurry: bool = False) -> None:
+        """Every job has run."""
+
+    def prepare_tracking(self, tracker, T_WC: np.ndarray) -> None:
+        """After a keyframe: the next frame's tracking graphs for the grown map, captured now, not in its
+        latency (``Tracker.prepare``)."""
+        tracker.prepare(self.map, T_WC)
+
+    def working_alpha(self, alpha: wp.array) -> wp.array | None:
+        """``alpha`` of tracking's last render, which was of the working map: a frame fill takes it
+        instead of rendering again."""
+        return alpha
+
+    def refine_stop(self, done: int) -> bool:
+        """A refinement between keyframes runs all its iterations."""
+        return False
+
+    def begin_window(self, init: bool) -> tuple[Callable[[], None], Callable[[int], bool]]:
+        """A keyframe's window mapping starts: its (pause, stop), which run it whole."""
+        return self.pause, _never
+
+
+class WorkerMapping:
+    """Asynchronous mapping (``mapping.asynchronous``): jobs queue for the worker thread (``worker``), which
+    maps the working map ``map``; tracking reads the versions ``publisher`` holds, in its turn on the
+    device (``turns``), and renders with ``renderer`` (not the mapping jobs')."""
+
+    def __init__(self, working: GaussianMap, renderer: Renderer, cfg: MappingConfig, sh_degree: int, device):
+        self.map, self.renderer, self.cfg = working, renderer, cfg
+        self.turns = DeviceTurns()
+        self.publisher = MapPublisher(sh_degree, device)
+        self.worker = MappingWorker(self.turns)
+
+    def run(self, kind: str, job: Callable, *args) -> None:
+        """Queue ``job(*args)`` for the worker (the initial window's jobs are "init": they do not hold tracking
+        back as later keyframes' may, ``mapping.async_queue``)."""
+        self.worker.submit(kind, lambda: job(*args))
+
+    def own(self, image):
+        """A copy of ``image`` that a queued job may hold while the caller and the tracker reuse their
+        buffers (NumPy or ``wp.array``; None stays None)."""
+        if image is None:
+            return None
+        return wp.clone(image) if isinstance(image, wp.array) else np.array(image, dtype=np.float32, copy=True)
+
+    def queued(self, kind: str) -> int:
+        return self.worker.queued(kind)
+
+    def pause(self) -> None:
+        """A safe point of a mapping job: tracking may take the device (in the worker's thread only: the
+        monocular bootstrap seeds in tracking's own turn)."""
+        if self.worker.is_current():
+            self.turns.pause()
+
+    def publish(self) -> int:
+        """The working map published for tracking; returns its version."""
+        return self.publisher.publish(self.map)
+
+    @contextmanager
+    def tracking_map(self, check: bool = False) -> Iterator[GaussianMap]:
+        """Tracking's turn on the device, holding the latest published map (a loaded or resumed map is
+        published first); ``check``: a failed job's exception is raised first."""
+        if check:
+            self.worker.check()
+        with self.turns.tracking():
+            if self.publisher.version == 0 and len(self.map):
+                self.publish()
+            with self.publisher.read() as published:
+                yield published
+
+    def after_frame(self, index: int, init_window_end: int) -> None:
+        """The waits before frame ``index`` returns: the initial window (frames below ``init_window_end``) is
+        mapped before the next frame, as in sync mode (``mapping.init_wait``: only the first keyframe's
+        mapping, or its seeds); with no version published yet there is nothing to track against; then at most
+        ``mapping.async_queue`` keyframes wait for the worker."""
+        wait = self.cfg.init_wait
+        waited = {"window": init_window_end, "first": 1, "seeds": 0}[wait]
+        if wait == "seeds" and self.publisher.version == 0:
+            self._wait_for_first_version()
+        elif index < waited or self.publisher.version == 0:
+            self.worker.drain()
+        self.worker.wait_until_fewer("keyframe", self.cfg.async_queue + 1)
+
+    def _wait_for_first_version(self) -> None:
+        """``mapping.init_wait=seeds``: return once the worker has published the first keyframe's seeds (or
+        has no initial job left, or failed: raised)."""
+        while self.publisher.version == 0 and self.worker.queued("init") > 0:
+            self.worker.check()
+            time.sleep(0.001)
+        self.worker.check()
+
+    def drain(self, check: bool = True, hurry: bool = False) -> None:
+        """``MappingWorker.drain``: every job queued so far has run."""
+        self.worker.drain(check, hurry)
+
+    def prepare_tracking(self, tracker, T_WC: np.ndarray) -> None:
+        """Nothing: the map the next frame tracks is a version the worker has yet to publish."""
+
+    def working_alpha(self, alpha: wp.array) -> None:
+        """None: tracking rendered a published version, not the working map a frame fill seeds into."""
+        return None
+
+    def refine_stop(self, done: int) -> bool:
+        """Whether a refinement between keyframes (``mapping.frame_iters``) ends after ``done`` iterations: as
+        soon as a keyframe or a checkpoint waits for the worker (it uses idle time only)."""
+        w = self.worker
+        return w.queued("keyframe") + w.queued("init") > 0 or w.hurry.is_set()
+
+    def begin_window(self, init: bool) -> tuple[Callable[[], None], Callable[[int], bool]]:
+        """A keyframe's window mapping starts (``init``: one of the initial window): its seeds published first
+        where tracking is to see them before the mapping (``mapping.publish_after`` 0, or the first keyframe's
+        with ``mapping.init_wait`` seeds), a safe point; returns the mapping's (pause, stop): the pause
+        publishes once more after ``mapping.publish_after`` iterations, if that is above 0."""
+        after = -1 if init else self.cfg.publish_after
+        if init and self.publisher.version == 0 and self.cfg.init_wait == "seeds":
+            after = 0  # the first keyframe's seeds, which tracking waits for
+        if after == 0:
+            self.publish()
+        self.pause()
+        pause = self.pause if after <= 0 else self._publishing_pause(after)
+        return pause, self._later_keyframe_waits if init else self._next_keyframe_waits
+
+    def _publishing_pause(self, after: int) -> Callable[[], None]:
+        """A mapping job's ``pause`` that publishes the map once, after ``after`` iterations, then pauses as
+        ``pause`` does."""
+        done = 0
+
+        def pause() -> None:
+            nonlocal done
+            done += 1
+            if done == after:
+                self.publish()
+            self.pause()
+
+        return pause
+
+    def _next_keyframe_waits(self, done: int) -> bool:
+        """Whether a keyframe's window mapping ends after ``done`` iterations (``mapping.min_iters``): once it
+        had that many and the next keyframe, or a checkpoint (``SLAM.snapshot(hurry=True)``), waits."""
+        n, w = self.cfg.min_iters, self.worker
+        return 0 < n <= done and (w.queued("keyframe") > 1 or w.hurry.is_set())
+
+    def _later_keyframe_waits(self, done: int) -> bool:
+        """Whether an initial keyframe's mapping ends after ``done`` iterations (``mapping.min_iters``): once it
+        had that many and as many later keyframes wait as may wait before tracking does
+        (``mapping.async_queue``, at least one), or a checkpoint waits.  Only with ``mapping.init_wait`` first or
+        seeds: otherwise tracking waits for the initial window's mappings and no later keyframe comes
+        meanwhile."""
+        n, w = self.cfg.min_iters, self.worker
+        waiting = max(1, self.cfg.async_queue)
+        return 0 < n <= done and (w.queued("keyframe") >= waiting or w.hurry.is_set())

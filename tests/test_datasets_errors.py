@@ -1,0 +1,105 @@
+"""The dataset loaders' errors and warnings (``rgs_warp.datasets``): intrinsics checked where they are
+read, naming the file; the size a downscale leaves checked once the dataset is open; TUM says which
+frames it drops and why."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from helpers_tum import tiny_tum
+from rgs_warp.config import ConfigError, load_config
+from rgs_warp.slam import SLAM
+from rgs_warp.types import Camera
+
+SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters=2", "tracking.iters=3"]
+
+
+@pytest.mark.parametrize(
+    "camera, message",
+    [
+        ({"fx": -60.0}, "fx = -60.0: a focal length"),
+        ({"fx": 0.0}, "fx = 0.0: a focal length"),
+        ({"fy": float("nan")}, "fy = nan"),
+        ({"cx": 640.0}, "cx = 640.0: the principal point"),
+        ({"scale": 0}, "scale = 0.0: the depth scale"),
+    ],
+)
+def test_cam_params_errors_name_the_file(tmp_path, camera, message):
+    """TUM (your own data) and Replica read cam_params.json; on 8dc16f7 these ran, or ended in a
+    ZeroDivisionError or an empty trajectory."""
+    from rgs_warp.datasets import DatasetError, ReplicaDataset, TUMDataset
+
+    tum = tiny_tum(tmp_path / "tum", camera=camera)
+    with pytest.raises(DatasetError, match=rf"{tum / 'cam_params.json'}: {message}"):
+        TUMDataset(tum, require_pose=False)
+    replica = tmp_path / "replica"
+    (replica / "results").mkdir(parents=True)
+    (replica / "results" / "frame000000.jpg").write_bytes(b"")
+    (replica / "cam_params.json").write_text((tum / "cam_params.json").read_text())
+    with pytest.raises(DatasetError, match=rf"{replica / 'cam_params.json'}: {message}"):
+        ReplicaDataset(replica)
+
+
+def test_sevenscenes_intrinsics_are_checked(tmp_path):
+    """A negative focal length in 7-Scenes' camera-intrinsics.txt ran silently on 8dc16f7."""
+    from rgs_warp.datasets import DatasetError, SevenScenesDataset
+
+    (tmp_path / "frame-000000.color.png").write_bytes(b"")
+    (tmp_path / "frame-000000.pose.txt").write_text(" ".join(map(str, np.eye(4).ravel())))
+    (tmp_path / "camera-intrinsics.txt").write_text("-585 0 320\n0 585 240\n0 0 1\n")
+    with pytest.raises(DatasetError, match=r"camera-intrinsics.txt: fx = -585.0: a focal length"):
+        SevenScenesDataset(tmp_path, register_depth=False)
+    (tmp_path / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n0 0 1\n")
+    with pytest.raises(DatasetError, match=r"dataset.colour_intrinsics \(526.0, 526.0, 900.0, 238.0\): cx = 900.0"):
+        SevenScenesDataset(tmp_path, colour_intrinsics=(526.0, 526.0, 900.0, 238.0))
+
+
+def test_downscale_of_a_loaded_dataset_is_checked(tmp_path):
+    """The native size of a real dataset is known once it is open: still before any run folder."""
+    from rgs_warp.datasets import open_dataset
+
+    root = tiny_tum(tmp_path / "mine")
+    base = ["dataset.type=tum", f"dataset.path={root}", "dataset.require_pose=false"]
+    with pytest.raises(ConfigError, match=r"dataset.downscale = 4 shrinks the 64x48 images to 16x12"):
+        open_dataset(load_config([*base, "dataset.downscale=4"]))
+    with pytest.raises(ValueError, match=r"the camera is 64x12"):
+        SLAM(load_config(SMALL), Camera(60.0, 60.0, 31.5, 5.5, 64, 12), device="cpu")
+
+
+def test_tum_says_how_many_frames_it_drops_and_why(tmp_path):
+    from rgs_warp.datasets import TUMDataset
+
+    root = tiny_tum(tmp_path / "mine", n_rgb=5, n_depth=3)
+    with pytest.warns(UserWarning, match=r"2 of 5 colour frames in rgb.txt dropped: 2 without a depth image"):
+        ds = TUMDataset(root, require_pose=False)
+    assert len(ds) == 3 and "2 of 5 colour frames in rgb.txt dropped" in repr(ds)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing dropped: no warning
+        ds = TUMDataset(tiny_tum(tmp_path / "whole", n_rgb=3, n_depth=3), require_pose=False)
+    assert "dropped" not in repr(ds)
+
+
+@pytest.mark.parametrize("kind", ["tum", "replica", "7scenes"])
+def test_an_empty_folder_says_it_is_empty(tmp_path, kind):
+    """TUM said it "cannot tell the TUM camera" of an empty folder; each loader now says it is empty."""
+    from rgs_warp.datasets import DatasetError, open_dataset
+
+    (tmp_path / "seq").mkdir()
+    with pytest.raises(DatasetError, match=rf"dataset folder {tmp_path / 'seq'} is empty"):
+        open_dataset(load_config([f"dataset.type={kind}", f"dataset.path={tmp_path / 'seq'}"]))
+
+
+def test_depth_in_another_unit_names_the_depth_scale_that_fits(tmp_path):
+    """Millimetres read as metres (a cam_params.json scale of 1): every frame was lost with "map covers
+    0.0 %"; now opening the dataset names ``dataset.depth_scale`` and the value that fits."""
+    from rgs_warp.datasets import DatasetError, open_dataset
+
+    root = tiny_tum(tmp_path / "mine", camera={"scale": 1})
+    base = ["dataset.type=tum", f"dataset.path={root}", "dataset.require_pose=false"]
+    with pytest.raises(DatasetError, match=r"depth is 2e\+03 m at its median.*dataset.depth_scale=1000 .* as 2 m"):
+        open_dataset(load_config(base))
+    assert open_dataset(load_config([*base, "dataset.depth_scale=1000"]))[0].depth.max() == pytest.approx(2.0)
+    assert open_dataset(load_config([*base, "mode=mono"]))  # monocular: the depth is not read
+    with pytest.raises(ConfigError, match="dataset.depth_scale applies to tum, replica, 7scenes, not synthetic"):
+        open_dataset(load_config(["dataset.depth_scale=1000"]))
