@@ -7,7 +7,7 @@ number (``tests/test_examples.py`` counts the reads).
 
     python examples/robot_loop.py                          # synthetic office, on the GPU if Warp sees one
     python examples/robot_loop.py device=cpu dataset.width=96 dataset.height=54 dataset.max_frames=12 \\
-        mapping.init_iters=60 mapping.iters=15                # a CPU-sized loop (a few minutes)
+        mapping.init_iters=60 mapping.iters_per_frame=6                # a CPU-sized loop (a few minutes)
 """
 
 from __future__ import annotations

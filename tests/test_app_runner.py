@@ -38,14 +38,14 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys):
 
     (run_dir / "checkpoint.json").write_text("{}")
     save_config(load_config([]), run_dir / "config.yaml")
-    assert main([f"resume={run_dir}", "mapping.iters=5"]) == 2
+    assert main([f"resume={run_dir}", "mapping.iters_per_frame=5"]) == 2
     err = capsys.readouterr().err
-    assert "'mapping.iters=5' refused" in err and "device=..., data_root=..." in err
+    assert "'mapping.iters_per_frame=5' refused" in err and "device=..., data_root=..." in err
 
 
 # CPU-sized (the test of README's resume): 24 frames, the initial window's 5 keyframes and a few more;
 # a checkpoint every 2 keyframes
-RESUMED = [*SMALL, "dataset.max_frames=24", "mapping.init_iters=40", "mapping.iters=8", "mapping.window=3"]
+RESUMED = [*SMALL, "dataset.max_frames=24", "mapping.init_iters=40", "mapping.iters_per_frame=4", "mapping.window=3"]
 
 
 @pytest.mark.slow
@@ -115,7 +115,7 @@ def test_a_capped_run_stays_under_the_cap_and_tracks(tmp_path, device):
     """Office at 160x90, 20 frames: uncapped the map reaches 2,930 Gaussians (2,977 with the last
     frame-fill seeds; 1.22 cm ATE, 25.3 dB).  Capped at 2,000 it never exceeds it and still tracks
     every frame (measured: 1.02 cm, 18.4 dB: the photometric fit pays for the missing Gaussians)."""
-    argv = [*SMALL, "dataset.max_frames=20", "mapping.init_iters=60", "mapping.iters=15", "mapping.window=3"]
+    argv = [*SMALL, "dataset.max_frames=20", "mapping.init_iters=60", "mapping.iters_per_frame=6", "mapping.window=3"]
     cfg = load_config([*argv, "mapping.max_gaussians=2000", f"device={device}", f"output_dir={tmp_path}", "run_name=c"])
     run_dir, metrics = run(cfg, progress=False)
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]

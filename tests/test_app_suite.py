@@ -379,15 +379,15 @@ def test_sweep_variants_name_and_combine():
     assert suite.sweep_variants(None, None) is None and suite.sweep_variants([], {}) is None
     sets = suite.sweep_variants(
         [{"name": "default", "overrides": []}, {"name": "", "overrides": ["tracking.iters=10"]}],
-        {"mapping.iters": [5, 9], "mapping.window": [2]},
+        {"mapping.iters_per_frame": [5, 9], "mapping.window": [2]},
     )
     assert [s["name"] for s in sets] == [
-        "default mapping.iters=5 mapping.window=2",
-        "default mapping.iters=9 mapping.window=2",
-        "tracking.iters=10 mapping.iters=5 mapping.window=2",
-        "tracking.iters=10 mapping.iters=9 mapping.window=2",
+        "default mapping.iters_per_frame=5 mapping.window=2",
+        "default mapping.iters_per_frame=9 mapping.window=2",
+        "tracking.iters=10 mapping.iters_per_frame=5 mapping.window=2",
+        "tracking.iters=10 mapping.iters_per_frame=9 mapping.window=2",
     ]
-    assert sets[3]["overrides"] == ["tracking.iters=10", "mapping.iters=9", "mapping.window=2"]
+    assert sets[3]["overrides"] == ["tracking.iters=10", "mapping.iters_per_frame=9", "mapping.window=2"]
     assert suite.sweep_variants(None, {"eval.lpips": [True]})[0]["overrides"] == ["eval.lpips=true"]
     assert suite.sweep_variants([{"name": "", "overrides": []}], None) == [{"name": "default", "overrides": []}]
     assert suite.variant_slug("short tracking / x=1") == "short_tracking_x=1"

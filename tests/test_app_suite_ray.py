@@ -18,7 +18,7 @@ TINY = [
     "dataset.max_frames=6",
     "tracking.iters=5",
     "mapping.init_iters=10",
-    "mapping.iters=3",
+    "mapping.iters_per_frame=2",
     "mapping.window=2",
 ]
 # what depends on time or on the process (how many kernel modules it compiled or loaded)

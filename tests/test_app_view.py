@@ -226,7 +226,7 @@ def test_live_run_feeds_the_viewer(tmp_path, device, monkeypatch, capsys):
     monkeypatch.setattr(viewer, "close", lambda: closed.append(True))
     # a small run: 3 keyframes (the keyframe ATE needs 3), 2 tracked frames; accuracy is test_slam's business
     argv = ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90", "dataset.max_frames=5"]
-    argv += ["mapping.init_window=3", "mapping.init_iters=9", "mapping.iters=3", "tracking.iters=3"]
+    argv += ["mapping.init_window=3", "mapping.init_iters=9", "mapping.iters_per_frame=2", "tracking.iters=3"]
     argv += ["checkpoint_every=0", f"device={device}", f"output_dir={tmp_path}", "run_name=live", "viewer=true"]
     try:
         deadline = time.monotonic() + 20.0

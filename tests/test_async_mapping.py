@@ -216,7 +216,7 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     argv = [
         *OVERRIDES,
         "mapping.asynchronous=true",
-        "mapping.frame_iters=2",
+        "mapping.iters_per_frame=2",
         "dataset.playback_fps=1000",
         "checkpoint_every=1",
         f"device={device}",
@@ -282,7 +282,8 @@ def test_keyframe_mapping_keeps_pace_with_min_iters(device):
         *OVERRIDES,
         "dataset.max_frames=10",
         "mapping.asynchronous=true",
-        "mapping.iters=30",
+        "mapping.iters_per_frame=30",
+        "mapping.keyframe_share=1.0",
         "keyframes.iou_threshold=1.0",
         "keyframes.min_translation_m=0",
         "keyframes.min_rotation_deg=0",

@@ -46,7 +46,7 @@ def test_defaults_and_overrides():
 
 
 def test_baseline_method_has_the_table_2_values():
-    rgs, cfg = load_config(), load_config(["method=baseline", "mapping.iters=40"])
+    rgs, cfg = load_config(), load_config(["method=baseline", "mapping.iters_per_frame=40"])
     assert cfg.method == "baseline" and rgs.method == "rgs"
     assert cfg.render.sh_degree == 3  # Table 2
     d = cfg.densify
@@ -209,7 +209,7 @@ def test_timing_groups():
     live = load_config(["timing=live", "mapping.init_iters=700"])
     assert live.mapping.asynchronous and live.mapping.min_iters == 15 and live.mapping.init_iters == 700
     assert live.mapping.init_wait == "first" and live.mapping.async_queue == 2 and live.mapping.publish_after == 15
-    assert live.mapping.iters == load_config([]).mapping.iters
+    assert live.mapping.rate_fps == load_config([]).mapping.rate_fps
     assert load_config([]) == load_config(["timing=offline"])
     assert not load_config([]).mapping.asynchronous
     assert "timing: live, offline" in help_text()

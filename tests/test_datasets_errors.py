@@ -12,7 +12,7 @@ from rgs_warp.config import ConfigError, load_config
 from rgs_warp.slam import SLAM
 from rgs_warp.types import Camera
 
-SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters=2", "tracking.iters=3"]
+SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters_per_frame=1", "tracking.iters=3"]
 
 
 @pytest.mark.parametrize(

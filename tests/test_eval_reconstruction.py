@@ -115,7 +115,7 @@ def test_mesh_export_of_a_saved_run(tmp_path, device):
 
     cfg = load_config(
         ["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90", "dataset.max_frames=6"]
-        + ["mapping.init_iters=60", "mapping.iters=10", f"device={device}"]
+        + ["mapping.init_iters=60", "mapping.iters_per_frame=5", f"device={device}"]
     )
     ds = open_dataset(cfg, device="cpu")
     slam = SLAM(cfg, ds.camera, device=device)

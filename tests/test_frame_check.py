@@ -15,7 +15,7 @@ from rgs_warp.types import Camera
 
 W, H = 64, 48
 CAMERA = Camera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=W, height=H)
-SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters=2", "tracking.iters=3"]
+SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters_per_frame=1", "tracking.iters=3"]
 
 
 def _frame(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

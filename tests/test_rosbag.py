@@ -363,17 +363,17 @@ def test_rosbag_errors_name_the_bag_and_the_problem(tmp_path, monkeypatch):
 @pytest.mark.parametrize("mode, stream", [("rgbd", False), ("rgbd", True), ("mono", False)])
 def test_slam_on_a_bag_through_the_command_line(tmp_path, device, mode, stream):
     """``python -m rgs_warp.slam dataset.type=rosbag dataset.path=BAG``: a recording of the generated office
-    at the CPU size of tests/test_slam.py, its ground truth from the pose topic, read indexed, as a stream,
+    at a CPU size, its ground truth from the pose topic, read indexed, as a stream,
     and monocular from a bag without depth; the streamed one is a ROS 2 bag, the others ROS 1."""
     from rgs_warp.app.cli import main
 
-    scene = open_dataset(load_config(["dataset=synthetic/office0", "dataset.width=160", "dataset.height=90"]))
+    scene = open_dataset(load_config(["dataset=synthetic/office0", "dataset.width=128", "dataset.height=72"]))
     frames = [scene[k] for k in range(12)]
     for k, f in enumerate(frames):
         f.timestamp = 5.0 + k / 30.0
     path = tmp_path / ("office" if stream else "office.bag")
     bag = write_realsense_like_bag(path, frames, scene.camera, ros2=stream, depth=mode == "rgbd")
-    iters = (60, 15) if mode == "rgbd" else (40, 8)  # as tests/test_slam.py's RGB-D and monocular runs
+    iters = (40, 6) if mode == "rgbd" else (40, 4)
     argv = [
         "dataset.type=rosbag",
         f"dataset.path={bag}",
@@ -381,7 +381,7 @@ def test_slam_on_a_bag_through_the_command_line(tmp_path, device, mode, stream):
         f"dataset.stream={str(stream).lower()}",
         f"mode={mode}",
         f"mapping.init_iters={iters[0]}",
-        f"mapping.iters={iters[1]}",
+        f"mapping.iters_per_frame={iters[1]}",
         "mapping.window=3",
         *(f"device={device}", f"output_dir={tmp_path}", "run_name=bag"),
     ]

@@ -12,7 +12,7 @@ from rgs_warp.types import Camera
 
 W, H = 64, 48
 CAMERA = Camera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=W, height=H)
-SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters=2", "tracking.iters=3"]
+SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters_per_frame=1", "tracking.iters=3"]
 # whole-SLAM tests: the CPU-sized office of test_slam.py, shortened
 OFFICE = [
     "dataset=synthetic/office0",
@@ -20,7 +20,7 @@ OFFICE = [
     "dataset.height=90",
     "dataset.max_frames=6",
     "mapping.init_iters=20",
-    "mapping.iters=3",
+    "mapping.iters_per_frame=2",
     "mapping.window=3",
     "mapping.init_window=2",
     "tracking.iters=6",

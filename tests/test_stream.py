@@ -25,7 +25,7 @@ SMALL = [
     "dataset.height=90",
     "dataset.max_frames=12",
     "mapping.init_iters=60",
-    "mapping.iters=15",
+    "mapping.iters_per_frame=6",
     "mapping.window=3",
 ]
 

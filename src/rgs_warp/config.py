@@ -228,8 +228,9 @@ class SeedingConfig:
 
 @dataclass
 class MappingConfig:
-    iters: NonNegInt = 150  # K_m: mapping iterations a keyframe
-    frame_iters: NonNegInt = 0  # iterations over the window after each frame that is no keyframe; 0: off
+    rate_fps: NonNegative = 22.0  # frames/s the mapping budget is sized for (640x480, one H100); 0: the best map
+    iters_per_frame: NonNegative = 0.0  # the budget in mapping iterations a frame; 0: from rate_fps
+    keyframe_share: Fraction = 1.0  # of the budget until the next keyframe, what a new keyframe spends at once
     asynchronous: bool = False  # keyframe work in a worker thread beside tracking (timing=live)
     async_queue: NonNegInt = 1  # asynchronous: keyframes that may wait for the worker before tracking waits
     fill_queue: NonNegInt = 32  # asynchronous: frame fills that may wait for the worker (more: skipped); 0: no bound
@@ -424,7 +425,6 @@ ORDERED_KEYS = (
     ("seeding.axial_min_ratio", "seeding.axial_max_ratio", ": the clip of Eq. 13's axial scale"),
     ("seeding.detail_stride", "seeding.depth_stride", ": detail seeds are the finer ones"),
     ("mapping.init_window", "mapping.init_iters", ": each initial frame gets init_iters // init_window iterations"),
-    ("mapping.min_iters", "mapping.iters", ": a keyframe's window mapping may end early, not run longer"),
 )
 # The smallest images the pipeline runs on: mapping's SSIM has an 11x11 window (DSSIMLoss refuses 11 px
 # and less; at 20x11 the office's map stayed empty, 22x12 ran); tracking needs neighbours for its image

@@ -12,7 +12,7 @@ CPU_SIZED = {
     "dataset.height": 68,
     "dataset.max_frames": 25,
     "mapping.init_iters": 100,
-    "mapping.iters": 15,
+    "mapping.iters_per_frame": 4,
     "mapping.views_per_iter": 0,
     "mapping.window": 3,
 }
@@ -20,7 +20,7 @@ CPU_SIZED = {
 CPU_SIZE_KEYS = (
     *CPU_SIZED,
     *("dataset.n_frames", "dataset.stride", "dataset.start", "dataset.downscale", "tracking.iters"),
-    *("tracking.downscale", "mapping.init_window", "mapping.frame_iters", "mapping.final_iters"),
+    *("tracking.downscale", "mapping.init_window", "mapping.rate_fps", "mapping.final_iters"),
 )
 
 
@@ -39,9 +39,10 @@ def cpu_sized_overrides(cfg: Config, overrides, device: str) -> tuple[list[str],
     message = (
         f"No GPU ({device}): a CPU-sized run of synthetic/{d.name}: {q['dataset.width']}x{q['dataset.height']} "
         f"pixels, the first {q['dataset.max_frames']} of {d.n_frames} frames, "
-        f"{q['mapping.init_iters']} initial and {q['mapping.iters']} per-keyframe mapping iterations "
+        f"{q['mapping.init_iters']} initial and {q['mapping.iters_per_frame']} mapping iterations a frame "
         f"over {q['mapping.window']} keyframes (under 3 minutes on 2 cores).\n"
-        f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} / {m.iters} mapping iterations; "
+        f"The full run ({d.width}x{d.height}, {d.n_frames} frames, {m.init_iters} initial mapping iterations and "
+        f"the budget of mapping.rate_fps={m.rate_fps:g}; "
         f"over half an hour on 2 cores): add cpu_sized=false, or set any size yourself, e.g. "
         f"dataset.max_frames=40 (the rest then keeps its defaults)."
     )

@@ -136,6 +136,15 @@ def evaluate_run(
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
     metrics["mapping_iterations"] = slam.mapper.total_iters
+    # the mapping budget (mapping.rate_fps) and how it was spent: iterations by kind, a frame and a keyframe
+    its = slam.mapping_iterations
+    metrics["mapping_budget"] = {
+        "rate_fps": cfg.mapping.rate_fps,
+        "iterations_per_frame_budget": slam.budget.per_frame,
+        "iterations": dict(its),
+        "iterations_per_frame": (its["keyframe"] + its["refine"]) / max(1, len(slam.poses)),
+        "iterations_per_keyframe": its["keyframe"] / max(1, slam.budget.keyframes),
+    }
     # renders of the mapping renderer (mapping, seeding) found to have dropped intersections
     metrics["mapping_renders_overflowed"] = slam.renderer.overflowed_renders
     # mapping steps run eagerly, captured and replayed (mapping.graph), replays that overflowed

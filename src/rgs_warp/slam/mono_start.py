@@ -94,6 +94,7 @@ class MonoStart:
         psnr_every = cfg.eval.convergence_every
         result.mapping = slam.mapper.optimize(kf, window, cfg.mapping.init_iters, psnr_every)
         slam.stats["mapping_s"] += time.perf_counter() - tm
+        slam.mapping_iterations["init"] += result.mapping.iters
         slam.convergence += slam.mapper.convergence(kf, window, result.mapping, i, "init")
         starts = self._start_odometry(slam, boot, result)
         self._retrack(slam, frame, result, retrack, starts)

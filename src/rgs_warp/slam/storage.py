@@ -146,6 +146,8 @@ def _state_arrays(slam) -> dict[str, np.ndarray]:
         "init_window_end": slam._init_window_end,
         "stats": dict(slam.stats),
         "convergence": slam.convergence,
+        "budget": slam.budget.state_dict(),
+        "mapping_iterations": slam.mapping_iterations,
     }
     state["slam.meta"] = np.array(json.dumps(meta))
     # the poses bit-exact (trajectory.txt's rotations pass through quaternions)
@@ -182,6 +184,8 @@ def _load_state(slam, path: Path) -> None:
     slam.poses, slam.timestamps = list(state["slam.poses"]), [float(t) for t in state["slam.timestamps"]]
     slam._init_window_end = int(meta["init_window_end"])
     slam.stats, slam.convergence = dict(meta["stats"]), list(meta["convergence"])
+    slam.budget.load_state_dict(meta["budget"])
+    slam.mapping_iterations = dict(meta["mapping_iterations"])
 
 
 def load_slam(cls, directory: str | Path, device=None):

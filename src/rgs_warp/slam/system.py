@@ -36,6 +36,7 @@ from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeDecision
 from rgs_warp.keypoint_odometry import KeypointOdometry, OdometryResult
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper
+from rgs_warp.mapping_budget import MappingBudget, iterations_per_frame
 from rgs_warp.matching import DenseMatcher
 from rgs_warp.render import Renderer, RenderResult
 from rgs_warp.seeding import Seeder
@@ -121,6 +122,12 @@ class SLAM:
             cfg.mapping, camera, self.map, dev, self.mode, self.renderer, cfg.seed, cfg.densify if baseline else None
         )
         self.maintainer = None if baseline else Maintainer(cfg.mapping, camera, dev)
+        # the mapping iterations each frame may spend (mapping.rate_fps by the renderer's cost model, or given)
+        m = cfg.mapping
+        per_frame = m.iters_per_frame or iterations_per_frame(m.rate_fps, camera.width, camera.height)
+        self.budget = MappingBudget(per_frame, m.keyframe_share)
+        # mapping iterations run: the initial window's, keyframes' window mappings, refinements between keyframes
+        self.mapping_iterations = {"init": 0, "keyframe": 0, "refine": 0}
         # monocular: a two-view start replaces the initial window (None once it built the map), and starts
         # the keypoint odometry, which then gives each frame its pose or where its tracking starts
         self.mono_start = self.odometry = None
@@ -134,7 +141,9 @@ class SLAM:
         self.poses: list[np.ndarray] = []  # camera-to-world of every processed frame
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
-        self.stats = {"tracking_s": 0.0, "mapping_s": 0.0, "seeding_s": 0.0, "maintenance_s": 0.0, "frames": 0}
+        # mapping_s: keyframes' window mappings (and the final refinement), refine_s: between keyframes
+        stats = ("tracking_s", "mapping_s", "refine_s", "seeding_s", "maintenance_s")
+        self.stats = {**dict.fromkeys(stats, 0.0), "frames": 0}
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
@@ -338,13 +347,20 @@ class SLAM:
         self.keyframe_indices.append(i)
         # the initial window's jobs ("init") do not hold tracking back as later keyframes' may (async_queue)
         kind = "init" if i < self._init_window_end else "keyframe"
+        if kind == "init":
+            iters = self.cfg.mapping.init_iters // self.cfg.mapping.init_window
+            self.budget.start(i)
+        else:
+            self.budget.frame()
+            iters = self.budget.keyframe(i)
         rgb, depth = jobs.own(frame.rgb), jobs.own(frame.depth)
-        jobs.run(kind, self._add_keyframe, i, result.T_WC, rgb, depth, pose.exposure, result, time.perf_counter())
+        args = (i, result.T_WC, rgb, depth, pose.exposure, result, iters, time.perf_counter())
+        jobs.run(kind, self._add_keyframe, *args)
         jobs.prepare_tracking(self.tracker, result.T_WC)
 
     def _fill_and_refine(self, frame: CheckedFrame, pose: _Pose, decision: KeyframeDecision, result: FrameResult):
         """A frame that is no keyframe: measured-depth seeds where the map does not cover it (a frame fill,
-        ``seeding.frame_fill_min_uncovered``), then ``mapping.frame_iters`` iterations over the window."""
+        ``seeding.frame_fill_min_uncovered``), then the budget's iterations over the window (``mapping.rate_fps``)."""
         cfg, jobs = self.cfg.mapping, self.mapping_jobs
         # asynchronous: at most mapping.fill_queue frame fills wait for the worker (they seed most of what
         # this frame would)
@@ -358,9 +374,14 @@ class SLAM:
             alpha = jobs.working_alpha(alpha) if alpha.shape == (self.camera.height, self.camera.width) else None
             rgb, depth = jobs.own(frame.rgb), jobs.own(frame.depth)
             jobs.run("fill", self._fill_frame, result.index, rgb, depth, result.T_WC, pose.exposure, result, alpha)
-        # refinement between keyframes: one job waiting at most (it only uses the worker's idle time)
-        if cfg.frame_iters > 0 and self.keyframe_indices and jobs.queued("refine") == 0:
-            jobs.run("refine", self._refine_window, result)
+        # refinement between keyframes with what the budget holds: one job waiting at most (asynchronous: it
+        # uses the worker's idle time, and the balance grows while it waits)
+        if self.keyframe_indices and result.index >= self._init_window_end:
+            self.budget.frame()
+            if jobs.queued("refine") == 0:
+                iters = self.budget.refine()
+                if iters:
+                    jobs.run("refine", self._refine_window, result, iters)
 
     def _record(self, result: FrameResult, timestamp: float | None) -> FrameResult:
         self.poses.append(result.T_WC)
@@ -371,8 +392,10 @@ class SLAM:
         return result
 
     # ---- mapping jobs (InlineMapping runs them at once, WorkerMapping in its thread) --------------------------
-    def _add_keyframe(self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult, t_tracked: float) -> None:
-        """Keyframe ``i`` into the buffer, seeded, its window mapped and maintained."""
+    def _add_keyframe(
+        self, i: int, T: np.ndarray, rgb, depth, exposure, result: FrameResult, iters: int, t_tracked: float
+    ) -> None:
+        """Keyframe ``i`` into the buffer, seeded, its window mapped (``iters`` iterations) and maintained."""
         cfg, kf, jobs = self.cfg, self.keyframes, self.mapping_jobs
         if self.history is not None and len(kf) == kf.capacity:
             self.history.keep(kf, kf.slots()[0])  # the buffer evicts its oldest keyframe next
@@ -388,12 +411,12 @@ class SLAM:
         pause, stop = jobs.begin_window(init)
         t0 = time.perf_counter()
         window = kf.slots()[-(cfg.mapping.init_window if init else cfg.mapping.window) :]
-        iters = cfg.mapping.init_iters // cfg.mapping.init_window if init else cfg.mapping.iters
         psnr_every = cfg.eval.convergence_every if init else 0
         result.mapping = self.mapper.optimize(
             kf, window, iters, psnr_every, pause=pause, history=self._older(window), stop=stop
         )
         self.stats["mapping_s"] += time.perf_counter() - t0
+        self.mapping_iterations["init" if init else "keyframe"] += result.mapping.iters
         if self.maintainer is not None:
             jobs.pause()
             t0 = time.perf_counter()
@@ -424,21 +447,22 @@ class SLAM:
         result.seeded = self.seeder.fill_frame(self.map, i, rgb, depth, T, exposure, alpha)
         self.stats["seeding_s"] += time.perf_counter() - t0
 
-    def _refine_window(self, result: FrameResult) -> None:
-        """``mapping.frame_iters`` iterations over the current window, after a frame that is no keyframe
-        (asynchronous: fewer if a keyframe comes meanwhile)."""
+    def _refine_window(self, result: FrameResult, iters: int) -> None:
+        """``iters`` iterations over the current window and the older keyframes, after a frame that is no
+        keyframe (asynchronous: fewer if a keyframe comes meanwhile)."""
         t0 = time.perf_counter()
         jobs = self.mapping_jobs
         window = self.keyframes.slots()[-self.cfg.mapping.window :]
         result.mapping = self.mapper.optimize(
             self.keyframes,
             window,
-            self.cfg.mapping.frame_iters,
+            iters,
             pause=jobs.pause,
             history=self._older(window),
             stop=jobs.refine_stop,
         )
-        self.stats["mapping_s"] += time.perf_counter() - t0
+        self.stats["refine_s"] += time.perf_counter() - t0
+        self.mapping_iterations["refine"] += result.mapping.iters
         jobs.publish()
 
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
@@ -474,7 +498,7 @@ class SLAM:
     def wait_for_mapping(self, check: bool = True, hurry: bool = False) -> None:
         """Return when the mapping worker has done every job queued so far (at once without one);
         with ``check``, raises a job's exception; with ``hurry``, the keyframes' window mapping ends at
-        ``mapping.min_iters`` (when set) instead of ``mapping.iters``, as when the next keyframe waits."""
+        ``mapping.min_iters`` (when set) instead of its budget, as when the next keyframe waits."""
         self.mapping_jobs.drain(check, hurry)
 
     def finish(self, refine: bool = True) -> None:

@@ -369,8 +369,8 @@ class WorkerMapping:
         return None
 
     def refine_stop(self, done: int) -> bool:
-        """Whether a refinement between keyframes (``mapping.frame_iters``) ends after ``done`` iterations: as
-        soon as a keyframe or a checkpoint waits for the worker (it uses idle time only)."""
+        """Whether a refinement between keyframes (the budget's, ``mapping.rate_fps``) ends after ``done``
+        iterations: as soon as a keyframe or a checkpoint waits for the worker (it uses idle time only)."""
         w = self.worker
         return w.queued("keyframe") + w.queued("init") > 0 or w.hurry.is_set()
 
