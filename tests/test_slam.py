@@ -141,8 +141,10 @@ def _check_convergence(run_dir, cfg, metrics):
     # between keyframes' samples: the keyframe's window mapping and the refinements before it, as the budget spent
     budget = metrics["mapping_budget"]["iterations"]
     assert sum(budget.values()) == metrics["mapping_iterations"] >= points[-1]["iteration"]
-    assert budget["init"] == points[len(init) - 1]["iteration"] and budget["keyframe"] > 0
+    assert budget["init"] == points[len(init) - 1]["iteration"] and budget["keyframe"] + budget["refine"] > 0
     assert all(10.0 < p["psnr_db"] < 60.0 and p["gaussians"] > 0 for p in points)
+    if cfg.method == "baseline":  # its refinements between keyframes densify: its test counts the whole log
+        return
     # the map at the end: the last keyframe's, plus the frame-fill seeds of the frames after it, which
     # joined at the end of the run (SLAM.finish)
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
@@ -185,10 +187,11 @@ def test_baseline_grows_by_densification_and_depth_coverage(tmp_path, device, mo
     # keyframe (fewer than a whole view's), the densifier grows the rest
     assert keyframes[0]["seeded"] > 100 and all(e["seeded"] < keyframes[0]["seeded"] for e in keyframes[1:])
     assert all(e["merged"] == 0 for e in keyframes)
-    grown = sum(e["cloned"] + e["split"] for e in keyframes)
+    # grown and culled in keyframes' window mappings and in the refinements between keyframes
+    grown = sum(e.get("cloned", 0) + e.get("split", 0) for e in log)
     seeded = sum(e.get("seeded", 0) for e in log)  # keyframes' seeds and the frame fill's
     assert grown > 0 and metrics["gaussians"] > keyframes[0]["seeded"]
-    assert metrics["gaussians"] == seeded + grown - sum(e["pruned"] for e in keyframes)
+    assert metrics["gaussians"] == seeded + grown - sum(e.get("pruned", 0) for e in log)
     assert metrics["ate"]["all_frames"]["rmse_cm"] < 10.0 and metrics["photometric"]["psnr_db"] > 12.0
     _check_convergence(run_dir, cfg, metrics)
     points = json.loads((run_dir / "convergence.json").read_text())

@@ -392,12 +392,12 @@ def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:
             entry[key] = getattr(result, key)
     if result.keyframe:
         entry.update(seeded=result.seeded, pruned=result.pruned, merged=result.merged)
-        if result.mapping is not None and result.mapping.iters:
-            entry["mapping_l1"] = result.mapping.final_l1
-        if cfg.method == "baseline" and result.mapping is not None:
-            entry.update(cloned=result.mapping.cloned, split=result.mapping.split)
     elif result.seeded:  # frame fill: seeds waiting for the next keyframe
         entry["seeded"] = result.seeded
+    if result.mapping is not None and result.mapping.iters:  # a keyframe's window mapping, or a refinement
+        entry.update(mapping_iters=result.mapping.iters, mapping_l1=result.mapping.final_l1)
+        if cfg.method == "baseline":  # the densification inside it
+            entry.update(cloned=result.mapping.cloned, split=result.mapping.split, pruned=result.pruned)
     if cfg.mapping.asynchronous:
         entry["fills_waiting"] = result.fills_waiting  # the worker's backlog of frame fills
     return entry

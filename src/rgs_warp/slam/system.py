@@ -463,6 +463,8 @@ class SLAM:
         )
         self.stats["refine_s"] += time.perf_counter() - t0
         self.mapping_iterations["refine"] += result.mapping.iters
+        if self.maintainer is None:  # baseline: the densification's culling
+            result.pruned = result.mapping.pruned
         jobs.publish()
 
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
