@@ -16,11 +16,12 @@ from rgs_warp.eval import (
     depth_l1_cm,
     eval_frame_indices,
     fit_exposure,
+    frame_scores,
+    mean_scores,
     metric_device,
     ms_ssim,
     photometric_metrics,
     psnr,
-    psnr_raw_and_compensated,
     ssim,
     ssim_3dgs,
 )
@@ -168,10 +169,11 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     assert out["lpips"] is None and "no AlexNet weights path" in out["lpips_na_reason"]
     # a frame where the map renders no depth (lost region) is left out; none at all: n/a with why
     empty = np.zeros_like(depth)
-    frames_psnr: list = []
-    out2 = photometric_metrics([a, b], [a, a], None, [empty, depth], [depth, depth + 0.02], frame_psnr_out=frames_psnr)
-    assert frames_psnr[0] == (float("inf"), float("inf")) and frames_psnr[1][0] == pytest.approx(psnr(b, a), abs=1e-9)
-    assert "frame_psnr_out" not in out2 and len(frames_psnr) == 2
+    rows: list = []
+    out2 = photometric_metrics([a, b], [a, a], None, [empty, depth], [depth, depth + 0.02], frame_scores_out=rows)
+    assert (rows[0]["psnr"], rows[0]["psnr_compensated"]) == (float("inf"), float("inf"))
+    assert rows[1]["psnr"] == pytest.approx(psnr(b, a), abs=1e-9) and rows[1]["ssim"] == pytest.approx(ssim(b, a))
+    assert "frame_scores_out" not in out2 and len(rows) == 2
     assert out2["depth_l1_cm"] == pytest.approx(2.0, abs=1e-4)
     out3 = photometric_metrics([a], [a], None, [empty], [depth])
     assert out3["depth_l1_cm"] is None and "rendered and a measured depth" in out3["depth_l1_cm_na_reason"]
@@ -183,7 +185,7 @@ def test_photometric_metrics_and_report(frames, tmp_path):
         "photometric": out,
         "align_T": np.eye(4),
     }
-    json_path, md_path = write_report(tmp_path / "run", metrics)
+    json_path, md_path = write_report(tmp_path / "run", metrics, notes={"photometric": "PSNR raw: the render as is"})
     loaded = json.loads(json_path.read_text())
     assert loaded["photometric"]["lpips"] is None
     assert loaded["align_T"] == np.eye(4).tolist()
@@ -194,6 +196,9 @@ def test_photometric_metrics_and_report(frames, tmp_path):
     )
     assert f"n/a ({out['lpips_na_reason']})" in markdown
     assert "| keyframes | 1.235 | 12 |" in markdown and "| all_frames | 2.5 |  |" in markdown
+    # a section's note: the line after its table, once
+    assert markdown.count("PSNR raw: the render as is") == 1
+    assert markdown.split("## photometric")[1].split("\n\n")[2].strip() == "PSNR raw: the render as is"
 
     with pytest.raises(ValueError, match="photometric.lpips is None without a reason"):
         write_report(tmp_path / "bad", {"photometric": {"lpips": None}})
@@ -283,6 +288,34 @@ def test_scores_at_the_tracked_exposure(frames):
         photometric_metrics([render, b], [a, b], tracked_exposures=[(1.0, 0.0)])
 
 
+def test_lpips_at_the_tracked_exposure_and_means_of_frame_rows(frames, tmp_path):
+    # LPIPS of the render as tracking exposed it; mean_scores of rows from different passes (SplaTAM's
+    # protocol joins held-out frames and keyframes) is the mean over all of them
+    pytest.importorskip("torch")
+    model = LPIPS(*_synthetic_lpips_weights(tmp_path))
+    a, b = (f[:120, :160] for f in frames)
+    render = np.clip((a - 0.05) / 1.3, 0, 1)
+    rows: list = []
+    out = photometric_metrics([render], [a], model, tracked_exposures=[(1.3, 0.05)], frame_scores_out=rows)
+    at_tracked = np.clip(1.3 * render + 0.05, 0, 1)
+    assert out["lpips_tracked_exposure"] == pytest.approx(model(at_tracked, a), rel=1e-6)
+    assert out["lpips"] == pytest.approx(model(render, a), rel=1e-6)
+    assert out["lpips_tracked_exposure"] < out["lpips"]
+    other = frame_scores(b, a, None, (1.0, 0.0), None, model)
+    joined = mean_scores([*rows, other])
+    assert joined["n_frames"] == 2
+    for name, key in (("psnr_tracked_exposure_db", "psnr_tracked"), ("lpips_tracked_exposure", "lpips_tracked")):
+        assert joined[name] == pytest.approx((rows[0][key] + other[key]) / 2)
+    assert joined["psnr_compensated_db"] == pytest.approx((rows[0]["psnr_compensated"] + other["psnr_compensated"]) / 2)
+    # without a model or tracked exposures: n/a with the reason
+    bare = mean_scores([frame_scores(b, a)], "no weights here")
+    assert bare["lpips"] is None and bare["lpips_tracked_exposure_na_reason"] == "no weights here"
+    assert bare["psnr_tracked_exposure_db"] is None and bare["psnr_tracked_exposure_db_na_reason"]
+    untracked = mean_scores([frame_scores(b, a, lpips_model=model)])
+    assert untracked["lpips"] is not None and untracked["lpips_tracked_exposure"] is None
+    assert untracked["lpips_tracked_exposure_na_reason"] == "no tracked exposures given"
+
+
 def test_the_metrics_on_a_torch_device_are_the_hosts(frames):
     # A GPU run computes PSNR and the SSIMs with torch on its GPU (float64, the same sums in another
     # order); torch's CPU runs that code here, against the NumPy / SciPy code of the host path.
@@ -306,8 +339,12 @@ def test_the_metrics_on_a_torch_device_are_the_hosts(frames):
             if isinstance(value, float):
                 assert on_torch[key] == pytest.approx(value, abs=1e-10), key
         assert abs(host["exposure_gain"] - 1.0) > 0.05  # the fit is exercised
-    raw, compensated = psnr_raw_and_compensated(dark, a, partial)
-    assert (raw, compensated) == pytest.approx(psnr_raw_and_compensated(dark, a, partial, "cpu"), abs=1e-10)
+    row = frame_scores(dark, a, partial, (1.3, 0.02), psnr_only=True)
+    assert row.keys() == {"gain", "psnr", "psnr_compensated", "psnr_tracked"}  # the keyframe fit's scores
+    on_torch = frame_scores(dark, a, partial, (1.3, 0.02), "cpu", psnr_only=True)
+    assert [row[k] for k in row] == pytest.approx([on_torch[k] for k in row], abs=1e-10)
+    raw, compensated = row["psnr"], row["psnr_compensated"]
+    assert row["psnr_tracked"] == pytest.approx(psnr(np.clip(1.3 * dark.astype(np.float64) + 0.02, 0, 1), a))
     g, bias = fit_exposure(dark, a, partial)
     assert raw == pytest.approx(psnr(dark, a), abs=1e-12)
     assert compensated == pytest.approx(psnr(np.clip(g * dark.astype(np.float64) + bias, 0, 1), a), abs=1e-12)

@@ -7,7 +7,7 @@ import warp as wp
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import se3_exp
 from rgs_warp.kernels.covisibility import reprojected_iou, visibility_iou
-from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
+from rgs_warp.keyframes import FrameViews, KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
 from rgs_warp.types import Camera
 
 
@@ -255,3 +255,20 @@ def test_history_state_round_trip(device):
     assert sorted(int(history.buffer.frame_ids[s]) for _, s in history.views()) == sorted(
         int(restored.buffer.frame_ids[s]) for _, s in restored.views()
     )
+
+
+def test_frame_views_keep_every_nth_frame_after_a_keyframe_the_latest_on_the_device(device):
+    views = FrameViews(2, 3, 4, 2, device)
+    assert [i for i in range(10, 20) if views.wants(i, 10)] == [13, 16, 19]
+    for i in (13, 16, 19):
+        views.keep(i, np.eye(4) * i, np.full((2, 4, 3), i, np.float32), np.full((2, 4), i, np.float32), (1.0, 0.1 * i))
+    assert views.frame_ids == [13, 16, 19]  # every frame kept, for the evaluation
+    on_device = {int(b.frame_ids[s]): s for b, s in views.views()}
+    assert sorted(on_device) == [16, 19]  # the latest two
+    np.testing.assert_array_equal(views.buffer.rgb[on_device[19]].numpy(), np.full((2, 4, 3), 19))
+    restored = FrameViews(2, 3, 4, 2, device)
+    restored.load_state_dict(views.state_dict())
+    assert restored.frame_ids == views.frame_ids and restored.buffer.slots() == views.buffer.slots()
+    for s in views.buffer.slots():
+        np.testing.assert_array_equal(restored.buffer.depth[s].numpy(), views.buffer.depth[s].numpy())
+        np.testing.assert_array_equal(restored.buffer.exposure[s], views.buffer.exposure[s])

@@ -243,6 +243,8 @@ class MappingConfig:
     graph: Switch = "auto"  # one-view mapping steps as captured graphs; auto: on on CUDA
     history: Fraction = 0.5  # probability that a view rendered is an older keyframe instead of a window view
     history_size: NonNegInt = 32  # older keyframes kept on the device for it (a uniform sample)
+    frame_views: NonNegInt = 0  # recent frames between keyframes that views may also be (as older keyframes); 0: off
+    frame_view_every: Count = 3  # ... one kept every this many frames after a keyframe
     init_iters: Count = 1050  # mapping iterations of the initialization
     init_window: Count = 5  # frames of the initial window
     lr_color: NonNegative = 2e-3  # learning rate of the DC colour

@@ -222,30 +222,69 @@ class KeyframeHistory:
         return [(self.buffer, s) for s in self.buffer.slots()]
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        buf, slots = self.buffer, self.buffer.slots()
         state = {"evicted": np.array(self.evicted), "rng": np.array(json.dumps(self.rng.bit_generator.state))}
-        state["slots"] = np.array(slots, dtype=np.int64)
-        if slots:
-            state.update(frame_ids=buf.frame_ids[slots], poses=buf.poses[slots], exposure=buf.exposure[slots])
-            state["rgb"] = np.stack([buf.rgb[s].numpy() for s in slots])
-            state["depth"] = np.stack([buf.depth[s].numpy() for s in slots])
-        return state
+        return state | _buffer_state(self.buffer)
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.evicted = int(state["evicted"])
         self.rng.bit_generator.state = json.loads(str(state["rng"]))
-        buf = self.buffer
-        for slot in buf.slots():
-            buf.remove(slot)
-        for k, slot in enumerate(state["slots"]):
-            buf.add(
-                int(state["frame_ids"][k]),
-                state["poses"][k],
-                state["rgb"][k],
-                state["depth"][k],
-                state["exposure"][k],
-                slot=int(slot),
-            )
+        _load_buffer(self.buffer, state)
+
+
+class FrameViews:
+    """Frames between keyframes kept as mapping views (``mapping.frame_views``): one every
+    ``mapping.frame_view_every`` frames after a keyframe, the latest ``capacity`` on the device, so that mapping
+    also fits the viewpoints between keyframes.  ``frame_ids`` lists every frame ever kept (the evaluation
+    holds them out of its held-out frames, as it does the keyframes)."""
+
+    def __init__(self, capacity: int, every: int, width: int, height: int, device: str):
+        self.buffer = KeyframeBuffer(capacity, width, height, device)
+        self.every = every
+        self.frame_ids: list[int] = []
+
+    def wants(self, index: int, last_keyframe: int) -> bool:
+        """Whether frame ``index``, tracked after the keyframe ``last_keyframe``, is to be kept."""
+        return index > last_keyframe and (index - last_keyframe) % self.every == 0
+
+    def keep(self, index: int, T_WC: np.ndarray, rgb, depth, exposure) -> None:
+        self.buffer.add(index, T_WC, rgb, depth, exposure)
+        self.frame_ids.append(int(index))
+
+    def views(self) -> list[tuple[KeyframeBuffer, int]]:
+        return [(self.buffer, s) for s in self.buffer.slots()]
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {"kept": np.array(self.frame_ids, dtype=np.int64)} | _buffer_state(self.buffer)
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        self.frame_ids = [int(i) for i in state["kept"]]
+        _load_buffer(self.buffer, state)
+
+
+def _buffer_state(buf: KeyframeBuffer) -> dict[str, np.ndarray]:
+    """A buffer's keyframes in host arrays (slots, frame ids, poses, exposures, images), oldest first."""
+    slots = buf.slots()
+    state = {"slots": np.array(slots, dtype=np.int64)}
+    if slots:
+        state.update(frame_ids=buf.frame_ids[slots], poses=buf.poses[slots], exposure=buf.exposure[slots])
+        state["rgb"] = np.stack([buf.rgb[s].numpy() for s in slots])
+        state["depth"] = np.stack([buf.depth[s].numpy() for s in slots])
+    return state
+
+
+def _load_buffer(buf: KeyframeBuffer, state: dict[str, np.ndarray]) -> None:
+    """``buf`` holding what ``_buffer_state`` saved, in the same slots."""
+    for slot in buf.slots():
+        buf.remove(slot)
+    for k, slot in enumerate(state["slots"]):
+        buf.add(
+            int(state["frame_ids"][k]),
+            state["poses"][k],
+            state["rgb"][k],
+            state["depth"][k],
+            state["exposure"][k],
+            slot=int(slot),
+        )
 
 
 def _copy_into(dst: wp.array, slot: int, src, dtype) -> None:

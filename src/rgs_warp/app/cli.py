@@ -139,8 +139,14 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
     if ate:
         print(f"ATE RMSE  {ate['rmse_cm']:.2f} cm (all frames)")
     if photo:
-        raw, compensated = photo["psnr_db"], photo["psnr_compensated_db"]
-        print(f"PSNR      {raw:.2f} dB raw, {compensated:.2f} exposure-compensated; SSIM {photo['ssim']:.3f}")
+        # the primary numbers: at the exposure tracking estimated, on held-out frames and by SplaTAM's protocol
+        held_out = photo["psnr_tracked_exposure_db"]
+        splatam = (photo.get("every_5th_with_keyframes") or {}).get("psnr_tracked_exposure_db")
+        if held_out is None:
+            print(f"PSNR      {photo['psnr_db']:.2f} dB held out, raw (no tracked exposure)")
+        else:
+            protocol = "" if splatam is None else f", {splatam:.2f} every 5th frame with keyframes (SplaTAM's)"
+            print(f"PSNR      {held_out:.2f} dB held out{protocol}, at the tracked exposure")
     final = metrics.get("final_refinement")
     if final:
         print(

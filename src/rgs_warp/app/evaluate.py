@@ -1,5 +1,6 @@
 """The evaluation at the end of a run (supplement §3): ATE, photometric metrics on held-out frames,
-the keyframes' fit, mesh metrics, the convergence plot and the renders, into the run's report."""
+the keyframes' fit, SplaTAM's protocol, mesh metrics, the convergence plot and the renders, into the
+run's report."""
 
 from __future__ import annotations
 
@@ -21,15 +22,27 @@ from rgs_warp.eval import (
     cached_alexnet_path,
     compensate_exposure,
     eval_frame_indices,
+    frame_scores,
+    mean_scores,
     mesh_metrics,
     metric_device,
     photometric_metrics,
-    psnr_raw_and_compensated,
 )
 from rgs_warp.slam import SLAM
 
 # what the evaluation at the end of a run imports, and the pip name that provides it
 EVALUATION_IMPORTS = {"torch": "torch", "pytorch_msssim": "pytorch-msssim"}
+
+# SplaTAM's protocol scores every 5th frame, the keyframes included (its Table 1-3 PSNR / SSIM / LPIPS)
+SPLATAM_EVERY = 5
+
+# metrics.md's line under the photometric table: what each PSNR means
+PSNR_LEGEND = (
+    "PSNR raw: the render as is; compensated: one gain and bias fitted to the frame (MonoGS's protocol); "
+    "tracked exposure: rendered at the SLAM's own gain/bias estimate, the primary number; "
+    "keyframe: the fit to trained views; row photometric: every eval.every-th frame, trained views left out; "
+    "row every_5th_with_keyframes: every 5th frame, keyframes included (SplaTAM's protocol)."
+)
 
 
 def check_evaluation_imports() -> None:
@@ -182,8 +195,8 @@ def evaluate_run(
         metrics["ate_na_reason"] = "no ground-truth poses" if n >= 3 else "fewer than 3 frames"
         if n >= 2:
             plot_trajectory_topview(est, None, run_dir / "trajectory_topview.png", title=metrics["dataset"])
-    # photometric metrics: every eval.every-th frame, keyframes excluded (§3), rendered at the estimate
-    idx = eval_frame_indices(n, slam.keyframe_indices, cfg.eval.every)
+    # photometric metrics: every eval.every-th frame, trained views excluded (§3), rendered at the estimate
+    idx = eval_frame_indices(n, trained_frames(slam), cfg.eval.every)
     renders, refs, alphas, depths, ref_depths = [], [], [], [], []
     for i, frame in zip(idx, read_frames(ds, idx), strict=True):
         res = slam.render(est[i])
@@ -200,8 +213,8 @@ def evaluate_run(
         lpips = LPIPS(alexnet, cfg.eval.lpips_linear_path or None, device=on or "cpu")
         tracked = None
         if exposures is not None and len(exposures) >= n:
-            tracked = [tuple(exposures[int(i)] or (1.0, 0.0)) for i in idx]
-        frame_psnr: list = []
+            tracked = [tuple(e or (1.0, 0.0)) for e in exposures[:n]]
+        rows: list = []
         metrics["photometric"] = photometric_metrics(
             renders,
             refs,
@@ -210,15 +223,28 @@ def evaluate_run(
             ref_depths if ref_depths else None,
             alphas,
             on,
-            tracked,
-            frame_psnr_out=frame_psnr,
+            None if tracked is None else [tracked[i] for i in idx],
+            frame_scores_out=rows,
         )
-        fit, keyframe_scores = keyframe_fit(ds, slam, est, on)
+        # SplaTAM's every 5th frame is among the held-out ones where eval.every divides 5
+        protocol = SPLATAM_EVERY % cfg.eval.every == 0
+        fit, fit_rows = keyframe_fit(ds, slam, est, on, tracked, lpips, SPLATAM_EVERY if protocol else None)
         metrics["photometric"].update(fit)
+        scored = list(zip((int(i) for i in idx), rows, strict=True))
+        if protocol:
+            splatam = [row for i, row in scored + fit_rows if i % SPLATAM_EVERY == 0]
+            metrics["photometric"]["every_5th_with_keyframes"] = mean_scores(splatam, lpips.reason)
+        else:
+            metrics["photometric"]["every_5th_with_keyframes"] = None
+            metrics["photometric"]["every_5th_with_keyframes_na_reason"] = (
+                f"eval.every={cfg.eval.every} does not score every {SPLATAM_EVERY}th frame"
+            )
         save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)
-        scored = [(int(i), raw, comp) for i, (raw, comp) in zip(idx, frame_psnr, strict=True)]
         title = f"{metrics['dataset']}: PSNR of every scored frame and keyframe"
-        write_frame_scores(run_dir / "frame_scores.csv", run_dir / "frame_scores.png", scored, keyframe_scores, title)
+        keyframes = [(i, row) for i, row in fit_rows if i in set(slam.keyframe_indices)]
+        write_frame_scores(
+            run_dir / "frame_scores.csv", run_dir / "frame_scores.png", psnrs(scored), psnrs(keyframes), title
+        )
     else:
         metrics["photometric"] = None
         metrics["photometric_na_reason"] = "no non-keyframe frame to score"
@@ -228,7 +254,8 @@ def evaluate_run(
     if save is not None:
         save.write()
         metrics["time_s"]["save_s"] = save.seconds
-    write_report(run_dir, metrics, title=f"rgs_warp {metrics['dataset']} ({cfg.method}, {cfg.mode})")
+    title = f"rgs_warp {metrics['dataset']} ({cfg.method}, {cfg.mode})"
+    write_report(run_dir, metrics, title=title, notes={"photometric": PSNR_LEGEND})
     return metrics
 
 
@@ -254,18 +281,53 @@ def mesh_section(cfg: Config, ds, slam: SLAM, run_dir: Path) -> dict:
     return {"mesh": mesh_metrics(rec, o3d.io.read_triangle_mesh(str(mesh_path)))}
 
 
-def keyframe_fit(ds, slam: SLAM, est: np.ndarray, device: str | None = None) -> tuple[dict, list]:
-    """How well the map fits what it was trained on: the mean PSNR of the renders at every keyframe's
-    pose against its frame, raw and exposure-compensated (``keyframe_psnr_db``,
-    ``keyframe_psnr_compensated_db``), and each keyframe's (frame, raw, compensated); ``device``: the
-    torch device of the scores (``psnr_raw_and_compensated``)."""
-    scores = []
-    for i, frame in zip(slam.keyframe_indices, read_frames(ds, slam.keyframe_indices), strict=True):
+def trained_frames(slam: SLAM) -> list[int]:
+    """The frames mapping trained on, sorted: left out of the held-out scores and scored by ``keyframe_fit``.
+    The keyframes and the frames between them kept as views (``mapping.frame_views``)."""
+    views = slam.frame_views.frame_ids if slam.frame_views is not None else []
+    return sorted({int(i) for i in slam.keyframe_indices} | {int(i) for i in views})
+
+
+def keyframe_fit(
+    ds,
+    slam: SLAM,
+    est: np.ndarray,
+    device: str | None = None,
+    tracked: list | None = None,
+    lpips_model: LPIPS | None = None,
+    every: int | None = None,
+) -> tuple[dict, list]:
+    """How well the map fits what it was trained on (``trained_frames``): the keyframes' mean PSNR of the
+    renders at their poses against their frames, raw, exposure-compensated and at the tracked exposure
+    (``keyframe_psnr_db``, ``keyframe_psnr_compensated_db``, ``keyframe_psnr_tracked_exposure_db``), and
+    each trained frame's (index, ``frame_scores`` row): PSNRs only, but every ``every``-th frame's in full
+    (SSIMs, LPIPS with ``lpips_model``) for SplaTAM's protocol.  ``tracked``: each frame's tracked (gain, bias),
+    None without; ``device``: the torch device of the scores."""
+    rows = []
+    frames = trained_frames(slam)
+    for i, frame in zip(frames, read_frames(ds, frames), strict=True):
         res = slam.render(est[i])
         render = np.clip(res.color.numpy(), 0.0, 1.0)
-        scores.append((int(i), *psnr_raw_and_compensated(render, frame.rgb, res.alpha.numpy(), device)))
-    raw, comp = (float(np.mean([s[k] for s in scores])) for k in (1, 2))
-    return {"keyframe_psnr_db": raw, "keyframe_psnr_compensated_db": comp}, scores
+        at = None if tracked is None else tracked[i]
+        full = every is not None and i % every == 0
+        row = frame_scores(render, frame.rgb, res.alpha.numpy(), at, device, lpips_model, psnr_only=not full)
+        rows.append((i, row))
+
+    keyframes = {int(i) for i in slam.keyframe_indices}
+
+    def mean(key: str) -> float:
+        return float(np.mean([row[key] for i, row in rows if i in keyframes]))
+
+    fit = {"keyframe_psnr_db": mean("psnr"), "keyframe_psnr_compensated_db": mean("psnr_compensated")}
+    fit["keyframe_psnr_tracked_exposure_db"] = None if tracked is None else mean("psnr_tracked")
+    if tracked is None:
+        fit["keyframe_psnr_tracked_exposure_db_na_reason"] = "no tracked exposures given"
+    return fit, rows
+
+
+def psnrs(rows: list) -> list[tuple[int, float, float, float | None]]:
+    """(frame, raw, compensated, at the tracked exposure or None) PSNRs of (frame, ``frame_scores`` row)s."""
+    return [(i, row["psnr"], row["psnr_compensated"], row.get("psnr_tracked")) for i, row in rows]
 
 
 def error_image(render: np.ndarray, ref: np.ndarray, alpha: np.ndarray) -> np.ndarray:

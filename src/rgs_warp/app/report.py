@@ -103,13 +103,16 @@ def _table(rows: dict[str, dict]) -> list[str]:
     return lines
 
 
-def write_report(run_dir: str | Path, metrics: dict, title: str = "rgs_warp evaluation") -> tuple[Path, Path]:
+def write_report(
+    run_dir: str | Path, metrics: dict, title: str = "rgs_warp evaluation", notes: dict[str, str] | None = None
+) -> tuple[Path, Path]:
     """Write ``run_dir/metrics.json`` and ``run_dir/metrics.md``; returns both paths.
 
     ``metrics`` maps section names to dicts of metrics (e.g. ``{"ate": {"keyframes": {...},
     "all_frames": {...}}, "photometric": {...}, "mesh": {...}}``); a section whose values are dicts
     becomes a table with one row each, a flat section a one-row table, top-level scalars a
-    "summary" table. Numbers carry their unit in the key (``rmse_cm``, ``psnr_db``).
+    "summary" table. Numbers carry their unit in the key (``rmse_cm``, ``psnr_db``).  ``notes``: a line
+    of text under a section's table (by section name), saying what its rows and columns mean.
     """
     _check_reasons(metrics)
     run_dir = Path(run_dir)
@@ -128,6 +131,8 @@ def write_report(run_dir: str | Path, metrics: dict, title: str = "rgs_warp eval
         flat = {k: v for k, v in content.items() if not isinstance(v, dict)}
         rows = ({section: flat} if flat else {}) | nested
         lines += [f"## {section}", "", *_table(rows), ""]
+        if notes and section in notes:
+            lines += [notes[section], ""]
     md_path.write_text("\n".join(lines), encoding="utf-8")
     return json_path, md_path
 
@@ -157,25 +162,28 @@ def _view_basis(gt_m: np.ndarray, est_m: np.ndarray, up: np.ndarray | None) -> t
 def write_frame_scores(
     path_csv: str | Path,
     path_png: str | Path,
-    scored: Sequence[tuple[int, float, float]],
-    keyframes: Sequence[tuple[int, float, float]],
+    scored: Sequence[tuple[int, float, float, float | None]],
+    keyframes: Sequence[tuple[int, float, float, float | None]],
     title: str = "",
 ) -> tuple[Path, Path]:
-    """Each scored frame's and keyframe's PSNR, (frame, raw dB, at the frame's exposure dB), as a CSV
-    (``frame,kind,psnr_db,psnr_compensated_db``, by frame) and a plot of the compensated PSNR against
-    the frame index, keyframes in red: where along the sequence the map renders badly (far from the
-    keyframes, a region without depth) shows at a glance."""
-    rows = sorted([(f, "scored", r, c) for f, r, c in scored] + [(f, "keyframe", r, c) for f, r, c in keyframes])
-    lines = ["frame,kind,psnr_db,psnr_compensated_db"] + [f"{f},{k},{r:.3f},{c:.3f}" for f, k, r, c in rows]
+    """Each scored frame's and keyframe's PSNR, (frame, raw dB, at the frame's exposure dB, at the tracked
+    exposure dB or None), as a CSV (``frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db``, by
+    frame; the last empty without tracked exposures) and a plot of the compensated PSNR against the frame
+    index, keyframes in red: where along the sequence the map renders badly (far from the keyframes, a
+    region without depth) shows at a glance."""
+    rows = sorted([(f, "scored", *s) for f, *s in scored] + [(f, "keyframe", *s) for f, *s in keyframes])
+    lines = ["frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db"] + [
+        f"{f},{k},{r:.3f},{c:.3f}," + ("" if t is None else f"{t:.3f}") for f, k, r, c, t in rows
+    ]
     path_csv, path_png = Path(path_csv), Path(path_png)
     write_text_atomic(path_csv, "\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(10, 3.5), dpi=110)
     for points, colour, name in ((scored, "tab:blue", "scored (held out)"), (keyframes, "red", "keyframes")):
         if len(points):
-            f, _, c = np.asarray(points, dtype=np.float64).T
+            f, c = np.asarray([(p[0], p[2]) for p in points], dtype=np.float64).T
             ax.plot(f, c, "o", color=colour, markersize=3.5, label=f"{name}: mean {c.mean():.2f} dB")
     if len(scored):
-        f, _, c = np.asarray(sorted(scored), dtype=np.float64).T
+        f, c = np.asarray([(p[0], p[2]) for p in sorted(scored)], dtype=np.float64).T
         ax.plot(f, c, color="tab:blue", linewidth=0.6, alpha=0.6)
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     ax.set_xlabel("frame")

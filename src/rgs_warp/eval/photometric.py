@@ -360,52 +360,91 @@ def frame_scores(
     alpha: np.ndarray | None = None,
     tracked: tuple[float, float] | None = None,
     device: str | None = None,
+    lpips_model: LPIPS | None = None,
+    psnr_only: bool = False,
 ) -> dict:
-    """One scored frame's numbers for ``photometric_metrics``: ``psnr`` and ``ssim`` of the raw render,
-    ``psnr_compensated`` and ``ssim_compensated`` at the frame's fitted exposure (``fit_exposure`` where
-    ``alpha`` >= 0.5) and its ``gain``, ``psnr_tracked`` and ``ssim_tracked`` at the ``tracked`` (g, b) (None
-    without), ``ssim_3dgs`` and ``ms_ssim``.  ``device``: a torch device (``metric_device``), where each image
-    is copied once and every score computed (the host's numbers to rounding)."""
+    """One scored frame's numbers for ``mean_scores``: ``psnr`` of the raw render, ``psnr_compensated`` at
+    the frame's fitted exposure (``fit_exposure`` where ``alpha`` >= 0.5) and its ``gain``, ``psnr_tracked``
+    at the ``tracked`` (g, b) (absent without); unless ``psnr_only``, the same for SSIM (``ssim``,
+    ``ssim_compensated``, ``ssim_tracked``), ``ssim_3dgs`` and ``ms_ssim``, and with an available
+    ``lpips_model`` ``lpips`` and ``lpips_tracked``.  ``device``: a torch device (``metric_device``), where
+    each image is copied once and PSNR and the SSIMs computed (the host's numbers to rounding)."""
     _check_shapes(render, ref)
+    if not psnr_only and min(np.shape(render)[:2]) < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {np.shape(render)[:2]}")
     if device is None:
         x, y = _check_pair(render, ref)
         g, b = fit_exposure(x, y, alpha)
         compensated = np.clip(g * x + b, 0.0, 1.0)
-        row = {"gain": g, "psnr": psnr(x, y), "ssim": ssim(x, y), "ssim_3dgs": ssim_3dgs(x, y)}
-        row.update(psnr_compensated=psnr(compensated, y), ssim_compensated=ssim(compensated, y))
-        row["ms_ssim"] = ms_ssim(x, y)
-        if tracked is not None:
-            at_tracked = np.clip(tracked[0] * x + tracked[1], 0.0, 1.0)
-            row.update(psnr_tracked=psnr(at_tracked, y), ssim_tracked=ssim(at_tracked, y))
+        at_tracked = None if tracked is None else np.clip(tracked[0] * x + tracked[1], 0.0, 1.0)
+        psnr_of, ssim_of, ssim_3dgs_of, ms_ssim_of = psnr, ssim, ssim_3dgs, ms_ssim
+    else:
+        x, y = _to_torch(render, device), _to_torch(ref, device)
+        g, b = _fit_exposure_torch(x, y, alpha)
+        compensated = (g * x + b).clamp(0.0, 1.0)
+        at_tracked = None if tracked is None else (tracked[0] * x + tracked[1]).clamp(0.0, 1.0)
+        radius = (SSIM_WINDOW - 1) // 2
+        psnr_of = _psnr_torch
+
+        def ssim_of(u, v):
+            return _ssim_torch(u, v, 0)
+
+        def ssim_3dgs_of(u, v):
+            return _ssim_torch(u, v, radius)
+
+        def ms_ssim_of(u, v):
+            return _ms_ssim_torch(u, v) if min(np.shape(render)[:2]) >= MS_SSIM_MIN_SIDE else None
+
+    row = {"gain": g, "psnr": psnr_of(x, y), "psnr_compensated": psnr_of(compensated, y)}
+    if at_tracked is not None:
+        row["psnr_tracked"] = psnr_of(at_tracked, y)
+    if psnr_only:
         return row
-    if min(np.shape(render)[:2]) < SSIM_WINDOW:
-        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {np.shape(render)[:2]}")
-    x, y = _to_torch(render, device), _to_torch(ref, device)
-    g, b = _fit_exposure_torch(x, y, alpha)
-    compensated = (g * x + b).clamp(0.0, 1.0)
-    radius = (SSIM_WINDOW - 1) // 2
-    row = {"gain": g, "psnr": _psnr_torch(x, y), "ssim": _ssim_torch(x, y, 0), "ssim_3dgs": _ssim_torch(x, y, radius)}
-    row.update(psnr_compensated=_psnr_torch(compensated, y), ssim_compensated=_ssim_torch(compensated, y, 0))
-    row["ms_ssim"] = _ms_ssim_torch(x, y) if min(np.shape(render)[:2]) >= MS_SSIM_MIN_SIDE else None
-    if tracked is not None:
-        at_tracked = (tracked[0] * x + tracked[1]).clamp(0.0, 1.0)
-        row.update(psnr_tracked=_psnr_torch(at_tracked, y), ssim_tracked=_ssim_torch(at_tracked, y, 0))
+    row.update(ssim=ssim_of(x, y), ssim_compensated=ssim_of(compensated, y))
+    row.update(ssim_3dgs=ssim_3dgs_of(x, y), ms_ssim=ms_ssim_of(x, y))
+    if at_tracked is not None:
+        row["ssim_tracked"] = ssim_of(at_tracked, y)
+    if lpips_model is not None and lpips_model.available:
+        row["lpips"] = lpips_model(render, ref)
+        if tracked is not None:
+            row["lpips_tracked"] = lpips_model(np.clip(tracked[0] * np.asarray(render) + tracked[1], 0.0, 1.0), ref)
     return row
 
 
-def psnr_raw_and_compensated(
-    render: np.ndarray, ref: np.ndarray, alpha: np.ndarray | None = None, device: str | None = None
-) -> tuple[float, float]:
-    """PSNR of ``render`` against ``ref`` as it is and at the frame's fitted exposure (``fit_exposure``
-    where ``alpha`` >= 0.5); ``device``: a torch device, each image copied there once."""
-    _check_shapes(render, ref)
-    if device is None:
-        x, y = _check_pair(render, ref)
-        g, b = fit_exposure(x, y, alpha)
-        return psnr(x, y), psnr(np.clip(g * x + b, 0.0, 1.0), y)
-    x, y = _to_torch(render, device), _to_torch(ref, device)
-    g, b = _fit_exposure_torch(x, y, alpha)
-    return _psnr_torch(x, y), _psnr_torch((g * x + b).clamp(0.0, 1.0), y)
+def mean_scores(rows: Sequence[dict], lpips_na_reason: str = "no LPIPS model given") -> dict:
+    """Means over frames of their ``frame_scores`` rows (none ``psnr_only``), named as
+    ``photometric_metrics`` reports them; a score some row lacks is None with its reason (the tracked
+    exposures missing, or ``lpips_na_reason``)."""
+    if not rows:
+        raise ValueError("need at least one scored frame")
+
+    def mean(key: str) -> float | None:
+        return float(np.mean([row[key] for row in rows])) if all(key in row for row in rows) else None
+
+    out: dict = {
+        "n_frames": len(rows),
+        "psnr_db": mean("psnr"),
+        "ssim": mean("ssim"),
+        "psnr_compensated_db": mean("psnr_compensated"),
+        "ssim_compensated": mean("ssim_compensated"),
+        "exposure_gain": mean("gain"),
+        "psnr_tracked_exposure_db": mean("psnr_tracked"),
+        "ssim_tracked_exposure": mean("ssim_tracked"),
+        "ssim_3dgs": mean("ssim_3dgs"),
+    }
+    for name in ("psnr_tracked_exposure_db", "ssim_tracked_exposure"):
+        if out[name] is None:
+            out[name + "_na_reason"] = "no tracked exposures given"
+    multi = [row["ms_ssim"] for row in rows]
+    out["ms_ssim"] = None if None in multi else float(np.mean(multi))
+    if out["ms_ssim"] is None:
+        out["ms_ssim_na_reason"] = f"MS-SSIM needs images of at least {MS_SSIM_MIN_SIDE} px on the shorter side"
+    out["lpips"], out["lpips_tracked_exposure"] = mean("lpips"), mean("lpips_tracked")
+    if out["lpips"] is None:
+        out["lpips_na_reason"] = lpips_na_reason
+    if out["lpips_tracked_exposure"] is None:
+        out["lpips_tracked_exposure_na_reason"] = out.get("lpips_na_reason", "no tracked exposures given")
+    return out
 
 
 def photometric_metrics(
@@ -417,18 +456,18 @@ def photometric_metrics(
     alphas: Sequence[np.ndarray] | None = None,
     device: str | None = None,
     tracked_exposures: Sequence[tuple[float, float]] | None = None,
-    frame_psnr_out: list | None = None,
+    frame_scores_out: list | None = None,
 ) -> dict:
     """Means over the scored frames (pick them with ``eval_frame_indices``) of PSNR, SSIM, LPIPS
-    and depth L1, for ``write_report``: ``psnr_db`` and ``ssim`` of the raw render, and
+    and depth L1, for ``write_report``: ``psnr_db``, ``ssim`` and ``lpips`` of the raw render, and
     ``psnr_compensated_db`` and ``ssim_compensated`` of the render at each frame's exposure
     (``compensate_exposure``, fitted where ``alphas`` >= 0.5), with the mean fitted gain
     ``exposure_gain`` (1 where the map's colour is the frames' exposure); peers' SSIM variants of the
     raw render, each named: ``ssim_3dgs`` (zero-padded, MonoGS) and ``ms_ssim`` (SplaTAM's "SSIM").
-    ``frame_psnr_out``: a list to which each frame's (raw, compensated) PSNR is appended, in order.
-    ``psnr_tracked_exposure_db`` and ``ssim_tracked_exposure``: the render at the exposure (g, b) that
-    tracking estimated for each frame (``tracked_exposures``), as the SLAM itself would show the frame:
-    nothing fitted to the frame at evaluation time.
+    ``psnr_tracked_exposure_db``, ``ssim_tracked_exposure`` and ``lpips_tracked_exposure``: the render at
+    the exposure (g, b) that tracking estimated for each frame (``tracked_exposures``), as the SLAM itself
+    would show the frame: nothing fitted to the frame at evaluation time.
+    ``frame_scores_out``: a list to which each frame's ``frame_scores`` row is appended, in order.
     A metric that cannot be computed is None with its reason under ``<name>_na_reason``.  ``device``: a
     torch device for PSNR and the SSIMs (``metric_device``; the host's numbers to rounding)."""
     if len(renders) != len(refs) or not renders:
@@ -437,38 +476,12 @@ def photometric_metrics(
     if tracked_exposures is not None and len(tracked_exposures) != len(renders):
         raise ValueError(f"need one tracked exposure per render, got {len(tracked_exposures)} for {len(renders)}")
     tracked = [None] * len(renders) if tracked_exposures is None else tracked_exposures
-    scores = [frame_scores(x, y, a, t, device) for x, y, a, t in zip(renders, refs, alphas, tracked, strict=True)]
-
-    def mean(key: str) -> float:
-        return float(np.mean([row[key] for row in scores]))
-
-    out: dict = {
-        "n_frames": len(renders),
-        "psnr_db": mean("psnr"),
-        "ssim": mean("ssim"),
-        "psnr_compensated_db": mean("psnr_compensated"),
-        "ssim_compensated": mean("ssim_compensated"),
-        "exposure_gain": mean("gain"),
-    }
-    if frame_psnr_out is not None:
-        frame_psnr_out.extend((row["psnr"], row["psnr_compensated"]) for row in scores)
-    if tracked_exposures is None:
-        out["psnr_tracked_exposure_db"] = out["ssim_tracked_exposure"] = None
-        out["psnr_tracked_exposure_db_na_reason"] = "no tracked exposures given"
-        out["ssim_tracked_exposure_na_reason"] = "no tracked exposures given"
-    else:
-        out["psnr_tracked_exposure_db"] = mean("psnr_tracked")
-        out["ssim_tracked_exposure"] = mean("ssim_tracked")
-    out["ssim_3dgs"] = mean("ssim_3dgs")
-    multi = [row["ms_ssim"] for row in scores]
-    out["ms_ssim"] = None if None in multi else float(np.mean(multi))
-    if out["ms_ssim"] is None:
-        out["ms_ssim_na_reason"] = f"MS-SSIM needs images of at least {MS_SSIM_MIN_SIDE} px on the shorter side"
-    if lpips_model is not None and lpips_model.available:
-        out["lpips"] = float(np.mean([lpips_model(x, y) for x, y in zip(renders, refs, strict=True)]))
-    else:
-        out["lpips"] = None
-        out["lpips_na_reason"] = lpips_model.reason if lpips_model is not None else "no LPIPS model given"
+    scores = [
+        frame_scores(x, y, a, t, device, lpips_model) for x, y, a, t in zip(renders, refs, alphas, tracked, strict=True)
+    ]
+    if frame_scores_out is not None:
+        frame_scores_out.extend(scores)
+    out = mean_scores(scores, lpips_model.reason if lpips_model is not None else "no LPIPS model given")
     if depths_m is None or ref_depths_m is None:
         out["depth_l1_cm"] = None
         out["depth_l1_cm_na_reason"] = "no depth given (monocular run or no ground-truth depth)"

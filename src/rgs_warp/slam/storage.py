@@ -140,6 +140,8 @@ def _state_arrays(slam) -> dict[str, np.ndarray]:
         state.update({f"archive.{k}": v for k, v in slam.archive.state_dict().items()})
     if slam.history is not None:
         state.update({f"history.{k}": v for k, v in slam.history.state_dict().items()})
+    if slam.frame_views is not None:
+        state.update({f"frame_views.{k}": v for k, v in slam.frame_views.state_dict().items()})
     meta = {
         "frames": len(slam.poses),
         "gaussians": n,
@@ -181,6 +183,9 @@ def _load_state(slam, path: Path) -> None:
         slam.archive.load_state_dict({k[len("archive.") :]: v for k, v in state.items() if k.startswith("archive.")})
     if slam.history is not None and "history.evicted" in state:
         slam.history.load_state_dict({k[len("history.") :]: v for k, v in state.items() if k.startswith("history.")})
+    if slam.frame_views is not None and "frame_views.kept" in state:
+        views = {k[len("frame_views.") :]: v for k, v in state.items() if k.startswith("frame_views.")}
+        slam.frame_views.load_state_dict(views)
     slam.poses, slam.timestamps = list(state["slam.poses"]), [float(t) for t in state["slam.timestamps"]]
     slam._init_window_end = int(meta["init_window_end"])
     slam.stats, slam.convergence = dict(meta["stats"]), list(meta["convergence"])

@@ -32,7 +32,14 @@ import warp as wp
 from rgs_warp.bootstrap import MonoBootstrap
 from rgs_warp.config import Config, check_config, check_image_size, resolve_device
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
-from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer, KeyframeDecision, KeyframeHistory, KeyframeSelector
+from rgs_warp.keyframes import (
+    FrameViews,
+    KeyframeArchive,
+    KeyframeBuffer,
+    KeyframeDecision,
+    KeyframeHistory,
+    KeyframeSelector,
+)
 from rgs_warp.keypoint_odometry import KeypointOdometry, OdometryResult
 from rgs_warp.maintenance import Maintainer
 from rgs_warp.mapping import Mapper
@@ -104,6 +111,11 @@ class SLAM:
         self.history = None
         if cfg.mapping.history > 0.0 and cfg.mapping.history_size > 0:
             self.history = KeyframeHistory(cfg.mapping.history_size, camera.width, camera.height, dev, cfg.seed)
+        # mapping.frame_views: frames between keyframes kept as views beside the older keyframes
+        self.frame_views = None
+        if cfg.mapping.history > 0.0 and cfg.mapping.frame_views > 0:
+            m = cfg.mapping
+            self.frame_views = FrameViews(m.frame_views, m.frame_view_every, camera.width, camera.height, dev)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         self.seeder = Seeder(
@@ -374,12 +386,16 @@ class SLAM:
             alpha = jobs.working_alpha(alpha) if alpha.shape == (self.camera.height, self.camera.width) else None
             rgb, depth = jobs.own(frame.rgb), jobs.own(frame.depth)
             jobs.run("fill", self._fill_frame, result.index, rgb, depth, result.T_WC, pose.exposure, result, alpha)
-        # refinement between keyframes with what the budget holds: one job waiting at most (asynchronous: it
-        # uses the worker's idle time, and the balance grows while it waits)
+        views, last = self.frame_views, self.keyframe_indices[-1] if self.keyframe_indices else None
+        if views is not None and pose.ok and last is not None and views.wants(result.index, last):
+            rgb, depth = jobs.own(frame.rgb), jobs.own(frame.depth)
+            jobs.run("view", views.keep, result.index, result.T_WC, rgb, depth, pose.exposure)
+        # refinement between keyframes with what the budget holds: one job waiting at most (asynchronous: the
+        # worker refines whenever it would idle, ended when a keyframe waits)
         if self.keyframe_indices and result.index >= self._init_window_end:
             self.budget.frame()
             if jobs.queued("refine") == 0:
-                iters = self.budget.refine()
+                iters = jobs.refine_iters(self.budget.refine(), self.budget.per_frame)
                 if iters:
                     jobs.run("refine", self._refine_window, result, iters)
 
@@ -468,12 +484,13 @@ class SLAM:
         jobs.publish()
 
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
-        """The keyframes older than ``window`` that mapping may render (``mapping.history``): the
-        buffer's outside the window, then those the history kept."""
+        """The views besides ``window`` that mapping may render (``mapping.history``): the buffer's keyframes
+        outside the window, those the history kept, and the frames between keyframes kept as views."""
         if self.cfg.mapping.history <= 0.0:
             return []
         older = [(self.keyframes, s) for s in self.keyframes.slots() if s not in window]
-        return older + (self.history.views() if self.history is not None else [])
+        older += self.history.views() if self.history is not None else []
+        return older + (self.frame_views.views() if self.frame_views is not None else [])
 
     def _archive(self, slot: int) -> None:
         if self.archive is not None:

@@ -27,6 +27,7 @@ ends early for one waiting behind it).
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
@@ -39,6 +40,10 @@ import warp as wp
 from rgs_warp.config import MappingConfig
 from rgs_warp.render import Renderer
 from rgs_warp.types import GaussianMap
+
+# asynchronous: a refinement between keyframes asks for this many frames' budget at least (ended early when a
+# keyframe waits), so the worker maps whenever tracking leaves the device free
+IDLE_REFINE_FRAMES = 4
 
 
 class TornMapError(RuntimeError):
@@ -279,6 +284,10 @@ class InlineMapping:
         instead of rendering again."""
         return alpha
 
+    def refine_iters(self, budget: int, per_frame: float) -> int:
+        """A refinement between keyframes runs what the budget holds (``mapping.rate_fps``)."""
+        return budget
+
     def refine_stop(self, done: int) -> bool:
         """A refinement between keyframes runs all its iterations."""
         return False
@@ -367,6 +376,12 @@ class WorkerMapping:
     def working_alpha(self, alpha: wp.array) -> None:
         """None: tracking rendered a published version, not the working map a frame fill seeds into."""
         return None
+
+    def refine_iters(self, budget: int, per_frame: float) -> int:
+        """A refinement between keyframes maps while the worker would idle: at least ``IDLE_REFINE_FRAMES``
+        frames' budget, ended early when a keyframe waits (``refine_stop``); the next frame queues another
+        once it has run.  The camera's rate is the budget: the map gets whatever time tracking leaves."""
+        return max(budget, math.ceil(IDLE_REFINE_FRAMES * per_frame))
 
     def refine_stop(self, done: int) -> bool:
         """Whether a refinement between keyframes (the budget's, ``mapping.rate_fps``) ends after ``done``
