@@ -228,7 +228,7 @@ class SeedingConfig:
 
 @dataclass
 class MappingConfig:
-    rate_fps: NonNegative = 22.0  # frames/s the mapping budget is sized for (640x480, one H100); 0: the best map
+    rate_fps: NonNegative = 10.0  # frames/s the mapping budget is sized for (640x480, one H100); 0: the best map
     iters_per_frame: NonNegative = 0.0  # the budget in mapping iterations a frame; 0: from rate_fps
     keyframe_share: Fraction = 1.0  # of the budget until the next keyframe, what a new keyframe spends at once
     asynchronous: bool = False  # keyframe work in a worker thread beside tracking (timing=live)

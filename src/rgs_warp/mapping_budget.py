@@ -1,8 +1,8 @@
 """The mapping budget: how many mapping iterations a run spends, and on what.
 
-The user gives a rate (``mapping.rate_fps``: frames/s of a 640x480 run on one H100; a larger frame gets
-proportionally more time) or asks for the best map (``0``); ``mapping.iters_per_frame`` gives the iterations
-directly.  A cost model of the renderer turns the rate into mapping iterations per frame, so an
+The user gives a rate (``mapping.rate_fps``: frames/s of a 640x480 run on one H100; a larger frame spends the
+same iterations, each costing more, so its run is slower about in proportion to its pixels) or asks for the best
+map (``0``); ``mapping.iters_per_frame`` gives the iterations directly.  A cost model of the renderer turns the rate into mapping iterations per frame, so an
 offline run does the same iterations on any machine (the same config gives the same map); live, the mapping
 worker's stop policies end a job early when tracking needs the map, and it maps whenever the GPU is free.
 
@@ -27,12 +27,12 @@ BEST_RATE_FPS = 1.0  # rate_fps = 0, the best map: the budget of a 1 frame/s run
 FIRST_GAP = 8.0  # frames between keyframes expected before the second keyframe comes
 
 
-def iterations_per_frame(rate_fps: float, width: int, height: int) -> float:
-    """The mapping iterations a frame of ``width`` x ``height`` pixels may spend at ``rate_fps`` (0: the best
-    map) by the cost model: what a 640x480 frame at that rate leaves after its other work, scaled by the pixel
-    count (a frame twice as large has twice the time), over an iteration's cost at this size; at least one."""
-    mapping_ms = (1000.0 / (rate_fps or BEST_RATE_FPS) - REFERENCE_FRAME_MS) * width * height / REFERENCE_PX
-    return max(1.0, mapping_ms / (ITERATION_MS[0] + ITERATION_MS[1] * width * height / 1e6))
+def iterations_per_frame(rate_fps: float) -> float:
+    """The mapping iterations a frame may spend at ``rate_fps`` (0: the best map) by the cost model: what a
+    640x480 frame at that rate leaves after its other work, over an iteration's cost at that size; at least
+    one.  A frame of another size spends as many (the rate scales with its pixel count)."""
+    mapping_ms = 1000.0 / (rate_fps or BEST_RATE_FPS) - REFERENCE_FRAME_MS
+    return max(1.0, mapping_ms / (ITERATION_MS[0] + ITERATION_MS[1] * REFERENCE_PX / 1e6))
 
 
 class MappingBudget:
