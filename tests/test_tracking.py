@@ -1,6 +1,7 @@
 """Tracker (supplement §4.2): every kernel against a NumPy reference, the loss gradient against finite
 differences, Adam + the SE(3) update against geometry.se3_exp, then pose recovery and short tracks on
-a synthetic room whose map is built from ground truth (tests/helpers_maps.py)."""
+a synthetic room whose map is built from ground truth (tests/helpers_maps.py), with ``tracking.geometric``
+on and off on frames with Kinect-like noise."""
 
 from dataclasses import replace
 
@@ -28,6 +29,16 @@ def _history(rows: int, device) -> wp.array:
 def _step0(device) -> wp.array:
     """The device step counter at 0: the kernels' rows are then the ones passed (tk.advance_step)."""
     return wp.zeros(1, dtype=wp.int32, device=device)
+
+
+def _scales(device, sigma_colour: float = 0.02, scale_depth: float = 1.0) -> wp.array:
+    """The direct alignment's noise scales (math.TERM_*) as ``tracking_loss`` reads them."""
+    return wp.array([sigma_colour, scale_depth], dtype=wp.float32, device=device)
+
+
+def _kinect_sigma(z: np.ndarray) -> np.ndarray:
+    """The depth noise model, sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m (Kinect v1, Nguyen et al. 2012)."""
+    return 0.0012 + 0.0019 * (z - 0.4) ** 2
 
 
 def _blocks(shape) -> list[int]:
@@ -173,29 +184,51 @@ def _slope_weight_reference(obs_depth, tau):
 
 
 def _loss_reference(
-    obs, obs_depth, w_grad, color, depth, alpha, w_alpha, g, b, tau_alpha, use_depth, lam, tau_s=0.0, per_opacity=0
+    obs,
+    obs_depth,
+    w_grad,
+    color,
+    depth,
+    alpha,
+    w_alpha,
+    g,
+    b,
+    tau_alpha,
+    use_depth,
+    lam,
+    tau_s=0.0,
+    per_opacity=0,
+    noise=None,
 ):
     """Eq. 5-8 + depth L1 in float64; w_alpha is passed in so finite differences hold it fixed, as the
     kernel's gradient does (documented stop-gradient).  ``per_opacity``: the colour term compares the
-    frame with colour / alpha (``tracking.colour_per_opacity``), alpha differentiated there too."""
+    frame with colour / alpha (``tracking.colour_per_opacity``), alpha differentiated there too.
+    ``noise`` (sigma_I, s): each term in units of its noise, the colour L1 / sigma_I and the depth L1 /
+    (sigma(z) s) in place of lam (the loss whose gradient ``tracking.geometric``'s steps follow)."""
     n = alpha.size
     w = w_alpha * w_grad
     if per_opacity:
         color = color / np.where(alpha > tk.ALPHA_DEPTH_MIN, alpha, 1.0)[..., None]
     r = obs - (g * color + b)
     photo = w * np.abs(r).sum(axis=2)
-    loss = photo.copy()
+    loss = photo.copy() if noise is None else photo / noise[0]
     if use_depth:
         ok = (obs_depth > 0) & (alpha > tk.ALPHA_DEPTH_MIN)
         e = np.where(ok, depth / np.where(ok, alpha, 1.0) - obs_depth, 0.0)
+        if noise is not None:
+            lam = 1.0 / (_kinect_sigma(obs_depth) * noise[1])
         loss += lam * w_alpha * _slope_weight_reference(obs_depth, tau_s) * np.abs(e) * ok
     return loss.sum() / n, photo.sum(), w.sum()
 
 
 @pytest.mark.parametrize(
-    "use_depth,tau_s,per_opacity", [(1, 0.0, 0), (1, 0.05, 0), (0, 0.05, 0), (0, 0.05, 1), (1, 0.05, 1)]
+    "use_depth,tau_s,per_opacity,noise_weighted",
+    [(1, 0.0, 0, 0), (1, 0.05, 0, 0), (0, 0.05, 0, 0), (0, 0.05, 1, 0), (1, 0.05, 1, 0), (1, 0.05, 1, 1)],
 )
-def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity):
+def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity, noise_weighted):
+    """``tracking_loss``: the loss and its sums against ``_loss_reference``, the image gradients against its
+    central differences; ``noise_weighted`` (``tracking.geometric``): the gradients are those of the loss
+    in units of the noise (colour / sigma_I, depth / (sigma(z) s)), the loss reported the plain one."""
     rng = np.random.default_rng(2)
     shape = (11, 13)
     color = rng.uniform(0.1, 0.9, shape + (3,))
@@ -206,6 +239,7 @@ def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity):
     obs_depth[rng.uniform(size=shape) < 0.2] = 0.0  # pixels without depth take no depth term
     w_grad = rng.uniform(0, 1, shape)
     g, b, tau_alpha, lam = 1.2, -0.03, 0.5, 0.7
+    noise = (0.05, 0.6)  # (sigma_I, s): the noise scales the kernel reads with noise_weighted
     w_alpha = np.clip(alpha / tau_alpha, 0, 1)
 
     hist = _history(2, device)
@@ -223,7 +257,7 @@ def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity):
         tk.tracking_loss,
         dim=_blocks(shape),
         inputs=[f32(obs, wp.vec3), f32(obs_depth), f32(w_grad), f32(color, wp.vec3), f32(depth), f32(alpha)]
-        + [tau_alpha, use_depth, lam, tau_s, per_opacity, 1, _step0(device)],
+        + [tau_alpha, use_depth, lam, tau_s, per_opacity, noise_weighted, _scales(device, *noise), 1, _step0(device)],
         outputs=[d_color, d_depth, d_alpha, hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
@@ -236,28 +270,37 @@ def test_loss_value_and_image_gradient(device, use_depth, tau_s, per_opacity):
     h = hist.numpy()[1]
     np.testing.assert_allclose([h[tk.H_LOSS], h[tk.H_PHOTO], h[tk.H_WEIGHT]], [loss, photo, weight], rtol=1e-5)
 
-    eps = 1e-6  # the loss is piecewise linear: central differences are exact away from its kinks
-    fd_color = np.zeros_like(color)
-    for idx in np.ndindex(color.shape):
-        cp, cm = color.copy(), color.copy()
-        cp[idx] += eps
-        cm[idx] -= eps
-        fd_color[idx] = (
-            _loss_reference(*args, cp, depth, alpha, w_alpha, *rest)[0]
-            - _loss_reference(*args, cm, depth, alpha, w_alpha, *rest)[0]
-        ) / (2 * eps)
+    def finite_differences(noise):
+        eps = 1e-6  # the loss is piecewise linear: central differences are exact away from its kinks
+
+        def f(c, d, a):
+            return _loss_reference(*args, c, d, a, w_alpha, *rest, noise=noise)[0]
+
+        fd_color = np.zeros_like(color)
+        for idx in np.ndindex(color.shape):
+            cp, cm = color.copy(), color.copy()
+            cp[idx] += eps
+            cm[idx] -= eps
+            fd_color[idx] = (f(cp, depth, alpha) - f(cm, depth, alpha)) / (2 * eps)
+        fd_depth, fd_alpha = np.zeros(shape), np.zeros(shape)
+        for idx in np.ndindex(shape):
+            for arr, out in ((depth, fd_depth), (alpha, fd_alpha)):
+                p, m = arr.copy(), arr.copy()
+                p[idx] += eps
+                m[idx] -= eps
+                lp = f(color, *((p, alpha) if arr is depth else (depth, p)))
+                lm = f(color, *((m, alpha) if arr is depth else (depth, m)))
+                out[idx] = (lp - lm) / (2 * eps)
+        return fd_color, fd_depth, fd_alpha
+
+    fd_color, fd_depth, fd_alpha = finite_differences(noise if noise_weighted else None)
     np.testing.assert_allclose(d_color.numpy(), fd_color, rtol=1e-4, atol=1e-9)
-    fd_depth, fd_alpha = np.zeros(shape), np.zeros(shape)
-    for idx in np.ndindex(shape):
-        for arr, out in ((depth, fd_depth), (alpha, fd_alpha)):
-            p, m = arr.copy(), arr.copy()
-            p[idx] += eps
-            m[idx] -= eps
-            lp = _loss_reference(*args, color, *((p, alpha) if arr is depth else (depth, p)), w_alpha, *rest)[0]
-            lm = _loss_reference(*args, color, *((m, alpha) if arr is depth else (depth, m)), w_alpha, *rest)[0]
-            out[idx] = (lp - lm) / (2 * eps)
     np.testing.assert_allclose(d_depth.numpy(), fd_depth, rtol=1e-4, atol=1e-9)
     np.testing.assert_allclose(d_alpha.numpy(), fd_alpha, rtol=1e-4, atol=1e-9)
+    if noise_weighted:  # the comparison can fail: the plain loss's gradients are far off
+        plain = finite_differences(None)
+        assert not np.allclose(d_color.numpy(), plain[0], rtol=0.1)
+        assert not np.allclose(d_depth.numpy(), plain[1], rtol=0.1)
     assert (np.abs(fd_depth) > 0).any() == bool(use_depth)
     # alpha enters the loss through the depth term, and with per_opacity through the colour term
     assert (np.abs(fd_alpha) > 0).any() == bool(use_depth or per_opacity)
@@ -380,20 +423,70 @@ def test_brightness_gain_absorbs_an_exposure_change(device, scene):
     assert dt < 1e-3 and dr < 0.1, (dt, dr)
 
 
-@pytest.mark.slow
-def test_tracks_ten_frames_from_the_constant_velocity_prediction(device, scene):
-
+def _track_frames(device, scene, cfg, frames) -> dict:
+    """``frames`` (rgb, depth) of the scene's frames 1, 2, ... tracked from the constant-velocity prediction,
+    from frame 0's true pose: the ATE (cm, no alignment) and the largest rotation error (deg)."""
     poses = scene["poses"]
-    tracker = Tracker(TrackingConfig(), scene["camera"], device, mode="rgbd")
+    tracker = Tracker(cfg, scene["camera"], device, mode="rgbd")
     tracker.reset(poses[0])
     estimates = [poses[0]]
-    for i in range(1, 10):
-        rgb, depth = scene["observe"](i)
+    for i, (rgb, depth) in enumerate(frames, start=1):
         result = tracker.track(rgb, depth, scene["map"])  # start: constant-velocity prediction
         assert not result.lost, (i, result.reason)
         estimates.append(result.T_WC)
-    err = ate(np.array(estimates), poses[:10], align="none")
-    assert err["max_cm"] < 0.1, err
+    err = ate(np.array(estimates), poses[: len(estimates)], align="none")
+    err["max_deg"] = max(pose_error(T, P)[1] for T, P in zip(estimates, poses, strict=False))
+    return err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("geometric", [False, True])
+def test_tracks_ten_frames_from_the_constant_velocity_prediction(device, scene, geometric):
+    """Frames that are the map's exact renders: measured 0.73 mm max without ``tracking.geometric``, 1.42 mm
+    with it, although its direct alignment ends closer (1.3 against 3.4 mm RMSE, the alignment alone): the
+    first Adam steps move about 2 lr a twist coordinate whatever the gradient, some millimetres from either
+    start, and where the ten steps end differs by that much (at lr 1e-4: 0.15 mm max with the term)."""
+    frames = [scene["observe"](i) for i in range(1, 10)]
+    err = _track_frames(device, scene, TrackingConfig(geometric=geometric), frames)
+    assert err["max_cm"] < (0.2 if geometric else 0.1), err
+
+
+def _kinect_like(rgb: np.ndarray, depth: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
+    """A frame as a Kinect gives it: colour blurred ([1 2 1] / 4 twice along each axis, ~1 px) with noise of
+    0.03; depth with noise of std 1.5e-3 z^2 m, none at depth edges (a 4-neighbour more than 5 % away), in
+    four 8x12 patches and at 3 % of the pixels."""
+    blurred = rgb.astype(np.float64)
+    for axis in (0, 1, 0, 1):
+        padded = np.concatenate([blurred.take([0], axis), blurred, blurred.take([-1], axis)], axis)
+        n = blurred.shape[axis]
+        blurred = 0.25 * (padded.take(range(n), axis) + 2 * blurred + padded.take(range(2, n + 2), axis))
+    colour = np.clip(blurred + rng.normal(0, 0.03, rgb.shape), 0, 1).astype(np.float32)
+    z = depth.astype(np.float64)
+    pad = np.pad(z, 1, mode="edge")
+    jump = np.max([np.abs(n - z) for n in (pad[1:-1, 2:], pad[1:-1, :-2], pad[2:, 1:-1], pad[:-2, 1:-1])], axis=0)
+    missing = (jump > 0.05 * z) | (z <= 0) | (rng.uniform(size=z.shape) < 0.03)
+    h, w = z.shape
+    for _ in range(4):
+        y0, x0 = rng.integers(0, h - 8), rng.integers(0, w - 12)
+        missing[y0 : y0 + 8, x0 : x0 + 12] = True
+    noisy = z + rng.normal(size=z.shape) * 1.5e-3 * z**2
+    return colour, np.where(missing, 0.0, noisy).astype(np.float32)
+
+
+@pytest.mark.slow
+def test_geometric_term_tracks_kinect_like_frames_closer(device, scene):
+    """``tracking.geometric``: frames with Kinect-like noise (``_kinect_like``: 1-4 cm of depth noise at the
+    room's 2.4-4.5 m, missing depth at edges and in patches, blurred and noisy colour), tracked with the term
+    and without, the same frames: measured ATE 0.42 against 0.53 cm (RMSE), 0.60 against 0.81 cm (max),
+    rotation 0.14 against 0.19 deg (max); noise seeds 1 and 2: 0.37 against 0.48, 0.43 against 0.53 cm.
+    The term's stays below 0.85 x the other's."""
+    rng = np.random.default_rng(0)
+    frames = [_kinect_like(*scene["observe"](i), rng) for i in range(1, 10)]
+    off = _track_frames(device, scene, TrackingConfig(geometric=False), frames)
+    on = _track_frames(device, scene, TrackingConfig(geometric=True), frames)
+    assert on["rmse_cm"] < 0.85 * off["rmse_cm"], (on, off)
+    assert on["max_cm"] < off["max_cm"] and on["max_deg"] < off["max_deg"], (on, off)
+    assert off["rmse_cm"] > 0.3, off  # the noise matters: without it both track within 0.1 cm
 
 
 def test_lost_when_the_map_is_out_of_view(device, scene):
@@ -711,7 +804,9 @@ def test_graph_replays_give_the_eager_steps_poses(device, scene, tile_stride, di
         assert b.steps == {1: "captured", 4: "captured", 7: "overflowed"}.get(i, "replayed"), (i, b.steps)
         if i < 7:
             assert_same_steps(a, b, device, i)
-            assert m is smaller or pose_error(b.T_WC, poses[i])[0] < 1e-3, i  # (smaller: holes)
+            # (smaller: holes; 1.5 mm: where the Adam steps end on exact frames, up to 1.0 mm measured here
+            # with the direct alignment's geometric term: test_tracks_ten_frames_from_the_constant_velocity_prediction)
+            assert m is smaller or pose_error(b.T_WC, poses[i])[0] < 1.5e-3, i
     # 1-3: one sizing step, capture + replay, replay, replay; 4-5 (smaller): sizing step, capture +
     # replay, replay; 6: replay (kept); 7: the replay overflows, the frame runs eagerly (whose first
     # render sizes the buffers exactly, where the eager tracker's first render dropped intersections:
@@ -794,7 +889,7 @@ def test_colour_per_opacity_takes_the_edge_of_the_map_out_of_the_pose_gradient(d
                 tk.tracking_loss,
                 dim=_blocks(shape),
                 inputs=[wp.array(rgb, dtype=wp.vec3, device=device), no_depth, ones, res.color, res.depth, res.alpha]
-                + [0.5, 0, 1.0, 0.0, per_opacity, 0, _step0(device)],
+                + [0.5, 0, 1.0, 0.0, per_opacity, 0, _scales(device), 0, _step0(device)],
                 outputs=[d_color, d_depth, d_alpha, hist],
                 block_dim=tk.REDUCE_BLOCK,
                 device=device,

@@ -1,5 +1,7 @@
 """Tracking's direct alignment (``tracking.direct_levels``, kernels/direct.py): the frame aligned to one
 render of the map by Gauss-Newton on an image pyramid, coarse to fine, before the tracker's Adam steps.
+With depth and ``tracking.geometric``, the frame's measured depth joins the colour point to plane, both
+terms weighted by their noise as estimated from their residuals (kernels/direct.py, "Geometric mode").
 
 Everything stays on the device (pose, unknowns and sums; the step is solved by one thread), so the
 alignment can be captured in a CUDA graph with the tracker's steps.
@@ -13,6 +15,7 @@ import warp as wp
 from rgs_warp.config import TrackingConfig
 from rgs_warp.kernels import direct as dk
 from rgs_warp.kernels import tracking as tk
+from rgs_warp.kernels.math import N_TERMS
 from rgs_warp.render import Renderer
 from rgs_warp.types import Camera, GaussianMap
 
@@ -27,14 +30,21 @@ class DirectAlignment:
     """The frame's and the reference's image pyramids (``cfg.direct_levels`` levels: level 0 at ``camera``,
     the tracking resolution, each level half the one before), the unknowns and the sums.  ``frame``: the
     level-0 (rgb, depth) frame images, the tracker's, read in place.  No levels: ``align`` is not to be
-    called and ``downsample_frame`` does nothing."""
+    called and ``downsample_frame`` does nothing.
+
+    ``scales``: the device array of the noise scales (math.TERM_*) that the last geometric alignment
+    estimated (``tracking.geometric`` with depth), else the fixed ones (``SIGMA_COLOUR``, 1)."""
 
     def __init__(self, cfg: TrackingConfig, camera: Camera, frame: tuple[wp.array, wp.array], device):
         self.cfg = cfg
+        self.geometric = cfg.geometric
         self.camera = camera
         self.device = dev = wp.get_device(device)
         self.levels = levels = cfg.direct_levels
         self._levels: list[tuple] = []
+        # the noise scales (``scales``), each alignment starting from the fixed ones
+        self._scales_prior = wp.array([dk.SIGMA_COLOUR, 1.0], dtype=wp.float32, device=dev)
+        self.scales = wp.clone(self._scales_prior)
         for level in range(levels):
             cam = camera.scaled(2**level)
             if min(cam.width, cam.height) < DIRECT_MIN_PX:
@@ -53,6 +63,7 @@ class DirectAlignment:
             self._identity = wp.array([np.eye(4)], dtype=wp.mat44d, device=dev)
             self._affine_identity = wp.array([1.0, 0.0], dtype=wp.float64, device=dev)
             self._sums = wp.zeros(dk.N_COLUMNS, dtype=wp.float64, device=dev)
+            self._histogram = wp.zeros((N_TERMS, dk.HIST_BINS), dtype=wp.int32, device=dev)
             self._blocks = [(cam.width * cam.height + dk.BLOCK - 1) // dk.BLOCK for cam, _, _ in self._levels]
 
     def downsample_frame(self, has_depth: bool) -> None:
@@ -94,27 +105,59 @@ class DirectAlignment:
         wp.copy(self._T_CW_ref, T_CW)
         wp.copy(self._T_rel, self._identity)
         wp.copy(self._affine, self._affine_identity)
+        wp.copy(self.scales, self._scales_prior)
+        geometric = use_depth and self.geometric
+        depth_mode = dk.DEPTH_GEOMETRIC if geometric else (dk.DEPTH_PROJECTIVE if use_depth else dk.DEPTH_NONE)
         for level in range(len(self._levels) - 1, -1, -1):
-            cam, (rgb, depth), (ref_rgb, ref_depth) = self._levels[level]
-            intrinsics = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
-            for _ in range(cfg.direct_iters):
-                self._sums.zero_()
-                wp.launch_tiled(
-                    dk.normal_equations,
-                    dim=[self._blocks[level]],
-                    inputs=[ref_rgb, ref_depth, rgb, depth, int(use_depth), intrinsics, self._T_rel, self._affine],
-                    outputs=[self._sums],
-                    block_dim=dk.BLOCK,
-                    device=dev,
-                )
-                wp.launch(
-                    dk.solve_step,
-                    dim=1,
-                    inputs=[self._sums, self._T_CW_ref],
-                    outputs=[self._T_rel, self._affine, T_CW, T_WC],
-                    block_dim=dk.BLOCK,
-                    device=dev,
-                )
+            # geometric: a first pass at each level only estimates the terms' noise from its residuals,
+            # and every step re-estimates it for the next (IRLS)
+            for k in range(cfg.direct_iters + int(geometric)):
+                self._normal_equations(level, depth_mode)
+                if k > 0 or not geometric:
+                    wp.launch(
+                        dk.solve_step,
+                        dim=1,
+                        inputs=[self._sums, self._T_CW_ref],
+                        outputs=[self._T_rel, self._affine, T_CW, T_WC],
+                        block_dim=dk.BLOCK,
+                        device=dev,
+                    )
+                if geometric:
+                    wp.launch(
+                        dk.solve_scales,
+                        dim=N_TERMS,
+                        inputs=[self._histogram],
+                        outputs=[self.scales],
+                        block_dim=dk.BLOCK,
+                        device=dev,
+                    )
+
+    def _normal_equations(self, level: int, depth_mode: int) -> None:
+        """The sums (and, in ``DEPTH_GEOMETRIC``, the residual histograms) of pyramid level ``level`` at the
+        current pose."""
+        dev = self.device
+        cam, (rgb, depth), (ref_rgb, ref_depth) = self._levels[level]
+        intrinsics = wp.vec4(cam.fx, cam.fy, cam.cx, cam.cy)
+        self._sums.zero_()
+        if depth_mode == dk.DEPTH_GEOMETRIC:
+            self._histogram.zero_()
+        wp.launch_tiled(
+            dk.normal_equations,
+            dim=[self._blocks[level]],
+            inputs=[ref_rgb, ref_depth, rgb, depth, depth_mode, intrinsics, self._T_rel, self._affine, self.scales],
+            outputs=[self._sums, self._histogram],
+            block_dim=dk.BLOCK,
+            device=dev,
+        )
+        if depth_mode == dk.DEPTH_GEOMETRIC:
+            wp.launch_tiled(
+                dk.geometric_equations,
+                dim=[self._blocks[level]],
+                inputs=[ref_depth, depth, intrinsics, self._T_rel, self.scales],
+                outputs=[self._sums, self._histogram],
+                block_dim=dk.BLOCK,
+                device=dev,
+            )
 
 
 def _rgbd_images(shape: tuple[int, int], device) -> tuple[wp.array, wp.array]:

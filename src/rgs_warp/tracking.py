@@ -5,7 +5,8 @@ of the map there by Gauss-Newton on an image pyramid (``direct_levels``, direct_
 ``iters`` Adam steps on the twist xi = (rho, phi) with ``T_CW <- Exp(xi) T_CW``.  Each step renders the
 map, solves the brightness gain g of Eq. 3 in closed form (b = 0), evaluates the weighted L1 loss of
 Eq. 5-8 (plus, for RGB-D, a depth L1 term) and takes the twist gradient from the renderer's pose-only
-backward.
+backward.  With ``tracking.geometric`` (RGB-D) the direct alignment aligns the measured depth point to plane
+and estimates each term's noise, and the steps follow the gradient with each term in units of that noise.
 The map is only read.  Adam works on the twist taken about a pivot on the optical axis at the mean
 rendered depth (kernels/tracking.py, ``adam_pose_step``): the same left update, better conditioned.
 
@@ -509,8 +510,8 @@ class Tracker:
             tk.tracking_loss,
             dim=self._blocks,
             inputs=[self._rgb, self._depth, self._w_grad, res.color, res.depth, res.alpha]
-            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, int(self.colour_per_opacity), k]
-            + [counter],
+            + [cfg.tau_alpha, int(use_depth), cfg.depth_weight, cfg.depth_slope_tau, int(self.colour_per_opacity)]
+            + [int(use_depth and cfg.geometric), self._direct.scales, k, counter],
             outputs=[self._d_color, self._d_depth, self._d_alpha, self._history],
             block_dim=REDUCE_BLOCK,
             device=dev,

@@ -1,7 +1,7 @@
 """Kernel math shared by the stages' kernel files: constants and types of the Gaussian and rasterizer
 layout, quaternions, SH constants, SE(3) in float64, the pinhole projection's Jacobian, the block size
-of the per-pixel reductions, and the descriptor similarity, patch ZNCC and sub-pixel fits of the
-matching searches.  Stage kernel files import from here and never from each other."""
+of the per-pixel reductions, tracking's depth noise model, and the descriptor similarity, patch ZNCC and
+sub-pixel fits of the matching searches.  Stage kernel files import from here and never from each other."""
 
 from typing import Any
 
@@ -18,6 +18,26 @@ REDUCE_BLOCK = 256
 def reduce_blocks(count: int) -> int:
     """Blocks of REDUCE_BLOCK threads that cover ``count`` items (one thread each)."""
     return (int(count) + REDUCE_BLOCK - 1) // REDUCE_BLOCK
+
+
+# ---- noise of tracking's residuals (kernels/direct.py, kernels/tracking.py) ------------------------
+# Axial noise of a structured-light depth camera (Kinect v1; Nguyen, Izadi & Lovell 2012):
+# sigma(z) = DEPTH_NOISE_A + DEPTH_NOISE_B (z - DEPTH_NOISE_Z0)^2 metres
+DEPTH_NOISE_A = 0.0012
+DEPTH_NOISE_B = 0.0019
+DEPTH_NOISE_Z0 = 0.4
+# The noise scales the direct alignment estimates from its residuals (arrays of N_TERMS): the colour
+# residuals' sigma (grey levels) and the depth residuals' in units of sigma(z)
+N_TERMS = 2
+TERM_COLOUR = 0
+TERM_GEOMETRIC = 1
+
+
+@wp.func
+def depth_sigma(z: float) -> float:
+    """sigma(z) of the depth noise model (``DEPTH_NOISE_*``), metres."""
+    dz = z - DEPTH_NOISE_Z0
+    return DEPTH_NOISE_A + DEPTH_NOISE_B * dz * dz
 
 
 # ---- points out of play in a hash grid ------------------------------------------------------------

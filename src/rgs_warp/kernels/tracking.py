@@ -9,7 +9,16 @@ Reductions sum 256 pixels in a block tile, then add one float64 atomic per block
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, rigid_inverse_f32, se3_exp, vec6
+from rgs_warp.kernels.math import (
+    REDUCE_BLOCK,
+    TERM_COLOUR,
+    TERM_GEOMETRIC,
+    block_sum,
+    depth_sigma,
+    rigid_inverse_f32,
+    se3_exp,
+    vec6,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -226,6 +235,8 @@ def tracking_loss(
     depth_weight: float,
     depth_slope_tau: float,
     per_opacity: int,
+    noise_weighted: int,
+    scales: wp.array(dtype=wp.float32),  # noise_weighted: the direct alignment's noise scales (math.TERM_*)
     row: int,
     counter: wp.array(dtype=wp.int32),  # the row is row + counter[0] (see advance_step)
     # out: loss gradients w.r.t. the rendered images; H_LOSS, H_PHOTO, H_WEIGHT of row `row`
@@ -243,6 +254,11 @@ def tracking_loss(
     # map's colour where it covers the pixel only in part; the render itself is darkened by the
     # background there, and without depth that darkening at the edge of the map pulls the pose:
     # experiments/results/mono.md), differentiated through alpha as well.
+    # noise_weighted != 0 (tracking.geometric, RGB-D): the gradients are those of the loss with each term in
+    # units of its noise instead, the colour L1 divided by sigma_I and the depth L1 by sigma(z) s in place of
+    # lambda_d (the direct alignment's estimates, ``scales``), so that the steps keep the balance its
+    # Gauss-Newton had (with the hand-set lambda_d they pulled its pose back to their own optimum); the
+    # loss written to the history stays the one above, which the keyframe selector compares across frames.
     block, lane = wp.tid()
     row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
@@ -265,20 +281,27 @@ def tracking_loss(
         r = observed[y, x] - (g * inv_a * c + wp.vec3(b))
         photo = w * (wp.abs(r[0]) + wp.abs(r[1]) + wp.abs(r[2]))
         sign_r = wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2]))
-        d_color_out[y, x] = (-inv_n * w * g * inv_a) * sign_r
+        k_colour = float(1.0)
+        if noise_weighted != 0:
+            k_colour = 1.0 / scales[TERM_COLOUR]
+        d_color_out[y, x] = (-inv_n * k_colour * w * g * inv_a) * sign_r
         loss = photo
         d_depth = float(0.0)
         d_alpha = float(0.0)
         if inv_a != 1.0:
-            d_alpha = inv_n * w * g * inv_a * inv_a * wp.dot(sign_r, c)
+            d_alpha = inv_n * k_colour * w * g * inv_a * inv_a * wp.dot(sign_r, c)
         if use_depth != 0:
             d_obs = observed_depth[y, x]
             if d_obs > 0.0 and a > ALPHA_DEPTH_MIN:
                 d_hat = rendered_depth[y, x]
                 e = d_hat / a - d_obs
-                w_d = depth_weight * w_a * depth_slope_weight(observed_depth, x, y, d_obs, depth_slope_tau)
+                w_slope = depth_slope_weight(observed_depth, x, y, d_obs, depth_slope_tau)
+                w_d = depth_weight * w_a * w_slope
                 loss += w_d * wp.abs(e)
-                k = inv_n * w_d * wp.sign(e) / a
+                k_depth = w_d
+                if noise_weighted != 0:
+                    k_depth = w_a * w_slope / (depth_sigma(d_obs) * scales[TERM_GEOMETRIC])
+                k = inv_n * k_depth * wp.sign(e) / a
                 d_depth = k
                 d_alpha -= k * d_hat / a
         d_depth_out[y, x] = d_depth
