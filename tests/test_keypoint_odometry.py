@@ -3,6 +3,7 @@ synthetic geometry, and start + track on a rendered room against the ground trut
 
 import copy
 
+import cv2
 import numpy as np
 import pytest
 
@@ -10,7 +11,7 @@ from helpers_cameras import K, camera_T_CW, scene
 from helpers_cameras import camera_centre as _centre
 from rgs_warp.bundle_adjustment import project, rodrigues
 from rgs_warp.config import load_config
-from rgs_warp.datasets import open_dataset
+from rgs_warp.datasets.synthetic import SequenceRenderer, SyntheticConfig
 from rgs_warp.keypoint_odometry import KeypointOdometry, centre_from_bearings, triangulate
 
 
@@ -56,23 +57,22 @@ def test_centre_of_a_known_rotation_from_epipolar_planes_and_landmarks():
     assert np.linalg.norm(c - c_now) < 1e-3, (c, c_now)
 
 
+def _as_stored(rgb):
+    """``rgb`` as the dataset stores and reads it back (JPEG, quality 95)."""
+    bgr = (np.clip(rgb, 0, 1)[..., ::-1] * 255 + 0.5).astype(np.uint8)
+    jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])[1]
+    return np.ascontiguousarray(cv2.imdecode(jpeg, cv2.IMREAD_COLOR)[..., ::-1], dtype=np.float32) / np.float32(255)
+
+
 @pytest.fixture(scope="module")
 def room():
-    """The synthetic office's 300-frame path at 320x180, frames 0-49 (0.3-0.8 cm apart; the whole path is
-    rendered on the CPU on first use, about 90 s, then cached).  The odometry holds this path at 640x360
-    and 1200x680 (experiments/results/mono.md); at 320x180 it holds the first 50 frames to about a cm."""
-    cfg = load_config(
-        [
-            "dataset=synthetic/office0",
-            "dataset.width=320",
-            "dataset.height=180",
-            "dataset.n_frames=300",
-            "dataset.max_frames=50",
-        ]
-    )
-    ds = open_dataset(cfg, device="cpu")
-    frames = [ds[i] for i in range(len(ds))]
-    return cfg, ds.camera, [f.rgb for f in frames], np.array([f.pose_gt for f in frames], np.float64)
+    """The synthetic office's 300-frame path at 320x180, frames 0-49 (0.3-0.8 cm apart), as
+    ``dataset=synthetic/office0`` gives them; only these 50 are rendered (the dataset renders all 300).
+    The odometry holds this path at 640x360 and 1200x680 (experiments/results/mono.md); at 320x180 it
+    holds the first 50 frames to about a cm."""
+    seq = SequenceRenderer(SyntheticConfig(scene="office0", width=320, height=180, n_frames=300), device="cpu")
+    images = [_as_stored(seq.render(i)[0]) for i in range(50)]
+    return load_config([]), seq.cfg.camera, images, seq.poses[:50].astype(np.float64)
 
 
 def _scaled(T_WC, s):

@@ -22,8 +22,7 @@ import yaml
 from rgs_warp.io.atomic import write_text_atomic
 
 CONFIG_DIR = Path(__file__).parent / "configs"
-# Groups whose YAML fills one section of the config; ``method`` and ``timing`` files are merged at the
-# top level because they set values in several stages at once.
+# Groups whose YAML fills one section; ``method`` and ``timing`` files set keys of several sections
 GROUPS = {"dataset": "dataset", "method": None, "timing": None}
 DEFAULTS = {"dataset": "synthetic/room0", "method": "rgs", "timing": "offline"}
 
@@ -60,8 +59,7 @@ POSITIVE = Bound(lo=0, lo_open=True)
 NON_NEGATIVE = Bound(lo=0)
 AT_LEAST_1 = Bound(lo=1)
 FRACTION = Bound(0, 1)
-# The ZNCC refinement's patch radius: each query keeps its (2r+1)^2 patch in a fixed-size local vector
-# (kernels/math.py, query_patch)
+# The ZNCC refinement's patch radius: a query's (2r+1)^2 patch is a fixed-size vector (kernels/math.py)
 MAX_PATCH_RADIUS = 4
 # Types that carry their key's range: ``check_config`` refuses a value out of it, naming the key, before
 # anything runs (instead of a ZeroDivisionError, an SSIM error or a run at 35 m ATE).  Keys typed plainly
@@ -429,9 +427,8 @@ ORDERED_KEYS = (
     ("seeding.detail_stride", "seeding.depth_stride", ": detail seeds are the finer ones"),
     ("mapping.init_window", "mapping.init_iters", ": each initial frame gets init_iters // init_window iterations"),
 )
-# The smallest images the pipeline runs on: mapping's SSIM has an 11x11 window (DSSIMLoss refuses 11 px
-# and less; at 20x11 the office's map stayed empty, 22x12 ran); tracking needs neighbours for its image
-# gradients (Eq. 8).
+# The smallest images the pipeline runs on: mapping's SSIM has an 11x11 window (at 20x11 the office's map
+# stayed empty, 22x12 ran); tracking needs neighbours for its image gradients (Eq. 8)
 MIN_IMAGE_PX = 16
 MIN_TRACKING_PX = 4
 # Keys that apply to asynchronous mapping only, and the value that leaves them off
@@ -600,9 +597,8 @@ def _apply_group(cfg: Config, group: str, option: str) -> None:
     if option not in options:
         raise ConfigError(f"unknown {group} {option!r}.{_suggest(option, options)} Valid: {', '.join(options)}")
     data = _load_yaml(CONFIG_DIR / group / f"{option}.yaml")
-    # a section's file may also set keys of other sections for what it describes (a dataset's real
-    # sensor wants other tracking settings): ``settings: {tracking: {tau_grad: 0.0}}``, applied after
-    # the section itself; command-line keys still win
+    # a section's file may set keys of others (a dataset's sensor wants other tracking settings):
+    # ``settings: {tracking: {tau_grad: 0.0}}``, applied after the section; command-line keys still win
     settings = data.pop("settings", None)
     section = GROUPS[group]
     if section is None:
@@ -667,8 +663,7 @@ def load_saved_config(path: str | Path) -> Config:
     sections = [f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(getattr(Config(), f.name))]
     missing = [name for name in sections if name not in data]
     if missing:
-        # a copy cut short lacks the last sections; one lacking a section before others is from another
-        # version of rgs_warp (a section added since)
+        # a copy cut short lacks the last sections; one lacking an earlier section is of another version
         cut = all(name not in data for name in sections[sections.index(missing[0]) :])
         why = "truncated?" if cut else "written by another version of rgs_warp?"
         raise ConfigError(f"{path}: sections {', '.join(missing)} missing ({why})")
