@@ -67,6 +67,15 @@ METRICS = (
         False,
         2,
     ),
+    # SplaTAM's protocol: every 5th frame with the keyframes included, at the tracked exposure
+    Metric(
+        "psnr_every_5th_with_keyframes_db",
+        ("photometric", "every_5th_with_keyframes", "psnr_tracked_exposure_db"),
+        "PSNR every 5th frame with keyframes (SplaTAM's protocol, dB)",
+        "Rendering",
+        False,
+        2,
+    ),
     Metric("ssim", ("photometric", "ssim"), "SSIM raw", "Rendering", False, 3),
     Metric("ssim_compensated", ("photometric", "ssim_compensated"), "SSIM exposure-compensated", "Rendering", False, 3),
     Metric(
