@@ -14,10 +14,7 @@ from rgs_warp.app.runner import run
 from rgs_warp.config import load_config
 from rgs_warp.slam.worker import DeviceTurns, MappingWorker, MapPublisher, TornMapError
 from rgs_warp.types import GaussianMap
-from test_slam import OVERRIDES as RUN  # the CPU-sized office run of the end-to-end tests
-
-# its frames at 96x54: the worker's policies need frames, not detail (a frame tracks 3x faster than at 160x90)
-OVERRIDES = [*RUN, "dataset.width=96", "dataset.height=54"]
+from test_slam import RUN as OVERRIDES  # the CPU-sized office run of the end-to-end tests
 
 
 def _map_of(n: int, value: float, device) -> GaussianMap:

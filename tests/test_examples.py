@@ -18,7 +18,7 @@ TINY = [
     "dataset.height=54",
     "dataset.max_frames=10",
     "mapping.init_iters=60",
-    "mapping.iters_per_frame=6",
+    "mapping.iters_per_frame=2",
     "mapping.window=3",
 ]
 

@@ -373,7 +373,7 @@ def test_slam_on_a_bag_through_the_command_line(tmp_path, device, mode, stream):
         f.timestamp = 5.0 + k / 30.0
     path = tmp_path / ("office" if stream else "office.bag")
     bag = write_realsense_like_bag(path, frames, scene.camera, ros2=stream, depth=mode == "rgbd")
-    iters = (40, 6) if mode == "rgbd" else (40, 4)
+    iters = (40, 2) if mode == "rgbd" else (40, 4)
     argv = [
         "dataset.type=rosbag",
         f"dataset.path={bag}",

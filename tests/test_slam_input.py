@@ -129,7 +129,7 @@ def test_uploaded_frame_check_tracks_as_the_host_check(monkeypatch):
     import rgs_warp.slam.system as slam_module
     from rgs_warp.frame_check import FrameChecker
 
-    cfg, camera, frames = _office("cpu", 6)
+    cfg, camera, frames = _office("cpu", 6, ["dataset.width=80", "dataset.height=45"])  # bit for bit at any size
     poses = []
     for upload in (False, True):
         monkeypatch.setattr(slam_module, "FrameChecker", lambda *a, up=upload, **k: FrameChecker(*a, **k, upload=up))

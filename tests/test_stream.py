@@ -18,14 +18,14 @@ from rgs_warp.io.trajectory import read_tum_trajectory
 from rgs_warp.types import Camera, Frame
 
 HAS_REALSENSE = importlib.util.find_spec("pyrealsense2") is not None
-# the SLAM runs at the CPU test size (tests/test_slam.py)
+# the SLAM runs at the size of the whole-run tests (tests/test_slam.py)
 SMALL = [
     "dataset=synthetic/office0",
-    "dataset.width=160",
-    "dataset.height=90",
+    "dataset.width=96",
+    "dataset.height=54",
     "dataset.max_frames=12",
     "mapping.init_iters=60",
-    "mapping.iters_per_frame=6",
+    "mapping.iters_per_frame=2",
     "mapping.window=3",
 ]
 
