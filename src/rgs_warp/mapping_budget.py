@@ -2,9 +2,10 @@
 
 The user gives a rate (``mapping.rate_fps``: frames/s of a 640x480 run on one H100; a larger frame spends the
 same iterations, each costing more, so its run is slower about in proportion to its pixels) or asks for the best
-map (``0``); ``mapping.iters_per_frame`` gives the iterations directly.  A cost model of the renderer turns the rate into mapping iterations per frame, so an
-offline run does the same iterations on any machine (the same config gives the same map); live, the mapping
-worker's stop policies end a job early when tracking needs the map, and it maps whenever the GPU is free.
+map (``0``); ``mapping.iters_per_frame`` gives the iterations directly.  A cost model of the renderer turns the
+rate into mapping iterations per frame, so an offline run does the same iterations on any machine (the same config
+gives the same map); live, the worker's stop policies end a job early when a keyframe waits, and between keyframes
+it refines whenever it would idle (``WorkerMapping.refine_iters``).
 
 Each frame adds ``per_frame`` iterations to a balance.  A new keyframe spends first: ``mapping.keyframe_share``
 of the iterations expected until the next keyframe (the mean gap between keyframes so far), borrowed from the

@@ -241,7 +241,8 @@ def evaluate_run(
             )
         save_side_by_side(run_dir / "renders", [int(i) for i in idx], renders, refs, alphas)
         title = f"{metrics['dataset']}: PSNR of every scored frame and keyframe"
-        keyframes = [(i, row) for i, row in fit_rows if i in set(slam.keyframe_indices)]
+        is_keyframe = set(slam.keyframe_indices)
+        keyframes = [(i, row) for i, row in fit_rows if i in is_keyframe]
         write_frame_scores(
             run_dir / "frame_scores.csv", run_dir / "frame_scores.png", psnrs(scored), psnrs(keyframes), title
         )

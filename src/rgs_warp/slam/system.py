@@ -113,9 +113,9 @@ class SLAM:
             self.history = KeyframeHistory(cfg.mapping.history_size, camera.width, camera.height, dev, cfg.seed)
         # mapping.frame_views: frames between keyframes kept as views beside the older keyframes
         self.frame_views = None
-        if cfg.mapping.history > 0.0 and cfg.mapping.frame_views > 0:
-            m = cfg.mapping
-            self.frame_views = FrameViews(m.frame_views, m.frame_view_every, camera.width, camera.height, dev)
+        views, every = cfg.mapping.frame_views, cfg.mapping.frame_view_every
+        if cfg.mapping.history > 0.0 and views > 0:
+            self.frame_views = FrameViews(views, every, camera.width, camera.height, dev)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         self.seeder = Seeder(
