@@ -20,7 +20,7 @@ def tests(session):
     """The test suite on Warp's CPU device, kernel cache inside the checkout."""
     _install(session)
     env = {"WARP_CACHE_PATH": os.path.abspath(".cache/warp"), "RGS_CACHE": os.path.abspath(".cache/rgs_warp")}
-    session.run("pytest", *session.posargs, env=env)
+    session.run("pytest", "-n", "logical", *session.posargs, env=env)
 
 
 @nox.session
