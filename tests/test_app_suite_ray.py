@@ -11,6 +11,8 @@ import pytest
 from rgs_warp.app import suite
 
 ray = pytest.importorskip("ray", reason="the --ray path needs Ray: pip install -e '.[cluster]'")
+# one local Ray cluster for the module: its tests stay on one pytest-xdist worker (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("ray")
 
 TINY = [
     "dataset.width=64",
