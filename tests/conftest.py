@@ -17,6 +17,14 @@ wp.config.enable_cpu_blocks = True  # tile kernels give wrong results on CPU wit
 wp.init()
 
 
+MAX_WORKERS = 8  # python -m pytest -n logical: a worker per CPU, at most this many (each loads Warp and torch)
+
+
+def pytest_xdist_auto_num_workers(config):
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return min(cpus, MAX_WORKERS)
+
+
 @pytest.fixture(scope="session")
 def device():
     # CI runs on the CPU; RGS_TEST_DEVICE=cuda:0 runs the same tests on a GPU (CUDA-only bugs such
