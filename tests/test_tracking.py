@@ -4,6 +4,7 @@ a synthetic room whose map is built from ground truth (tests/helpers_maps.py), w
 on and off on frames with Kinect-like noise."""
 
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -93,15 +94,19 @@ def _brightness_inputs(rng, shape):
     return observed, rendered, depth, alpha
 
 
-def _gain(device, observed, rendered, depth, alpha, tau_alpha=0.5, min_alpha=0.0, rows=1, row=0):
-    """The history after ``brightness_sums`` and ``solve_brightness`` on the images, as NumPy."""
+def _gain(
+    device, observed, rendered, depth, alpha, tau_alpha=0.5, min_alpha=0.0, rows=1, row=0, max_residual=0.0, hist=None
+):
+    """The history after ``brightness_sums`` and ``solve_brightness`` on the images, as NumPy
+    (``hist``: a device history to add the row to)."""
     shape = alpha.shape
-    hist = _history(rows, device)
+    hist = _history(rows, device) if hist is None else hist
     wp.launch_tiled(
         tk.brightness_sums,
         dim=_blocks(shape),
         inputs=[wp.array(observed, dtype=wp.vec3, device=device), wp.array(rendered, dtype=wp.vec3, device=device)]
-        + [wp.array(depth, device=device), wp.array(alpha, device=device), tau_alpha, min_alpha, row, _step0(device)],
+        + [wp.array(depth, device=device), wp.array(alpha, device=device), tau_alpha, min_alpha, max_residual, row]
+        + [_step0(device)],
         outputs=[hist],
         block_dim=tk.REDUCE_BLOCK,
         device=device,
@@ -162,6 +167,33 @@ def test_gain_ignores_partly_covered_pixels(device):
     gains = {m: _gain(device, observed, rendered, depth, alpha, 0.5, m)[0, tk.H_GAIN] for m in (0.0, 0.98)}
     assert gains[0.0] > 1.1
     assert gains[0.98] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_gain_leaves_out_pixels_the_map_gets_wrong(device):
+    # an unmapped region (a dark floater over a fifth of the frame) pulls the ratio of means up; from the
+    # second step on, the pixels off the previous step's gain by more than max_residual are left out
+    rng = np.random.default_rng(6)
+    shape = (40, 40)
+    rendered = rng.uniform(0.2, 0.8, shape + (3,)).astype(np.float32)
+    observed = (1.1 * rendered).astype(np.float32)
+    rendered[:8] *= 0.3  # the map is wrong in the top fifth
+    alpha, depth = np.ones(shape, np.float32), np.zeros(shape, np.float32)
+    x, y = rendered.astype(np.float64), observed.astype(np.float64)
+    g0 = y.sum() / x.sum()
+    assert g0 > 1.25
+    h0 = _gain(device, observed, rendered, depth, alpha, 0.5, 0.98, rows=3, max_residual=0.1)
+    np.testing.assert_allclose(h0[0, tk.H_GAIN], g0, rtol=1e-6)  # the first step: all pixels
+    step = partial(_gain, device, observed, rendered, depth, alpha, 0.5, 0.98, rows=3)
+    h = step(row=1, max_residual=0.1, hist=wp.array(h0, device=device))
+    # reference: the pixels within 0.1 of g0 x rendered (mean over channels)
+    keep = (np.abs(y - g0 * x).mean(axis=2) <= 0.1)[..., None]
+    g1 = (keep * y).sum() / (keep * x).sum()
+    np.testing.assert_allclose(h[1, tk.H_GAIN], g1, rtol=1e-5)
+    assert abs(g1 - 1.1) < abs(g0 - 1.1) / 2
+    h = step(row=2, max_residual=0.1, hist=wp.array(h, device=device))
+    assert abs(h[2, tk.H_GAIN] - 1.1) < 1e-3  # a step later the gain is the exposure's
+    h = step(row=1, hist=wp.array(h0, device=device))
+    np.testing.assert_allclose(h[1, tk.H_GAIN], g0, rtol=1e-6)  # max_residual 0: all pixels
 
 
 def _slope_weight_reference(obs_depth, tau):

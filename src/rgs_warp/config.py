@@ -135,6 +135,7 @@ class TrackingConfig:
     depth_weight: NonNegative = 1.0  # RGB-D depth L1 (per metre) against the colour L1 (per channel)
     depth_slope_tau: NonNegative = 0.003  # depth term x 1 / (1 + |grad D| / (tau D)), |grad D| in m per px; 0: off
     brightness_min_alpha: Fraction = 0.98  # Eq. 3's gain from pixels the map covers at least this; 0: Eq. 7's weights
+    brightness_max_residual: NonNegative = 0.1  # ... and within this mean |I - g I_hat| of the last step; 0: off
     colour_per_opacity: Switch = "auto"  # compare the frame with colour / opacity; auto: on in mono
     downscale: Count = 1  # tracking resolution = image / downscale
     tile_stride: NonNegInt = 0  # steps but the last render one 16x16 tile in this many; 0: auto (2 rgbd, 1 mono)
@@ -242,7 +243,7 @@ class MappingConfig:
     graph: Switch = "auto"  # one-view mapping steps as captured graphs; auto: on on CUDA
     history: Fraction = 0.5  # probability that a view rendered is an older keyframe instead of a window view
     history_size: NonNegInt = 32  # older keyframes kept on the device for it (a uniform sample)
-    frame_views: NonNegInt = 0  # recent frames between keyframes that views may also be (as older keyframes); 0: off
+    frame_views: NonNegInt = 8  # recent frames between keyframes that views may also be (as older keyframes); 0: off
     frame_view_every: Count = 3  # ... one kept every this many frames after a keyframe
     init_iters: Count = 1050  # mapping iterations of the initialization
     init_window: Count = 5  # frames of the initial window
@@ -251,8 +252,8 @@ class MappingConfig:
     lr_opacity: NonNegative = 2e-3  # learning rate of the opacity logit
     lr_position: NonNegative = 1e-3  # learning rate of the position (m)
     lr_rotation: NonNegative = 1e-3  # learning rate of the rotation quaternion
-    lr_scale: NonNegative = 1e-3  # learning rate of the log scale
-    lr_final_factor: NonNegative = 0.01  # cosine decay to this fraction of each rate within a mapping call
+    lr_scale: NonNegative = 3e-3  # learning rate of the log scale
+    lr_final_factor: NonNegative = 1.0  # cosine decay to this fraction of each rate within a mapping call; 1: none
     adam_beta1: Beta = 0.9  # Adam's first-moment decay
     adam_beta2: Beta = 0.999  # Adam's second-moment decay
     lambda_dssim: NonNegative = 0.2  # loss: L1 + lambda_dssim (1 - SSIM)

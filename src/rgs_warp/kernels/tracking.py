@@ -128,10 +128,12 @@ def brightness_sums(
     alpha: wp.array2d(dtype=wp.float32),
     tau_alpha: float,
     min_alpha: float,
+    max_residual: float,
     row: int,
     # the row is row + counter[0] (see advance_step)
     counter: wp.array(dtype=wp.int32),
-    # out: columns H_SX, H_SY, H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand)
+    # out: columns H_SX, H_SY, H_VALID, H_DEPTH, H_ALPHA of history row `row` (zeroed beforehand; the
+    # row before it, when row > 0, holds the previous step's gain)
     history_out: wp.array2d(dtype=wp.float64),
 ):
     # The gain's sums over the pixels the map covers fully (alpha >= min_alpha) and channels:
@@ -141,7 +143,10 @@ def brightness_sums(
     # the keyframes, and either bias is fed back by the mapper frame after frame (GPU office runs:
     # g 1 -> 1.2 -> 20 monocular, 1 -> 0.8 with the division; experiments/results/slam.md).  min_alpha
     # <= 0 falls back to the w_alpha weights of Eq. 7.  w_grad is left out on purpose, flat areas
-    # constrain the gain as well as edges do.
+    # constrain the gain as well as edges do.  From the second step of a frame on, pixels whose mean
+    # |I - g I_hat| per channel under the previous step's gain exceeds max_residual (> 0) are left out
+    # too: where the map is wrong (content not yet mapped, a floater) the render says nothing about the
+    # exposure either.
     block, lane = wp.tid()
     row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
@@ -156,6 +161,10 @@ def brightness_sums(
             w = wp.where(a >= min_alpha, 1.0, 0.0)
         xr = rendered[y, x]
         yo = observed[y, x]
+        if max_residual > 0.0 and row > 0:
+            g = float(history_out[row - 1, H_GAIN])
+            r = (wp.abs(yo[0] - g * xr[0]) + wp.abs(yo[1] - g * xr[1]) + wp.abs(yo[2] - g * xr[2])) / 3.0
+            w = wp.where(r > max_residual, 0.0, w)
         s = vec5(
             w * (xr[0] + xr[1] + xr[2]),
             w * (yo[0] + yo[1] + yo[2]),
