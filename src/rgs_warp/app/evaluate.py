@@ -301,11 +301,13 @@ def keyframe_fit(
     """How well the map fits what it was trained on (``trained_frames``): the keyframes' mean PSNR of the
     renders at their poses against their frames, raw, exposure-compensated and at the tracked exposure
     (``keyframe_psnr_db``, ``keyframe_psnr_compensated_db``, ``keyframe_psnr_tracked_exposure_db``), and
-    each trained frame's (index, ``frame_scores`` row): PSNRs only, but every ``every``-th frame's in full
-    (SSIMs, LPIPS with ``lpips_model``) for SplaTAM's protocol.  ``tracked``: each frame's tracked (gain, bias),
-    None without; ``device``: the torch device of the scores."""
+    (index, ``frame_scores`` row) of each keyframe and of each trained frame on the ``every``-th grid: PSNRs
+    only, but every ``every``-th frame's in full (SSIMs, LPIPS with ``lpips_model``) for SplaTAM's protocol.
+    ``tracked``: each frame's tracked (gain, bias), None without; ``device``: the torch device of the scores."""
     rows = []
-    frames = trained_frames(slam)
+    keyframes = {int(i) for i in slam.keyframe_indices}
+    # the frames kept as views count only in SplaTAM's protocol (a stream keeps no other frame for the evaluation)
+    frames = [i for i in trained_frames(slam) if i in keyframes or (every is not None and i % every == 0)]
     for i, frame in zip(frames, read_frames(ds, frames), strict=True):
         res = slam.render(est[i])
         render = np.clip(res.color.numpy(), 0.0, 1.0)
@@ -313,8 +315,6 @@ def keyframe_fit(
         full = every is not None and i % every == 0
         row = frame_scores(render, frame.rgb, res.alpha.numpy(), at, device, lpips_model, psnr_only=not full)
         rows.append((i, row))
-
-    keyframes = {int(i) for i in slam.keyframe_indices}
 
     def mean(key: str) -> float:
         return float(np.mean([row[key] for i, row in rows if i in keyframes]))

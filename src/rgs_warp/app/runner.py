@@ -245,8 +245,7 @@ def _run_frames(
             lag = None if playback is None else playback.taken()
             state.gt_poses.append(frame.pose_gt)
             state.next_frame = result.index + 1
-            trained = result.keyframe or result.view  # scored by keyframe_fit
-            scored_later = trained or result.index % cfg.eval.every == 0 or slam.bootstrap is not None
+            scored_later = result.keyframe or result.index % cfg.eval.every == 0 or slam.bootstrap is not None
             if kept is not None and scored_later:
                 kept.keep(result.index, frame)
             entry = _log_entry(cfg, slam, result, state)

@@ -21,7 +21,6 @@ class FrameResult:
     tracking: TrackingResult | None  # None for the first frame and for given poses
     keyframe: bool
     keyframe_reason: str
-    view: bool = False  # kept as a mapping view between keyframes (mapping.frame_views): trained on, as keyframes are
     seeded: int = 0  # Gaussians added by seeding (a keyframe's, or a frame fill's: seeding.frame_fill_min_uncovered)
     pruned: int = 0  # rgs: by the maintenance after mapping; baseline: by the densification's culling
     merged: int = 0

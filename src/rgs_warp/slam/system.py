@@ -390,7 +390,6 @@ class SLAM:
         if views is not None and pose.ok and last is not None and views.wants(result.index, last):
             rgb, depth = jobs.own(frame.rgb), jobs.own(frame.depth)
             jobs.run("view", views.keep, result.index, result.T_WC, rgb, depth, pose.exposure)
-            result.view = True
         # refinement between keyframes with what the budget holds: one job waiting at most (asynchronous: the
         # worker refines whenever it would idle, ended when a keyframe waits)
         if self.keyframe_indices and result.index >= self._init_window_end:
