@@ -212,10 +212,12 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     1000 frames/s (``dataset.playback_fps``): a full run folder, every frame tracked, a map, metrics
     within the bounds of the synchronous run's test (here 2.6 cm, 24.9 dB), keyframe-to-map latencies,
     every frame's lag behind the playback, and no checkpoint although one is asked at every keyframe (a
-    live stream has none)."""
+    live stream has none).  The worker's mapping steps replay captured graphs (``mapping.graph=on``, Warp's
+    CPU graphs here; auto: on a GPU), captured in its turn on the device."""
     argv = [
         *OVERRIDES,
         "mapping.asynchronous=true",
+        "mapping.graph=on",
         "dataset.playback_fps=1000",
         "checkpoint_every=1",
         f"device={device}",
@@ -227,6 +229,8 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert metrics["frames"] == 20 and metrics["gaussians"] > 1000
     assert metrics["ate"]["all_frames"]["rmse_cm"] < 8.0, metrics["ate"]
     assert metrics["photometric"]["psnr_db"] > 15.0, metrics["photometric"]
+    steps = metrics["mapping_graph_steps"]
+    assert steps["captured"] >= 1 and steps["replayed"] > steps["eager"], steps
     latency = metrics["keyframe_to_map_s"]
     assert latency["count"] >= 1 and 0 < latency["p50"] <= latency["max"]
     # played as a camera at 1000 frames/s would deliver it: every frame's lag logged and summarised

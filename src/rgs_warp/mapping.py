@@ -300,7 +300,7 @@ class Mapper:
         """Whether this call's steps run as captured graphs (``mapping.graph``): one view per step, and
         nothing a step does on the host that a replay would not repeat."""
         cfg = self.cfg
-        return self.use_graph and cfg.views_per_iter == 1 and self.densifier is None and not cfg.asynchronous
+        return self.use_graph and cfg.views_per_iter == 1 and self.densifier is None
 
     def _map_step(self, buffers, slots, views, use_depth, blocks, graph_capacity=None) -> None:
         """One Adam step on the map from the gradients of ``views`` (positions j of the uploaded views:
