@@ -160,7 +160,7 @@ class TrackingConfig:
 
 @dataclass
 class KeyframeConfig:
-    iou_threshold: Fraction = 0.6  # Eq. 9 tau: a keyframe when the co-visibility IoU with the last is below this
+    iou_threshold: Fraction = 0.7  # Eq. 9 tau: a keyframe when the co-visibility IoU with the last is below this
     alpha_threshold: Fraction = 0.5  # visible: accumulated opacity above this
     min_translation_m: NonNegative = 0.05  # ... and the camera moved more than this (m) ...
     min_rotation_deg: NonNegative = 5.0  # ... or turned more than this (deg)
@@ -241,7 +241,7 @@ class MappingConfig:
     window: Count = 5  # keyframes in the sliding window
     views_per_iter: NonNegInt = 1  # window views rendered an iteration, a fresh random subset; 0: all
     graph: Switch = "auto"  # one-view mapping steps as captured graphs; auto: on on CUDA
-    history: Fraction = 0.5  # probability that a view rendered is an older keyframe instead of a window view
+    history: Fraction = 0.7  # probability that a view rendered is an older keyframe instead of a window view
     history_size: NonNegInt = 32  # older keyframes kept on the device for it (a uniform sample)
     frame_views: NonNegInt = 8  # recent frames between keyframes that views may also be (as older keyframes); 0: off
     frame_view_every: Count = 3  # ... one kept every this many frames after a keyframe
