@@ -230,7 +230,7 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert metrics["ate"]["all_frames"]["rmse_cm"] < 8.0, metrics["ate"]
     assert metrics["photometric"]["psnr_db"] > 15.0, metrics["photometric"]
     steps = metrics["mapping_graph_steps"]
-    assert steps["captured"] >= 1 and steps["replayed"] > steps["eager"], steps
+    assert steps["captured"] >= 1 and steps["replayed"] >= steps["captured"], steps
     latency = metrics["keyframe_to_map_s"]
     assert latency["count"] >= 1 and 0 < latency["p50"] <= latency["max"]
     # played as a camera at 1000 frames/s would deliver it: every frame's lag logged and summarised
@@ -415,7 +415,8 @@ def test_a_keyframes_map_is_published_during_its_mapping_with_publish_after(devi
     tracking's published map holds as many Gaussians as the working map); 3 publishes once more after the
     mapping's third iteration (one version more during each later keyframe's mapping, none during the initial
     window's); -1 (the default) only at the job's end (the published map has fewer Gaussians while the
-    keyframe's seeds are mapped, and no version comes during a mapping)."""
+    keyframe's seeds are mapped, and no version comes during a mapping).  Refinements between keyframes publish
+    at their end only, whatever the setting: left out."""
     from rgs_warp import SLAM, open_dataset
 
     argv = [*OVERRIDES, "dataset.max_frames=14", "mapping.asynchronous=true", f"device={device}"]
@@ -432,7 +433,8 @@ def test_a_keyframes_map_is_published_during_its_mapping_with_publish_after(devi
                 sizes = (len(published), len(slam.map))
             version = publisher.version
             result = optimize(*args, **kwargs)
-            calls.append((sizes, publisher.version - version, result.iters))
+            if kwargs.get("stop") != slam.mapping_jobs.refine_stop:  # keyframes' mappings, not refinements
+                calls.append((sizes, publisher.version - version, result.iters))
             return result
 
         slam.mapper.optimize = recording

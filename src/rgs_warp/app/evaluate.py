@@ -243,8 +243,14 @@ def evaluate_run(
         title = f"{metrics['dataset']}: PSNR of every scored frame and keyframe"
         is_keyframe = set(slam.keyframe_indices)
         keyframes = [(i, row) for i, row in fit_rows if i in is_keyframe]
+        views = [(i, row) for i, row in fit_rows if i not in is_keyframe]  # frames kept as views, on the grid
         write_frame_scores(
-            run_dir / "frame_scores.csv", run_dir / "frame_scores.png", psnrs(scored), psnrs(keyframes), title
+            run_dir / "frame_scores.csv",
+            run_dir / "frame_scores.png",
+            psnrs(scored),
+            psnrs(keyframes),
+            title,
+            psnrs(views),
         )
     else:
         metrics["photometric"] = None

@@ -165,20 +165,27 @@ def write_frame_scores(
     scored: Sequence[tuple[int, float, float, float | None]],
     keyframes: Sequence[tuple[int, float, float, float | None]],
     title: str = "",
+    views: Sequence[tuple[int, float, float, float | None]] = (),
 ) -> tuple[Path, Path]:
-    """Each scored frame's and keyframe's PSNR, (frame, raw dB, at the frame's exposure dB, at the tracked
+    """Each scored frame's, keyframe's and scored frame kept as a view's (``mapping.frame_views``, kind
+    ``view``: trained on, so not held out) PSNR, (frame, raw dB, at the frame's exposure dB, at the tracked
     exposure dB or None), as a CSV (``frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db``, by
     frame; the last empty without tracked exposures) and a plot of the compensated PSNR against the frame
     index, keyframes in red: where along the sequence the map renders badly (far from the keyframes, a
     region without depth) shows at a glance."""
-    rows = sorted([(f, "scored", *s) for f, *s in scored] + [(f, "keyframe", *s) for f, *s in keyframes])
+    kinds = (("scored", scored), ("keyframe", keyframes), ("view", views))
+    rows = sorted((f, kind, *s) for kind, points in kinds for f, *s in points)
     lines = ["frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db"] + [
         f"{f},{k},{r:.3f},{c:.3f}," + ("" if t is None else f"{t:.3f}") for f, k, r, c, t in rows
     ]
     path_csv, path_png = Path(path_csv), Path(path_png)
     write_text_atomic(path_csv, "\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(10, 3.5), dpi=110)
-    for points, colour, name in ((scored, "tab:blue", "scored (held out)"), (keyframes, "red", "keyframes")):
+    for points, colour, name in (
+        (scored, "tab:blue", "scored (held out)"),
+        (keyframes, "red", "keyframes"),
+        (views, "tab:orange", "frames kept as views"),
+    ):
         if len(points):
             f, c = np.asarray([(p[0], p[2]) for p in points], dtype=np.float64).T
             ax.plot(f, c, "o", color=colour, markersize=3.5, label=f"{name}: mean {c.mean():.2f} dB")
