@@ -270,6 +270,14 @@ def test_asynchronous_library_use_with_device_frames(device):
     assert np.max(np.linalg.norm(poses[:, :3, 3] - gt[:, :3, 3], axis=1)) < 0.1
     res = slam.render(poses[-1])
     assert float(res.color.numpy().mean()) > 0.05  # the map renders colour, not the zeroed buffers
+    # the images come back as the caller's own host copies, made in tracking's turn: another render (here
+    # from the first pose, another view) leaves them as they were
+    images = {k: getattr(res, k).numpy().copy() for k in ("color", "depth", "alpha")}
+    other = slam.render(poses[0])
+    for k, before in images.items():
+        assert getattr(res, k).device.is_cpu and getattr(other, k).device.is_cpu, k
+        np.testing.assert_array_equal(getattr(res, k).numpy(), before, err_msg=k)
+    assert not np.array_equal(other.color.numpy(), images["color"])
 
 
 @pytest.mark.slow

@@ -23,7 +23,7 @@ densification cannot reach regions no Gaussian sees.  Everything else is shared.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -507,12 +507,18 @@ class SLAM:
         images are the renderer's buffers, valid until the next render.  A view that needs more tile
         intersections than the renderer's buffers hold (sized by its previous render) is rendered
         again, whole.  With asynchronous mapping: the latest published version, rendered in
-        tracking's turn (from any thread)."""
+        tracking's turn (from any thread), its colour, depth and opacity copied to the host in that turn
+        (``wp.array``s on the CPU, the caller's own): a copy made after it, on the device's one stream,
+        could land in a graph the worker is capturing."""
         camera, background = camera or self.camera, self.cfg.render.background
         renderer = self.mapping_jobs.renderer
         with self.mapping_jobs.tracking_map() as gmap:
             res = renderer.forward(gmap, camera, T_WC, background)
-            return renderer.forward(gmap, camera, T_WC, background) if res.overflowed else res
+            if res.overflowed:
+                res = renderer.forward(gmap, camera, T_WC, background)
+            if self.cfg.mapping.asynchronous:
+                res = replace(res, **{k: wp.clone(getattr(res, k), device="cpu") for k in ("color", "depth", "alpha")})
+            return res
 
     def wait_for_mapping(self, check: bool = True, hurry: bool = False) -> None:
         """Return when the mapping worker has done every job queued so far (at once without one);
