@@ -167,12 +167,12 @@ def write_frame_scores(
     title: str = "",
     views: Sequence[tuple[int, float, float, float | None]] = (),
 ) -> tuple[Path, Path]:
-    """Each scored frame's, keyframe's and scored frame kept as a view's (``mapping.frame_views``, kind
-    ``view``: trained on, so not held out) PSNR, (frame, raw dB, at the frame's exposure dB, at the tracked
-    exposure dB or None), as a CSV (``frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db``, by
-    frame; the last empty without tracked exposures) and a plot of the compensated PSNR against the frame
-    index, keyframes in red: where along the sequence the map renders badly (far from the keyframes, a
-    region without depth) shows at a glance."""
+    """The PSNR of each scored (held-out) frame, keyframe and scored frame kept as a view (kind ``view``,
+    ``mapping.frame_views``: trained on, so not held out), (frame, raw dB, at the frame's exposure dB, at the
+    tracked exposure dB or None), as a CSV (``frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db``,
+    by frame; the last empty without tracked exposures) and a plot of the compensated PSNR against the frame
+    index, keyframes in red, views in orange: where along the sequence the map renders badly (far from the
+    keyframes, a region without depth) shows at a glance."""
     kinds = (("scored", scored), ("keyframe", keyframes), ("view", views))
     rows = sorted((f, kind, *s) for kind, points in kinds for f, *s in points)
     lines = ["frame,kind,psnr_db,psnr_compensated_db,psnr_tracked_exposure_db"] + [
