@@ -486,8 +486,17 @@ class Tracker:
         wp.launch_tiled(
             tk.brightness_sums,
             dim=self._blocks,
-            inputs=[self._rgb, res.color, res.depth, res.alpha, cfg.tau_alpha, cfg.brightness_min_alpha]
-            + [cfg.brightness_max_residual, k, step],
+            inputs=[
+                self._rgb,
+                res.color,
+                res.depth,
+                res.alpha,
+                cfg.tau_alpha,
+                cfg.brightness_min_alpha,
+                cfg.brightness_max_residual,
+                k,
+                step,
+            ],
             outputs=[self._history],
             block_dim=REDUCE_BLOCK,
             device=dev,
