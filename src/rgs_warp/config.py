@@ -168,7 +168,6 @@ class KeyframeConfig:
     max_loss_ratio: NonNegative = 0.0  # also a keyframe when the tracking loss grows this x since the last; 0: off
     covisibility: Literal["pixels", "reprojected"] = "reprojected"  # the IoU of Eq. 9's masks or of the surface
     depth_tol: NonNegative = 0.05  # reprojected: relative depth agreement of a shared surface point
-    realign: NonNegInt = 0  # after a keyframe's mapping, this many keyframes before it tracked again against the map
 
 
 @dataclass

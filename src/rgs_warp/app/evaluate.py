@@ -149,10 +149,6 @@ def evaluate_run(
         metrics["tracking_fps_na_reason"] = "a single frame"
     metrics["time_s"] = {k: v for k, v in slam.stats.items() if k.endswith("_s")}
     metrics["mapping_iterations"] = slam.mapper.total_iters
-    if slam.realigned:
-        moved = np.array([m for _, m in slam.realigned])
-        metrics["realigned"] = {"keyframes": len(moved), "moved_mm_median": 1000 * float(np.median(moved)),
-                                "moved_mm_max": 1000 * float(moved.max())}
     # the mapping budget (mapping.rate_fps) and how it was spent: iterations by kind, a frame and a keyframe
     its = slam.mapping_iterations
     metrics["mapping_budget"] = {

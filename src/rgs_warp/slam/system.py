@@ -106,10 +106,6 @@ class SLAM:
         relocalize = cfg.tracking.relocalize
         self.relocalize = relocalize == "on" or (relocalize == "auto" and self.mode == "mono")
         self.selector = KeyframeSelector(cfg.keyframes, self.tracker.track_camera, dev)
-        # keyframes.realign: keyframes tracked again against the map by mapping's side (its own buffers)
-        self.realigner, self.realigned = None, []  # realigned: (frame, metres moved)
-        if cfg.keyframes.realign:
-            self.realigner = Tracker(cfg.tracking, camera, dev, mode=self.mode)
         self.keyframes = KeyframeBuffer(cfg.keyframes.buffer_size, camera.width, camera.height, dev)
         # mapping.history: the keyframes the buffer evicted, for mapping's views of older keyframes
         self.history = None
@@ -158,7 +154,7 @@ class SLAM:
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
         # mapping_s: keyframes' window mappings (and the final refinement), refine_s: between keyframes
-        stats = ("tracking_s", "mapping_s", "refine_s", "seeding_s", "maintenance_s", "realign_s")
+        stats = ("tracking_s", "mapping_s", "refine_s", "seeding_s", "maintenance_s")
         self.stats = {**dict.fromkeys(stats, 0.0), "frames": 0}
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
@@ -444,29 +440,9 @@ class SLAM:
             self.stats["maintenance_s"] += time.perf_counter() - t0
         else:
             result.pruned = result.mapping.pruned
-        if not init and self.realigner is not None:
-            jobs.pause()
-            self._realign(kf.slots()[:-1][-cfg.keyframes.realign :])
         self.convergence += self.mapper.convergence(kf, window, result.mapping, i, "init" if init else "keyframe")
         if jobs.publish():  # asynchronous: tracking sees the keyframe's map from now on
             self.keyframe_latency_s.append(time.perf_counter() - t_tracked)
-
-    def _realign(self, slots: list[int]) -> None:
-        """Keyframes ``slots`` tracked again against the map from their poses: the pose and exposure that hold
-        (not lost) replace theirs, in the buffer and the trajectory."""
-        kf, t0 = self.keyframes, time.perf_counter()
-        for slot in slots:
-            T = kf.poses[slot].copy()
-            self.realigner.reset(T)
-            depth = kf.depth[slot] if self.mode == "rgbd" else None
-            r = self.realigner.track(kf.rgb[slot], depth, self.map, T_init_WC=T)
-            if r.lost:
-                continue
-            kf.poses[slot] = r.T_WC
-            kf.exposure[slot] = (r.gain, r.bias)
-            self.poses[int(kf.frame_ids[slot])] = r.T_WC
-            self.realigned.append((int(kf.frame_ids[slot]), float(np.linalg.norm(r.T_WC[:3, 3] - T[:3, 3]))))
-        self.stats["realign_s"] += time.perf_counter() - t0
 
     def _seed(self, slot: int, matches: bool = True) -> int:
         """Dense initialization at keyframe ``slot``: (``matches``) matches with its neighbours,
