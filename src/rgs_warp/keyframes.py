@@ -141,7 +141,7 @@ class KeyframeBuffer:
         self.device = device
         self.rgb = wp.zeros((capacity, height, width), dtype=wp.vec3, device=device)
         self.depth = wp.zeros((capacity, height, width), dtype=wp.float32, device=device)
-        self.poses = np.tile(np.eye(4), (capacity, 1, 1))  # camera-to-world, refined by mapping
+        self.poses = np.tile(np.eye(4), (capacity, 1, 1))  # camera-to-world, as tracked
         self.exposure = np.tile(np.array([1.0, 0.0]), (capacity, 1))  # (g, b) of Eq. 3
         self.frame_ids = np.full(capacity, -1, dtype=np.int64)
         self.descriptors: list = [None] * capacity  # filled by the DenseMatcher
