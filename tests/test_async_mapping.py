@@ -108,6 +108,23 @@ def test_tracking_takes_the_device_at_the_next_pause():
     assert all(name == "mapping" for name, _ in log[k + 1 :])
 
 
+def test_device_turns_count_the_seconds_each_thread_held_the_device():
+    """Tracking holds the device 60 ms, the worker 5 x 10 ms with pauses between, then nobody 50 ms: each
+    thread's seconds as held, the idle time in neither."""
+    turns = DeviceTurns()
+    t0 = time.perf_counter()
+    with turns.tracking():
+        time.sleep(0.06)
+    with turns.mapping():
+        for _ in range(5):
+            time.sleep(0.01)
+            turns.pause()
+    time.sleep(0.05)
+    held, elapsed = turns.seconds(), time.perf_counter() - t0
+    assert held["tracking"] >= 0.06 and held["mapping"] >= 0.05, held
+    assert held["tracking"] + held["mapping"] <= elapsed - 0.05, (held, elapsed)
+
+
 def test_a_failing_job_is_raised_in_the_callers_thread():
     worker = MappingWorker(DeviceTurns())
     done = []
@@ -238,6 +255,9 @@ def test_asynchronous_run_is_valid(tmp_path, device):
     assert len(lags) == 20 and min(lags) >= 0.0
     assert metrics["playback"]["fps"] == 1000.0
     assert metrics["playback"]["lag_ms_max"] == pytest.approx(1e3 * max(lags), abs=0.1)
+    turns = metrics["device_turns_s"]  # the seconds tracking and the worker each held the device
+    assert turns["tracking"] > 0 and turns["mapping"] > 0, turns
+    assert turns["tracking"] + turns["mapping"] <= metrics["wall_s"], (turns, metrics["wall_s"])
     assert metrics["time_s"]["checkpoints_s"] == 0.0  # played as a live stream: no checkpoint at any keyframe
     fills = metrics["frame_fills"]
     assert fills["wanted"] >= 1 and 0 <= fills["skipped"] <= fills["wanted"], fills

@@ -167,6 +167,9 @@ def evaluate_run(
     metrics["frame_fills"] = dict(slam.frame_fills)
     if playback is not None:
         metrics["playback"] = playback
+    turns = slam.mapping_jobs.turn_seconds()
+    if turns is not None:  # asynchronous: seconds tracking and the mapping worker each held the device's turn
+        metrics["device_turns_s"] = turns
     if slam.keyframe_latency_s:  # asynchronous: from a keyframe's tracking to its map published
         lat = np.array(slam.keyframe_latency_s)
         metrics["keyframe_to_map_s"] = {

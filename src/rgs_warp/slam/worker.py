@@ -57,6 +57,9 @@ class DeviceTurns:
         self._cv = threading.Condition()
         self._holder: str | None = None
         self._tracking_waits = 0
+        # seconds each thread has held the device ("tracking", "mapping"), and when the holder took it
+        self._held_s = {"tracking": 0.0, "mapping": 0.0}
+        self._since = 0.0
 
     @contextmanager
     def tracking(self):
@@ -65,7 +68,7 @@ class DeviceTurns:
             self._tracking_waits += 1
             self._cv.wait_for(lambda: self._holder is None)
             self._tracking_waits -= 1
-            self._holder = "tracking"
+            self._holder, self._since = "tracking", time.perf_counter()
         try:
             yield
         finally:
@@ -79,6 +82,12 @@ class DeviceTurns:
             yield
         finally:
             self._release()
+
+    def seconds(self) -> dict[str, float]:
+        """Seconds each thread has held the device so far ("tracking", "mapping"; a turn held now counts
+        once it is given back)."""
+        with self._cv:
+            return dict(self._held_s)
 
     @property
     def tracking_waits(self) -> bool:
@@ -97,10 +106,12 @@ class DeviceTurns:
     def _acquire_mapping(self) -> None:
         with self._cv:
             self._cv.wait_for(lambda: self._holder is None and self._tracking_waits == 0)
-            self._holder = "mapping"
+            self._holder, self._since = "mapping", time.perf_counter()
 
     def _release(self) -> None:
         with self._cv:
+            if self._holder is not None:
+                self._held_s[self._holder] += time.perf_counter() - self._since
             self._holder = None
             self._cv.notify_all()
 
@@ -268,6 +279,10 @@ class InlineMapping:
     def tracking_map(self, check: bool = False) -> Iterator[GaussianMap]:
         yield self.map
 
+    def turn_seconds(self) -> dict[str, float] | None:
+        """No turns: one thread does everything."""
+        return None
+
     def after_frame(self, index: int, init_window_end: int) -> None:
         """Nothing to wait for: the frame's jobs have run."""
 
@@ -344,6 +359,11 @@ class WorkerMapping:
                 self.publish()
             with self.publisher.read() as published:
                 yield published
+
+    def turn_seconds(self) -> dict[str, float]:
+        """Seconds tracking and the worker have each held the device's turn so far (the rest of the run
+        neither did: the worker had no job and no frame was being processed)."""
+        return self.turns.seconds()
 
     def after_frame(self, index: int, init_window_end: int) -> None:
         """The waits before frame ``index`` returns: the initial window (frames below ``init_window_end``) is
