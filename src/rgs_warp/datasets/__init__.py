@@ -94,6 +94,7 @@ def _open(cfg, device: str | None) -> RGBDDataset:
             register_depth=d.register_depth,
             colour_intrinsics=d.colour_intrinsics,
             depth_to_colour_m=d.depth_to_colour_m,
+            colour_distortion=d.colour_distortion,
             **common,
         )
     if d.type == "tum":

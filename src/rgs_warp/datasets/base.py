@@ -155,6 +155,19 @@ def reproject_depth(
     return out.reshape(target.height, target.width)
 
 
+def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """OpenCV's remap maps that undistort an image of ``camera`` with ``distortion`` (OpenCV's k1, k2, p1, p2
+    and optionally k3) onto the same pinhole intrinsics; None when every coefficient is 0.  ``what`` names
+    the coefficients' source in errors."""
+    d = np.asarray(distortion, dtype=np.float64).ravel()
+    if d.size not in (4, 5) or not np.all(np.isfinite(d)):
+        raise DatasetError(f"{what} {tuple(distortion)}: expected 4 or 5 finite numbers (k1, k2, p1, p2[, k3])")
+    if not np.any(d):
+        return None
+    size = (camera.width, camera.height)
+    return cv2.initUndistortRectifyMap(camera.K, d, None, camera.K, size, cv2.CV_32FC1)
+
+
 def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
     h, w = rgb.shape[0] // factor, rgb.shape[1] // factor
     return np.ascontiguousarray(

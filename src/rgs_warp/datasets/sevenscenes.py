@@ -15,10 +15,19 @@ from __future__ import annotations
 
 import re
 
+import cv2
 import numpy as np
 
 from rgs_warp.config import DatasetConfig
-from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb, reproject_depth
+from rgs_warp.datasets.base import (
+    DatasetError,
+    RGBDDataset,
+    check_pose,
+    read_depth,
+    read_rgb,
+    reproject_depth,
+    undistort_maps,
+)
 from rgs_warp.types import Camera, Frame
 
 # The dataset's stated calibration (Kinect v1, 640x480): the depth camera's.
@@ -29,6 +38,7 @@ SEVENSCENES_CAMERA = Camera(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, h
 # numbers live in the config's defaults
 SEVENSCENES_COLOUR_INTRINSICS = DatasetConfig.colour_intrinsics
 SEVENSCENES_DEPTH_TO_COLOUR_M = DatasetConfig.depth_to_colour_m
+SEVENSCENES_COLOUR_DISTORTION = DatasetConfig.colour_distortion
 KINECT_FPS = 30.0
 
 
@@ -43,6 +53,7 @@ class SevenScenesDataset(RGBDDataset):
         register_depth: bool = True,
         colour_intrinsics: tuple[float, float, float, float] = SEVENSCENES_COLOUR_INTRINSICS,
         depth_to_colour_m: tuple[float, float, float] = SEVENSCENES_DEPTH_TO_COLOUR_M,
+        colour_distortion: tuple[float, ...] = SEVENSCENES_COLOUR_DISTORTION,
         **selection,
     ):
         """``register_depth=False`` gives the files as they are: colour and depth both on the depth
@@ -62,6 +73,7 @@ class SevenScenesDataset(RGBDDataset):
         self._depth_camera = self._read_intrinsics()
         self._native_camera = self._depth_camera
         self._offset = None
+        self._undistort = None
         if register_depth:
             if len(colour_intrinsics) != 4 or len(depth_to_colour_m) != 3:
                 raise ValueError(
@@ -74,6 +86,7 @@ class SevenScenesDataset(RGBDDataset):
             except ValueError as e:
                 raise DatasetError(f"dataset.colour_intrinsics {tuple(colour_intrinsics)}: {e}") from None
             self._offset = np.asarray(depth_to_colour_m, dtype=np.float64)
+            self._undistort = undistort_maps(self._native_camera, colour_distortion, "dataset.colour_distortion")
         self._items = [(colour[k], self._read_pose(colour[k])) for k in sorted(colour)]
         self._select()
 
@@ -115,8 +128,11 @@ class SevenScenesDataset(RGBDDataset):
         if self._offset is not None:
             depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
+        rgb = read_rgb(colour_path)
+        if self._undistort is not None:
+            rgb = cv2.remap(rgb, *self._undistort, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return Frame(
-            rgb=read_rgb(colour_path), depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx
+            rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx
         )
 
     def _gt_pose(self, item) -> np.ndarray:
