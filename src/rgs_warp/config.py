@@ -93,7 +93,6 @@ class DatasetConfig:
     colour_intrinsics: Annotated[tuple[float, float, float, float], POSITIVE] = (526.0, 526.0, 322.0, 238.0)  # px
     depth_to_colour_m: tuple[float, float, float] = (-0.03, 0.0, 0.0)  # depth-camera point + this: colour's (m)
     colour_distortion: tuple[float, float, float, float, float] = (-0.04, 0.0, 0.0, 0.0, 0.0)  # OpenCV k1 k2 p1 p2 k3
-    depth_distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)  # depth camera's, same
     # TUM
     camera: str = "auto"  # fr1 | fr2 | fr3 | auto (from the folder name)
     max_dt: Positive = 0.08  # timestamp association tolerance (s; TUM and rosbag)

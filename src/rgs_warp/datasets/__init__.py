@@ -95,7 +95,6 @@ def _open(cfg, device: str | None) -> RGBDDataset:
             colour_intrinsics=d.colour_intrinsics,
             depth_to_colour_m=d.depth_to_colour_m,
             colour_distortion=d.colour_distortion,
-            depth_distortion=d.depth_distortion,
             **common,
         )
     if d.type == "tum":

@@ -54,7 +54,6 @@ class SevenScenesDataset(RGBDDataset):
         colour_intrinsics: tuple[float, float, float, float] = SEVENSCENES_COLOUR_INTRINSICS,
         depth_to_colour_m: tuple[float, float, float] = SEVENSCENES_DEPTH_TO_COLOUR_M,
         colour_distortion: tuple[float, ...] = SEVENSCENES_COLOUR_DISTORTION,
-        depth_distortion: tuple[float, ...] = DatasetConfig.depth_distortion,
         **selection,
     ):
         """``register_depth=False`` gives the files as they are: colour and depth both on the depth
@@ -74,7 +73,7 @@ class SevenScenesDataset(RGBDDataset):
         self._depth_camera = self._read_intrinsics()
         self._native_camera = self._depth_camera
         self._offset = None
-        self._undistort = self._undistort_depth = None
+        self._undistort = None
         if register_depth:
             if len(colour_intrinsics) != 4 or len(depth_to_colour_m) != 3:
                 raise ValueError(
@@ -88,7 +87,6 @@ class SevenScenesDataset(RGBDDataset):
                 raise DatasetError(f"dataset.colour_intrinsics {tuple(colour_intrinsics)}: {e}") from None
             self._offset = np.asarray(depth_to_colour_m, dtype=np.float64)
             self._undistort = undistort_maps(self._native_camera, colour_distortion, "dataset.colour_distortion")
-            self._undistort_depth = undistort_maps(self._depth_camera, depth_distortion, "dataset.depth_distortion")
         self._items = [(colour[k], self._read_pose(colour[k])) for k in sorted(colour)]
         self._select()
 
@@ -127,8 +125,6 @@ class SevenScenesDataset(RGBDDataset):
         colour_path, pose = item
         depth = read_depth(self._sibling(colour_path, ".depth.png"), self.depth_scale)
         depth[depth >= 65.535] = 0.0  # 65535 marks missing depth in 7-Scenes
-        if self._undistort_depth is not None:
-            depth = cv2.remap(depth, *self._undistort_depth, cv2.INTER_NEAREST)
         if self._offset is not None:
             depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
