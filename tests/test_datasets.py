@@ -192,6 +192,34 @@ def test_sevenscenes_registration(shared_data):
     assert registered > 1.6 * unregistered
 
 
+def test_sevenscenes_colour_distortion_undone(tmp_path):
+    """A frame recorded through a lens with barrel distortion (``dataset.colour_distortion``): loaded with
+    the lens's coefficients, the image is the pinhole camera's again; loaded without, its periphery is off."""
+    k1 = -0.04
+    fx, fy, cx, cy = 526.0, 526.0, 322.0, 238.0
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    v, u = np.mgrid[0:480, 0:640].astype(np.float32)
+    pinhole = 0.5 + 0.4 * np.sin(u / 9.0) * np.cos(v / 7.0)  # what a pinhole camera sees, smooth texture
+
+    # the recording: each recorded pixel q shows what the pinhole camera sees at undistort(q)
+    q = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :].astype(np.float64)
+    p = cv2.undistortPoints(q, K, np.array([k1, 0.0, 0.0, 0.0, 0.0]), P=K).reshape(480, 640, 2).astype(np.float32)
+    recorded = cv2.remap(pinhole, p[..., 0], p[..., 1], cv2.INTER_LINEAR)
+    cv2.imwrite(str(tmp_path / "frame-000000.color.png"), np.repeat(np.rint(recorded * 255)[..., None], 3, axis=2))
+    cv2.imwrite(str(tmp_path / "frame-000000.depth.png"), np.full((480, 640), 2000, np.uint16))
+    (tmp_path / "frame-000000.pose.txt").write_text(" ".join(map(str, np.eye(4).ravel())))
+
+    inner = (slice(16, -16), slice(16, -16))
+    fixed = SevenScenesDataset(tmp_path, colour_distortion=(k1, 0.0, 0.0, 0.0, 0.0))[0]
+    as_is = SevenScenesDataset(tmp_path, colour_distortion=(0.0, 0.0, 0.0, 0.0, 0.0))[0]
+    err_fixed = np.abs(fixed.rgb[..., 0] - pinhole)[inner].mean()
+    err_as_is = np.abs(as_is.rgb[..., 0] - pinhole)[inner].mean()
+    assert err_fixed < 0.01 and err_as_is > 5 * err_fixed
+    np.testing.assert_array_equal(fixed.depth, as_is.depth)  # depth registration does not change
+    with pytest.raises(DatasetError, match=r"dataset.colour_distortion \(1.0, 2.0, 3.0\): expected OpenCV.s 4, 5, 8"):
+        SevenScenesDataset(tmp_path, colour_distortion=(1.0, 2.0, 3.0))
+
+
 def test_prefetch_iteration_equals_indexing(shared_data):
     ds = SevenScenesDataset(shared_data / "7scenes-redkitchen", stride=50, prefetch=3)
     frames = list(ds)

@@ -156,12 +156,16 @@ def reproject_depth(
 
 
 def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """OpenCV's remap maps that undistort an image of ``camera`` with ``distortion`` (OpenCV's k1, k2, p1, p2
-    and optionally k3) onto the same pinhole intrinsics; None when every coefficient is 0.  ``what`` names
-    the coefficients' source in errors."""
+    """OpenCV's remap maps that undistort an image of ``camera`` with ``distortion`` (OpenCV's coefficients:
+    k1, k2, p1, p2[, k3[, ...]]) onto the same pinhole intrinsics; None when there are none or all are 0.  ``what``
+    names the coefficients' source in errors."""
     d = np.asarray(distortion, dtype=np.float64).ravel()
-    if d.size not in (4, 5) or not np.all(np.isfinite(d)):
-        raise DatasetError(f"{what} {tuple(distortion)}: expected 4 or 5 finite numbers (k1, k2, p1, p2[, k3])")
+    if d.size == 0:
+        return None
+    if d.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(d)):
+        raise DatasetError(
+            f"{what} {tuple(distortion)}: expected OpenCV's 4, 5, 8, 12 or 14 finite coefficients (k1, k2, p1, p2, ...)"
+        )
     if not np.any(d):
         return None
     size = (camera.width, camera.height)

@@ -131,9 +131,7 @@ class SevenScenesDataset(RGBDDataset):
         rgb = read_rgb(colour_path)
         if self._undistort is not None:
             rgb = cv2.remap(rgb, *self._undistort, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return Frame(
-            rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx
-        )
+        return Frame(rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
 
     def _gt_pose(self, item) -> np.ndarray:
         """The file's (depth-camera) pose, moved to the colour camera when depth is registered."""

@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, reproject_depth
+from rgs_warp.datasets.base import DatasetError, reproject_depth, undistort_maps
 from rgs_warp.types import Camera, Frame
 
 
@@ -105,12 +105,12 @@ def frame_from_images(
     depth_scale_m: float,
     timestamp_ms: float,
     index: int = 0,
-    undistort_maps=None,
+    remap_maps=None,
 ) -> Frame:
     """A ``Frame`` from a RealSense frame pair: ``colour`` HxWx3 or 4 uint8 in ``colour_format``
     (rgb8, bgr8, rgba8, bgra8), ``depth_raw`` HxW uint16 already aligned to the colour camera, in
     units of ``depth_scale_m`` metres (0 = no depth), ``timestamp_ms`` librealsense's milliseconds;
-    ``undistort_maps`` (OpenCV's remap maps) undistort both images."""
+    ``remap_maps`` (OpenCV's remap maps, ``base.undistort_maps``) undistort both images."""
     order = _COLOUR_ORDER.get(colour_format)
     if order is None:
         raise DatasetError(
@@ -127,10 +127,10 @@ def frame_from_images(
                 f"depth must be aligned to colour"
             )
         depth = depth_raw.astype(np.float32) * np.float32(depth_scale_m)
-    if undistort_maps is not None:
-        rgb = cv2.remap(rgb, *undistort_maps, cv2.INTER_LINEAR)
+    if remap_maps is not None:
+        rgb = cv2.remap(rgb, *remap_maps, cv2.INTER_LINEAR)
         if depth is not None:  # nearest: no depth between two surfaces
-            depth = cv2.remap(depth, *undistort_maps, cv2.INTER_NEAREST)
+            depth = cv2.remap(depth, *remap_maps, cv2.INTER_NEAREST)
     return Frame(rgb, depth, None, float(timestamp_ms) / 1000.0, index)
 
 
@@ -188,12 +188,8 @@ class RealSenseSource(CallbackSource):
             colour = profile.get_stream(rs.stream.color).as_video_stream_profile()
             camera = camera_from_intrinsics(colour.get_intrinsics())
             self._align = rs.align(rs.stream.color)
-        self._undistort_maps = None
-        if camera.distortion:
-            self._undistort_maps = cv2.initUndistortRectifyMap(
-                camera.K, np.array(camera.distortion), None, camera.K, (camera.width, camera.height), cv2.CV_32FC1
-            )
-            camera = camera.undistorted()
+        self._undistort_maps = undistort_maps(camera, camera.distortion, f"RealSense {name} colour distortion")
+        camera = camera.undistorted()
         super().__init__(camera, self._next, max_frames=max_frames, name=f"realsense {name}")
 
     def _next(self) -> Frame | None:
@@ -212,7 +208,7 @@ class RealSenseSource(CallbackSource):
                 None,
                 1.0,
                 colour.get_timestamp(),
-                undistort_maps=self._undistort_maps,
+                remap_maps=self._undistort_maps,
             )
             frame.depth = self._recording.registered_depth(depth, self.camera)
             return frame
@@ -234,7 +230,7 @@ class RealSenseSource(CallbackSource):
                 np.asanyarray(depth.get_data()),
                 self.depth_scale_m,
                 colour.get_timestamp(),
-                undistort_maps=self._undistort_maps,
+                remap_maps=self._undistort_maps,
             )
 
     def close(self) -> None:
@@ -295,13 +291,9 @@ class RecordingFrames:
         self._rotation = np.array(extrinsics.rotation, dtype=np.float64).reshape(3, 3).T
         self._translation = np.array(extrinsics.translation, dtype=np.float64)
         self._depth_camera = camera_from_intrinsics(self.depth_intrinsics)
-        self._depth_undistort = None
-        if self._depth_camera.distortion:
-            cam = self._depth_camera
-            self._depth_undistort = cv2.initUndistortRectifyMap(
-                cam.K, np.array(cam.distortion), None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
-            )
-            self._depth_camera = cam.undistorted()
+        cam = self._depth_camera
+        self._depth_undistort = undistort_maps(cam, cam.distortion, f"{path} depth distortion")
+        self._depth_camera = cam.undistorted()
         self._half_period_ms = 500.0 / max(float(colour_profile.fps()), 1.0)
         self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE)
         self._closed = threading.Event()

@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
+from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb, undistort_maps
 from rgs_warp.datasets.replica import read_cam_params
 from rgs_warp.geometry import pose_from_tq
 from rgs_warp.types import Camera, Frame
@@ -109,11 +109,8 @@ class TUMDataset(RGBDDataset):
             raise DatasetError(f"unknown TUM camera {camera!r}; valid: auto, {', '.join(TUM_CAMERAS)}")
         self._undistort_maps = None
         if undistort and cam.distortion:
-            K = cam.K
             # Keep the same K after undistortion, as the benchmark's tools do.
-            self._undistort_maps = cv2.initUndistortRectifyMap(
-                K, np.array(cam.distortion), None, K, (cam.width, cam.height), cv2.CV_32FC1
-            )
+            self._undistort_maps = undistort_maps(cam, cam.distortion, f"{self.root} camera distortion")
             cam = cam.undistorted()
         self._native_camera = cam
 
