@@ -84,7 +84,7 @@ class BagWriter:
         msg = self.ts.types["sensor_msgs/msg/CompressedImage"](header=self.header(t), format=fmt, data=data.ravel())
         self.write(topic, msg, t)
 
-    def camera_info(self, topic: str, t: float, cam: Camera, distortion=(0.0,) * 5) -> None:
+    def camera_info(self, topic: str, t: float, cam: Camera, distortion=(0.0,) * 5, model="plumb_bob") -> None:
         T = self.ts.types
         k = np.array([cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1], dtype=np.float64)
         p = np.array([cam.fx, 0, cam.cx, 0, 0, cam.fy, cam.cy, 0, 0, 0, 1, 0], dtype=np.float64)
@@ -96,7 +96,7 @@ class BagWriter:
             header=self.header(t),
             height=cam.height,
             width=cam.width,
-            distortion_model="plumb_bob",
+            distortion_model=model,
             binning_x=0,
             binning_y=0,
             roi=roi,
@@ -293,6 +293,40 @@ def test_ros2_bag_as_a_stream_gives_the_dataset_frames(tmp_path):
     assert len(list(open_dataset(load_config([*keys, "dataset.max_frames=2"])))) == 2
 
 
+def test_a_bag_whose_camera_info_gives_distortion_is_undistorted(tmp_path):
+    """Frames recorded through a barrel lens (CameraInfo plumb_bob k1): read as a dataset and as a stream,
+    both are the pinhole camera's images again, depth remapped alike (nearest); read as if the lens were
+    a pinhole, the periphery is off."""
+    cam, k1 = Camera(150.0, 150.0, 79.5, 59.5, 160, 120), -0.2
+    v, u = np.mgrid[0:120, 0:160].astype(np.float32)
+    pinhole = 0.5 + 0.4 * np.sin(u / 5.0) * np.cos(v / 4.0)
+    q = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :].astype(np.float64)
+    p = cv2.undistortPoints(q, cam.K, np.array([k1, 0.0, 0.0, 0.0, 0.0]), P=cam.K).reshape(120, 160, 2)
+    recorded = cv2.remap(pinhole, p[..., 0].astype(np.float32), p[..., 1].astype(np.float32), cv2.INTER_LINEAR)
+    depth = np.where(u < 20, 1500, 2500).astype(np.uint16)  # a step: nearest keeps both surfaces, nothing between
+    for name, distortion in (("lens", (k1, 0.0, 0.0, 0.0, 0.0)), ("pinhole", (0.0,) * 5)):
+        with BagWriter(tmp_path / f"{name}.bag", ros2=False) as bag:
+            for t in (0.0, 0.1):
+                bag.image("/rgb", t, np.repeat(np.rint(recorded * 255).astype(np.uint8)[..., None], 3, axis=2), "rgb8")
+                bag.camera_info("/camera_info", t, cam, distortion)
+                bag.image("/depth", t, depth, "16UC1")
+    inner = (slice(6, -6), slice(6, -6))
+    keys = ["dataset.type=rosbag", f"dataset.path={tmp_path / 'lens.bag'}"]
+    dataset, streamed = (
+        open_dataset(load_config(keys))[0],
+        next(iter(open_dataset(load_config([*keys, "dataset.stream=true"])))),
+    )
+    as_is = RosbagDataset(tmp_path / "pinhole.bag")[0]
+    err_as_is = np.abs(as_is.rgb[..., 0] - pinhole)[inner].mean()
+    for f in (dataset, streamed):
+        err = np.abs(f.rgb[..., 0] - pinhole)[inner].mean()
+        assert err < 0.01 and err_as_is > 5 * err
+        np.testing.assert_allclose(np.unique(f.depth), [1.5, 2.5], rtol=1e-6)
+    assert (dataset.depth < 2.0).sum() < 0.9 * (
+        as_is.depth < 2.0
+    ).sum()  # the border's surface moved out as its colour did
+
+
 def test_ambiguous_topics_are_listed_with_the_keys_that_choose(tmp_path):
     frames = scene_frames(3)
     bag = write_realsense_like_bag(tmp_path / "two.bag", frames, extra_colour=True)
@@ -348,9 +382,9 @@ def test_rosbag_errors_name_the_bag_and_the_problem(tmp_path, monkeypatch):
     with BagWriter(tmp_path / "distorted.bag", ros2=False) as bag:
         for f in frames:
             bag.image("/rgb", f.timestamp, np.round(f.rgb * 255).astype(np.uint8), "rgb8")
-            bag.camera_info("/camera_info", f.timestamp, CAMERA, distortion=(0.1, 0.0, 0.0, 0.0, 0.0))
+            bag.camera_info("/camera_info", f.timestamp, CAMERA, (0.1, 0.0, 0.0, 0.0), model="equidistant")
             bag.image("/depth", f.timestamp, np.zeros((12, 16), np.uint16), "16UC1")
-    with pytest.warns(DatasetWarning, match=r"gives distortion \(0.1, 0.0, 0.0, 0.0, 0.0\): not undone"):
+    with pytest.warns(DatasetWarning, match=r"gives distortion model 'equidistant' \(0.1, 0.0, 0.0, 0.0\): not undone"):
         ds = RosbagDataset(tmp_path / "distorted.bag")
     with pytest.raises(DatasetError, match="depth is 16x12, colour 32x24: depth must be registered to the colour"):
         ds[0]

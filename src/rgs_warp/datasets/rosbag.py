@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset, check_pose
+from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset, check_pose, undistort_maps
 from rgs_warp.datasets.stream import CallbackSource
 from rgs_warp.geometry import pose_from_tq
 from rgs_warp.types import Camera, Frame
@@ -119,7 +119,7 @@ def _decode_compressed(msg) -> tuple[str, np.ndarray]:
 def camera_from_info(msg, size: tuple[int, int] | None = None) -> Camera:
     """Our ``Camera`` from a ``sensor_msgs/CameraInfo`` (fx = K[0], fy = K[4], cx = K[2], cy = K[5]; ROS 1
     spells the fields K and D), of ``size`` (width, height) where the message gives none; non-zero
-    distortion coefficients are kept (the images are not undistorted: the loaders warn)."""
+    distortion coefficients are kept (``bag_camera`` undoes them)."""
     k = np.asarray(msg.k if hasattr(msg, "k") else msg.K, dtype=np.float64).ravel()
     d = np.asarray(msg.d if hasattr(msg, "d") else msg.D, dtype=np.float64).ravel()
     if k.size != 9:
@@ -149,8 +149,9 @@ def poses_from_msg(msg, frame: str = "") -> list[tuple[float, np.ndarray]]:
     return [(stamp_s(msg), check_pose(pose_from_tq(t, q / np.linalg.norm(q)), f"pose at {stamp_s(msg):.6f} s"))]
 
 
-def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: str) -> Frame:
-    """A ``Frame`` from a colour message, its depth message (or None) and pose (or None)."""
+def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: str, remap_maps=None) -> Frame:
+    """A ``Frame`` from a colour message, its depth message (or None) and pose (or None); ``remap_maps``
+    (``base.undistort_maps`` of the camera info) undistort both images."""
     kind, rgb = decode_image(colour_msg)
     if kind == "depth":
         raise DatasetError(f"{where}: the colour topic holds a depth image")
@@ -165,6 +166,10 @@ def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: s
                 f"{where}: depth is {dw}x{dh}, colour {w}x{h}: depth must be registered to the colour camera "
                 f"(realsense-ros: aligned_depth_to_color/image_raw)"
             )
+    if remap_maps is not None:
+        rgb = cv2.remap(rgb, *remap_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if depth is not None:  # nearest: no depth between two surfaces
+            depth = cv2.remap(depth, *remap_maps, cv2.INTER_NEAREST)
     return Frame(rgb, depth, None if pose is None else pose.copy(), stamp_s(colour_msg), 0)
 
 
@@ -449,9 +454,14 @@ def choose_topics(
     return chosen
 
 
-def bag_camera(bag: BagReader, topics: BagTopics) -> tuple[Camera, list[str]]:
+# CameraInfo distortion models whose coefficients are OpenCV's (k1, k2, p1, p2, k3[, k4, k5, k6])
+PINHOLE_DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+
+
+def bag_camera(bag: BagReader, topics: BagTopics) -> tuple[Camera, tuple | None, list[str]]:
     """The colour camera from the camera info topic's first message (the images' size where it gives
-    none), and notes (distortion that is not undone)."""
+    none), as the images will be: undistorted onto the same intrinsics by the remap maps returned
+    (None: nothing to undo); and notes (a distortion model that is not undone)."""
     msg = bag.first(topics.info)
     _, px = decode_image(bag.first(topics.colour))
     h, w = px.shape[:2]
@@ -464,12 +474,17 @@ def bag_camera(bag: BagReader, topics: BagTopics) -> tuple[Camera, list[str]]:
             f"{bag.path}: {topics.info.name} is for {camera.width}x{camera.height} images, "
             f"{topics.colour.name}'s are {w}x{h}"
         )
-    notes = []
+    notes, maps = [], None
     if camera.distortion:
-        notes.append(
-            f"{topics.info.name} gives distortion {camera.distortion}: not undone, the images are used as recorded"
-        )
-    return camera.undistorted(), notes
+        model = str(getattr(msg, "distortion_model", "") or "plumb_bob")
+        if model in PINHOLE_DISTORTION_MODELS and len(camera.distortion) in (4, 5, 8):
+            maps = undistort_maps(camera, camera.distortion, f"{bag.path}: {topics.info.name} distortion")
+        else:
+            notes.append(
+                f"{topics.info.name} gives distortion model {model!r} {camera.distortion}: not undone (only "
+                f"{' and '.join(PINHOLE_DISTORTION_MODELS)} are), the images are used as recorded"
+            )
+    return camera.undistorted(), maps, notes
 
 
 class RosbagDataset(RGBDDataset):
@@ -508,7 +523,7 @@ class RosbagDataset(RGBDDataset):
             pose_frame=pose_frame,
             need_depth=require_depth,
         )
-        self._native_camera, notes = bag_camera(self._bag, self.topics)
+        self._native_camera, self._remap_maps, notes = bag_camera(self._bag, self.topics)
         for message in self.topics.notes + notes:
             self.note(message)
         pairing = StampPairing(
@@ -537,7 +552,7 @@ class RosbagDataset(RGBDDataset):
         t, colour_ref, depth_ref, pose = item
         colour = self._bag.read(colour_ref)
         depth = self._bag.read(depth_ref) if depth_ref is not None else None
-        return frame_from_messages(colour, depth, pose, f"{self.root}: frame at {t:.6f} s")
+        return frame_from_messages(colour, depth, pose, f"{self.root}: frame at {t:.6f} s", self._remap_maps)
 
     def _gt_pose(self, item):
         return None if item[3] is None else item[3].copy()
@@ -551,12 +566,14 @@ class RosFrames:
     producer's thread (a bag playing, a live node's subscriber callbacks), ``end`` says the stream
     ended, ``fail`` that it broke.  They are paired (``StampPairing``) and decoded there;
     ``next_frame`` (a ``CallbackSource``'s) hands the frames over in order, None after the end, and
-    re-raises a failure.  The producer waits while ``QUEUE`` frames wait for the SLAM.
+    re-raises a failure.  The producer waits while ``QUEUE`` frames wait for the SLAM; ``remap_maps``
+    (``base.undistort_maps``) undistort the frames, for a camera that reports distortion.
 
-        frames = RosFrames(max_dt=0.02)
+        camera = camera_from_info(info_msg)
+        frames = RosFrames(max_dt=0.02, remap_maps=undistort_maps(camera, camera.distortion, "camera_info"))
         node.create_subscription(Image, "/camera/color/image_raw", frames.colour, 10)
         node.create_subscription(Image, "/camera/aligned_depth_to_color/image_raw", frames.depth, 10)
-        run(cfg, source=CallbackSource(camera_from_info(info_msg), frames.next_frame))
+        run(cfg, source=CallbackSource(camera.undistorted(), frames.next_frame))
     """
 
     QUEUE = 4
@@ -570,8 +587,9 @@ class RosFrames:
         poses: bool = False,
         pose_frame: str = "",
         name: str = "ros",
+        remap_maps=None,
     ):
-        self.pose_frame, self.name = pose_frame, name
+        self.pose_frame, self.name, self.remap_maps = pose_frame, name, remap_maps
         self.pairing = StampPairing(max_dt, depth=depth, need_depth=need_depth, poses=poses)
         self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE)
         self._closed = threading.Event()
@@ -616,7 +634,7 @@ class RosFrames:
 
     def _hand_over(self, settled: list) -> None:
         for t, colour, depth, pose in settled:
-            self._put(frame_from_messages(colour, depth, pose, f"{self.name}: frame at {t:.6f} s"))
+            self._put(frame_from_messages(colour, depth, pose, f"{self.name}: frame at {t:.6f} s", self.remap_maps))
 
     def _put(self, item) -> None:
         while not self._closed.is_set():
@@ -655,7 +673,7 @@ class RosbagSource(CallbackSource):
             pose_frame=pose_frame,
             need_depth=require_depth,
         )
-        camera, notes = bag_camera(self._bag, self.topics)
+        camera, remap_maps, notes = bag_camera(self._bag, self.topics)
         name = self._bag.path.name
         self.frames = RosFrames(
             max_dt,
@@ -664,6 +682,7 @@ class RosbagSource(CallbackSource):
             poses=self.topics.pose is not None,
             pose_frame=self.topics.pose_frame,
             name=name,
+            remap_maps=remap_maps,
         )
         self._playback: threading.Thread | None = None
         super().__init__(camera, self._next, max_frames=max_frames, name=name)
