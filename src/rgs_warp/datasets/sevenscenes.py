@@ -9,7 +9,8 @@ colour camera, so that frames are what the RGB-D pipeline assumes: colour and de
 camera.  The colour calibration is ours, measured on the shared redkitchen frames by aligning depth
 discontinuities with colour edges (``experiments/results/slam.md``, section "7-Scenes
 calibration"); DSAC's public code uses the same colour focal
-length (525 px)."""
+length (525 px).  The colour lens (a slight barrel, ``colour_distortion``, measured there too) is
+undone on load, onto the same intrinsics."""
 
 from __future__ import annotations
 
