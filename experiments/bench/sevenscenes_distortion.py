@@ -2,7 +2,8 @@
 frame pairs (i, i + gap) aligned photometrically under each hypothesis k1, scored by what they leave.
 
     python experiments/bench/sevenscenes_distortion.py --data DATA/7scenes-redkitchen \
-        --trajectory RUN_DIR/trajectory.txt --gap 24 --k1 0 -0.02 -0.035 -0.05 [--fx 526] [--out FILE.json]
+        --trajectory RUN_DIR/trajectory.txt --gap 24 --k1 0 -0.02 -0.035 -0.05 \
+        [--k2 0] [--fx 526] [--cx 322] [--cy 238] [--out FILE.json]
 
 For each hypothesis the loader undoes k1 (``dataset.colour_distortion``, depth registered as the SLAM sees
 it); every 25th frame i is paired with frame i + gap.  Frame i's textured pixels with measured depth are
@@ -76,7 +77,10 @@ def main() -> None:
     ap.add_argument("--trajectory", required=True, help="a run's trajectory.txt (the fits' starting poses)")
     ap.add_argument("--gap", type=int, default=24, help="frames between the two of a pair")
     ap.add_argument("--k1", type=float, nargs="+", default=[0.0, -0.02, -0.035, -0.05])
+    ap.add_argument("--k2", type=float, default=0.0, help="the second radial coefficient, for every k1")
     ap.add_argument("--fx", type=float, default=526.0, help="the colour camera's focal length (px)")
+    ap.add_argument("--cx", type=float, default=322.0, help="its principal point (px)")
+    ap.add_argument("--cy", type=float, default=238.0)
     ap.add_argument("--out", default="", help="JSON file of the results")
     args = ap.parse_args()
 
@@ -84,7 +88,9 @@ def main() -> None:
     results = []
     for k1 in args.k1:
         ds = SevenScenesDataset(
-            args.data, colour_intrinsics=(args.fx, args.fx, 322.0, 238.0), colour_distortion=(k1, 0.0, 0.0, 0.0, 0.0)
+            args.data,
+            colour_intrinsics=(args.fx, args.fx, args.cx, args.cy),
+            colour_distortion=(k1, args.k2, 0.0, 0.0, 0.0),
         )
         poses = {}
         for k in range(len(ds)):
@@ -94,7 +100,10 @@ def main() -> None:
         scores = np.array([pair_residuals(ds, poses, i, j, rng) for i, j in pairs])
         row = {
             "k1": k1,
+            "k2": args.k2,
             "fx": args.fx,
+            "cx": args.cx,
+            "cy": args.cy,
             "gap": args.gap,
             "pairs": len(pairs),
             "centre": round(float(np.nanmean(scores[:, 0])), 3),
