@@ -220,6 +220,29 @@ def test_sevenscenes_colour_distortion_undone(tmp_path):
         SevenScenesDataset(tmp_path, colour_distortion=(1.0, 2.0, 3.0))
 
 
+def test_your_own_camera_lens_from_cam_params_is_undone(tmp_path):
+    """A TUM-layout folder (your own data) whose cam_params.json gives the lens's coefficients: frames come
+    undistorted onto the same K (OpenCV's undistort of the recorded image), the camera without distortion;
+    the Replica layout (pinhole renders) refuses a lens, naming the file."""
+    from helpers_tum import tiny_tum
+
+    k = [-0.3, 0.1, 0.0, 0.0, 0.0]
+    root = tiny_tum(tmp_path / "mine", camera={"distortion": k})
+    plain = TUMDataset(tiny_tum(tmp_path / "plain"), require_pose=False)
+    ds = TUMDataset(root, require_pose=False)
+    assert ds.camera == plain.camera and not ds.camera.distortion
+    K = ds.camera.K
+    expected = cv2.undistort(plain[1].rgb, K, np.array(k))
+    np.testing.assert_allclose(ds[1].rgb, expected, atol=1e-5)
+    assert np.abs(ds[1].rgb - plain[1].rgb).mean() > 0.05  # the lens moved the pixels
+    replica = tmp_path / "replica"
+    (replica / "results").mkdir(parents=True)
+    (replica / "results" / "frame000000.jpg").write_bytes(b"")
+    (replica / "cam_params.json").write_text((root / "cam_params.json").read_text())
+    with pytest.raises(DatasetError, match=rf"{replica / 'cam_params.json'}: gives a lens distortion"):
+        ReplicaDataset(replica)
+
+
 def test_prefetch_iteration_equals_indexing(shared_data):
     ds = SevenScenesDataset(shared_data / "7scenes-redkitchen", stride=50, prefetch=3)
     frames = list(ds)

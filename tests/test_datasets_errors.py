@@ -23,6 +23,7 @@ SMALL = ["device=cpu", "mapping.init_iters=10", "mapping.iters_per_frame=1", "tr
         ({"fy": float("nan")}, "fy = nan"),
         ({"cx": 640.0}, "cx = 640.0: the principal point"),
         ({"scale": 0}, "scale = 0.0: the depth scale"),
+        ({"distortion": [0.1, 0.2]}, r"distortion = \[0.1, 0.2\]: expected OpenCV's 4, 5, 8"),
     ],
 )
 def test_cam_params_errors_name_the_file(tmp_path, camera, message):

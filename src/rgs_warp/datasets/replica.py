@@ -41,14 +41,22 @@ def read_matrix_lines(path: Path, n_rows: int | None = None) -> np.ndarray:
 
 
 def read_cam_params(path: Path, default_scale: float = REPLICA_DEPTH_SCALE) -> tuple[Camera, float]:
-    """Camera and depth scale from a NICE-SLAM style ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}``."""
+    """Camera and depth scale from a NICE-SLAM style ``{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}``,
+    with the lens's OpenCV coefficients where it gives ``"distortion": [k1, k2, p1, p2, k3]``."""
     try:
         c = json.loads(path.read_text())["camera"]
         values = {k: float(c[k]) for k in ("fx", "fy", "cx", "cy")}
         values.update(width=int(c["w"]), height=int(c["h"]))
         scale = float(c.get("scale", default_scale))
+        distortion = tuple(float(v) for v in c.get("distortion", ()))
     except (ValueError, KeyError, TypeError, OverflowError) as e:
         raise DatasetError(f"{path}: malformed camera parameters ({type(e).__name__}: {e})") from None
+    if distortion and (len(distortion) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(distortion))):
+        raise DatasetError(
+            f"{path}: distortion = {list(distortion)}: expected OpenCV's 4, 5, 8, 12 or 14 finite coefficients "
+            f"(k1, k2, p1, p2, ...)"
+        )
+    values.update(distortion=distortion if any(distortion) else ())
     try:
         cam = Camera(**values)
     except ValueError as e:
@@ -94,6 +102,11 @@ class ReplicaDataset(RGBDDataset):
         for cand in (self.root / "cam_params.json", self.root.parent / "cam_params.json"):
             if cand.is_file():
                 self._native_camera, self.depth_scale = read_cam_params(cand, REPLICA_DEPTH_SCALE)
+                if self._native_camera.distortion:
+                    raise DatasetError(
+                        f"{cand}: gives a lens distortion, but the Replica layout holds pinhole renders: a camera "
+                        f"with a lens goes through the TUM layout, whose loader undoes it"
+                    )
                 self.cam_params_path = cand
                 return
 
