@@ -1,4 +1,5 @@
-"""A TUM-layout dataset folder of a few tiny frames, for the loaders' and the command line's tests."""
+"""A TUM-layout dataset folder of a few tiny frames (and a Replica one beside it), for the loaders' and the
+command line's tests."""
 
 import json
 
@@ -26,4 +27,12 @@ def tiny_tum(root, n_rgb=4, n_depth=4, camera=None):
     (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     cam = {"w": W, "h": H, "fx": 60.0, "fy": 60.0, "cx": 31.5, "cy": 23.5, "scale": 1000} | (camera or {})
     (root / "cam_params.json").write_text(json.dumps({"camera": cam}))
+    return root
+
+
+def replica_with_cam_params(root, cam_params):
+    """A Replica-layout folder (one empty frame) with a copy of the ``cam_params`` file: enough to open it."""
+    (root / "results").mkdir(parents=True)
+    (root / "results" / "frame000000.jpg").write_bytes(b"")
+    (root / "cam_params.json").write_text(cam_params.read_text())
     return root

@@ -216,7 +216,7 @@ def test_sevenscenes_colour_distortion_undone(tmp_path):
     err_as_is = np.abs(as_is.rgb[..., 0] - pinhole)[inner].mean()
     assert err_fixed < 0.01 and err_as_is > 5 * err_fixed
     np.testing.assert_array_equal(fixed.depth, as_is.depth)  # depth registration does not change
-    with pytest.raises(DatasetError, match=r"dataset.colour_distortion \(1.0, 2.0, 3.0\): expected OpenCV.s 4, 5, 8"):
+    with pytest.raises(DatasetError, match=r"dataset.colour_distortion \[1.0, 2.0, 3.0\]: expected OpenCV.s 4, 5, 8"):
         SevenScenesDataset(tmp_path, colour_distortion=(1.0, 2.0, 3.0))
 
 
@@ -224,7 +224,7 @@ def test_your_own_camera_lens_from_cam_params_is_undone(tmp_path):
     """A TUM-layout folder (your own data) whose cam_params.json gives the lens's coefficients: frames come
     undistorted onto the same K (OpenCV's undistort of the recorded image), the camera without distortion;
     the Replica layout (pinhole renders) refuses a lens, naming the file."""
-    from helpers_tum import tiny_tum
+    from helpers_tum import replica_with_cam_params, tiny_tum
 
     k = [-0.3, 0.1, 0.0, 0.0, 0.0]
     root = tiny_tum(tmp_path / "mine", camera={"distortion": k})
@@ -235,10 +235,7 @@ def test_your_own_camera_lens_from_cam_params_is_undone(tmp_path):
     expected = cv2.undistort(plain[1].rgb, K, np.array(k))
     np.testing.assert_allclose(ds[1].rgb, expected, atol=1e-5)
     assert np.abs(ds[1].rgb - plain[1].rgb).mean() > 0.05  # the lens moved the pixels
-    replica = tmp_path / "replica"
-    (replica / "results").mkdir(parents=True)
-    (replica / "results" / "frame000000.jpg").write_bytes(b"")
-    (replica / "cam_params.json").write_text((root / "cam_params.json").read_text())
+    replica = replica_with_cam_params(tmp_path / "replica", root / "cam_params.json")
     with pytest.raises(DatasetError, match=rf"{replica / 'cam_params.json'}: gives a lens distortion"):
         ReplicaDataset(replica)
 

@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from helpers_tum import tiny_tum
+from helpers_tum import replica_with_cam_params, tiny_tum
 from rgs_warp.config import ConfigError, load_config
 from rgs_warp.slam import SLAM
 from rgs_warp.types import Camera
@@ -34,10 +34,7 @@ def test_cam_params_errors_name_the_file(tmp_path, camera, message):
     tum = tiny_tum(tmp_path / "tum", camera=camera)
     with pytest.raises(DatasetError, match=rf"{tum / 'cam_params.json'}: {message}"):
         TUMDataset(tum, require_pose=False)
-    replica = tmp_path / "replica"
-    (replica / "results").mkdir(parents=True)
-    (replica / "results" / "frame000000.jpg").write_bytes(b"")
-    (replica / "cam_params.json").write_text((tum / "cam_params.json").read_text())
+    replica = replica_with_cam_params(tmp_path / "replica", tum / "cam_params.json")
     with pytest.raises(DatasetError, match=rf"{replica / 'cam_params.json'}: {message}"):
         ReplicaDataset(replica)
 

@@ -155,21 +155,37 @@ def reproject_depth(
     return out.reshape(target.height, target.width)
 
 
-def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """OpenCV's remap maps that undistort an image of ``camera`` with ``distortion`` (OpenCV's coefficients:
-    k1, k2, p1, p2[, k3[, ...]]) onto the same pinhole intrinsics; None when there are none or all are 0.  ``what``
-    names the coefficients' source in errors."""
-    d = np.asarray(distortion, dtype=np.float64).ravel()
-    if d.size == 0:
-        return None
-    if d.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(d)):
+def checked_distortion(distortion, what: str) -> tuple[float, ...]:
+    """``distortion`` as OpenCV's lens coefficients (k1, k2, p1, p2[, k3[, ...]]), () for none or all 0;
+    DatasetError naming ``what`` (the coefficients' source) for a count OpenCV does not take or a value
+    that is not finite."""
+    d = tuple(float(v) for v in np.asarray(distortion, dtype=np.float64).ravel())
+    if d and (len(d) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(d))):
         raise DatasetError(
-            f"{what} {tuple(distortion)}: expected OpenCV's 4, 5, 8, 12 or 14 finite coefficients (k1, k2, p1, p2, ...)"
+            f"{what} {list(distortion)}: expected OpenCV's 4, 5, 8, 12 or 14 finite coefficients (k1, k2, p1, p2, ...)"
         )
-    if not np.any(d):
+    return d if any(d) else ()
+
+
+def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """OpenCV's remap maps that undistort an image of ``camera`` with ``distortion`` (``checked_distortion``)
+    onto the same pinhole intrinsics; None when there is nothing to undo."""
+    d = checked_distortion(distortion, what)
+    if not d:
         return None
     size = (camera.width, camera.height)
-    return cv2.initUndistortRectifyMap(camera.K, d, None, camera.K, size, cv2.CV_32FC1)
+    return cv2.initUndistortRectifyMap(camera.K, np.array(d), None, camera.K, size, cv2.CV_32FC1)
+
+
+def undistort_frame(maps, rgb: np.ndarray, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """``rgb`` (linear) and ``depth`` (nearest: no depth between two surfaces; 0 outside) remapped by
+    ``undistort_maps``' ``maps``; as they are when ``maps`` is None."""
+    if maps is None:
+        return rgb, depth
+    rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    if depth is not None:
+        depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+    return rgb, depth
 
 
 def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb
+from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, checked_distortion, read_depth, read_rgb
 from rgs_warp.types import Camera, Frame
 
 # NICE-SLAM's Replica rendering: 1200x680, fx = fy = 600, principal point at the image centre.
@@ -51,12 +51,7 @@ def read_cam_params(path: Path, default_scale: float = REPLICA_DEPTH_SCALE) -> t
         distortion = tuple(float(v) for v in c.get("distortion", ()))
     except (ValueError, KeyError, TypeError, OverflowError) as e:
         raise DatasetError(f"{path}: malformed camera parameters ({type(e).__name__}: {e})") from None
-    if distortion and (len(distortion) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(distortion))):
-        raise DatasetError(
-            f"{path}: distortion = {list(distortion)}: expected OpenCV's 4, 5, 8, 12 or 14 finite coefficients "
-            f"(k1, k2, p1, p2, ...)"
-        )
-    values.update(distortion=distortion if any(distortion) else ())
+    values.update(distortion=checked_distortion(distortion, f"{path}: distortion ="))
     try:
         cam = Camera(**values)
     except ValueError as e:

@@ -24,7 +24,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, DatasetWarning, RGBDDataset, check_pose, undistort_maps
+from rgs_warp.datasets.base import (
+    DatasetError,
+    DatasetWarning,
+    RGBDDataset,
+    check_pose,
+    undistort_frame,
+    undistort_maps,
+)
 from rgs_warp.datasets.stream import CallbackSource
 from rgs_warp.geometry import pose_from_tq
 from rgs_warp.types import Camera, Frame
@@ -149,9 +156,9 @@ def poses_from_msg(msg, frame: str = "") -> list[tuple[float, np.ndarray]]:
     return [(stamp_s(msg), check_pose(pose_from_tq(t, q / np.linalg.norm(q)), f"pose at {stamp_s(msg):.6f} s"))]
 
 
-def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: str, remap_maps=None) -> Frame:
-    """A ``Frame`` from a colour message, its depth message (or None) and pose (or None); ``remap_maps``
-    (``base.undistort_maps`` of the camera info) undistort both images."""
+def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: str, undistort=None) -> Frame:
+    """A ``Frame`` from a colour message, its depth message (or None) and pose (or None); ``undistort``
+    (``base.undistort_maps``' maps of the camera info) undistorts both images."""
     kind, rgb = decode_image(colour_msg)
     if kind == "depth":
         raise DatasetError(f"{where}: the colour topic holds a depth image")
@@ -166,10 +173,7 @@ def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: s
                 f"{where}: depth is {dw}x{dh}, colour {w}x{h}: depth must be registered to the colour camera "
                 f"(realsense-ros: aligned_depth_to_color/image_raw)"
             )
-    if remap_maps is not None:
-        rgb = cv2.remap(rgb, *remap_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        if depth is not None:  # nearest: no depth between two surfaces
-            depth = cv2.remap(depth, *remap_maps, cv2.INTER_NEAREST)
+    rgb, depth = undistort_frame(undistort, rgb, depth)
     return Frame(rgb, depth, None if pose is None else pose.copy(), stamp_s(colour_msg), 0)
 
 
@@ -523,7 +527,7 @@ class RosbagDataset(RGBDDataset):
             pose_frame=pose_frame,
             need_depth=require_depth,
         )
-        self._native_camera, self._remap_maps, notes = bag_camera(self._bag, self.topics)
+        self._native_camera, self._undistort_maps, notes = bag_camera(self._bag, self.topics)
         for message in self.topics.notes + notes:
             self.note(message)
         pairing = StampPairing(
@@ -552,7 +556,7 @@ class RosbagDataset(RGBDDataset):
         t, colour_ref, depth_ref, pose = item
         colour = self._bag.read(colour_ref)
         depth = self._bag.read(depth_ref) if depth_ref is not None else None
-        return frame_from_messages(colour, depth, pose, f"{self.root}: frame at {t:.6f} s", self._remap_maps)
+        return frame_from_messages(colour, depth, pose, f"{self.root}: frame at {t:.6f} s", self._undistort_maps)
 
     def _gt_pose(self, item):
         return None if item[3] is None else item[3].copy()
@@ -566,11 +570,11 @@ class RosFrames:
     producer's thread (a bag playing, a live node's subscriber callbacks), ``end`` says the stream
     ended, ``fail`` that it broke.  They are paired (``StampPairing``) and decoded there;
     ``next_frame`` (a ``CallbackSource``'s) hands the frames over in order, None after the end, and
-    re-raises a failure.  The producer waits while ``QUEUE`` frames wait for the SLAM; ``remap_maps``
-    (``base.undistort_maps``) undistort the frames, for a camera that reports distortion.
+    re-raises a failure.  The producer waits while ``QUEUE`` frames wait for the SLAM; ``undistort``
+    (``base.undistort_maps``' maps) undistorts the frames, for a camera that reports distortion.
 
         camera = camera_from_info(info_msg)
-        frames = RosFrames(max_dt=0.02, remap_maps=undistort_maps(camera, camera.distortion, "camera_info"))
+        frames = RosFrames(max_dt=0.02, undistort=undistort_maps(camera, camera.distortion, "camera_info"))
         node.create_subscription(Image, "/camera/color/image_raw", frames.colour, 10)
         node.create_subscription(Image, "/camera/aligned_depth_to_color/image_raw", frames.depth, 10)
         run(cfg, source=CallbackSource(camera.undistorted(), frames.next_frame))
@@ -587,9 +591,9 @@ class RosFrames:
         poses: bool = False,
         pose_frame: str = "",
         name: str = "ros",
-        remap_maps=None,
+        undistort=None,
     ):
-        self.pose_frame, self.name, self.remap_maps = pose_frame, name, remap_maps
+        self.pose_frame, self.name, self.undistort = pose_frame, name, undistort
         self.pairing = StampPairing(max_dt, depth=depth, need_depth=need_depth, poses=poses)
         self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE)
         self._closed = threading.Event()
@@ -634,7 +638,7 @@ class RosFrames:
 
     def _hand_over(self, settled: list) -> None:
         for t, colour, depth, pose in settled:
-            self._put(frame_from_messages(colour, depth, pose, f"{self.name}: frame at {t:.6f} s", self.remap_maps))
+            self._put(frame_from_messages(colour, depth, pose, f"{self.name}: frame at {t:.6f} s", self.undistort))
 
     def _put(self, item) -> None:
         while not self._closed.is_set():
@@ -673,7 +677,7 @@ class RosbagSource(CallbackSource):
             pose_frame=pose_frame,
             need_depth=require_depth,
         )
-        camera, remap_maps, notes = bag_camera(self._bag, self.topics)
+        camera, undistort, notes = bag_camera(self._bag, self.topics)
         name = self._bag.path.name
         self.frames = RosFrames(
             max_dt,
@@ -682,7 +686,7 @@ class RosbagSource(CallbackSource):
             poses=self.topics.pose is not None,
             pose_frame=self.topics.pose_frame,
             name=name,
-            remap_maps=remap_maps,
+            undistort=undistort,
         )
         self._playback: threading.Thread | None = None
         super().__init__(camera, self._next, max_frames=max_frames, name=name)

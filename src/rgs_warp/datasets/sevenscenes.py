@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import re
 
-import cv2
 import numpy as np
 
 from rgs_warp.config import DatasetConfig
@@ -27,6 +26,7 @@ from rgs_warp.datasets.base import (
     read_depth,
     read_rgb,
     reproject_depth,
+    undistort_frame,
     undistort_maps,
 )
 from rgs_warp.types import Camera, Frame
@@ -74,7 +74,7 @@ class SevenScenesDataset(RGBDDataset):
         self._depth_camera = self._read_intrinsics()
         self._native_camera = self._depth_camera
         self._offset = None
-        self._undistort = None
+        self._undistort_maps = None
         if register_depth:
             if len(colour_intrinsics) != 4 or len(depth_to_colour_m) != 3:
                 raise ValueError(
@@ -87,7 +87,7 @@ class SevenScenesDataset(RGBDDataset):
             except ValueError as e:
                 raise DatasetError(f"dataset.colour_intrinsics {tuple(colour_intrinsics)}: {e}") from None
             self._offset = np.asarray(depth_to_colour_m, dtype=np.float64)
-            self._undistort = undistort_maps(self._native_camera, colour_distortion, "dataset.colour_distortion")
+            self._undistort_maps = undistort_maps(self._native_camera, colour_distortion, "dataset.colour_distortion")
         self._items = [(colour[k], self._read_pose(colour[k])) for k in sorted(colour)]
         self._select()
 
@@ -129,9 +129,7 @@ class SevenScenesDataset(RGBDDataset):
         if self._offset is not None:
             depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
-        rgb = read_rgb(colour_path)
-        if self._undistort is not None:
-            rgb = cv2.remap(rgb, *self._undistort, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rgb, _ = undistort_frame(self._undistort_maps, read_rgb(colour_path))  # depth is registered on the pinhole
         return Frame(rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
 
     def _gt_pose(self, item) -> np.ndarray:

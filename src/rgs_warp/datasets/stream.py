@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, reproject_depth, undistort_maps
+from rgs_warp.datasets.base import DatasetError, reproject_depth, undistort_frame, undistort_maps
 from rgs_warp.types import Camera, Frame
 
 
@@ -105,12 +105,12 @@ def frame_from_images(
     depth_scale_m: float,
     timestamp_ms: float,
     index: int = 0,
-    remap_maps=None,
+    undistort=None,
 ) -> Frame:
     """A ``Frame`` from a RealSense frame pair: ``colour`` HxWx3 or 4 uint8 in ``colour_format``
     (rgb8, bgr8, rgba8, bgra8), ``depth_raw`` HxW uint16 already aligned to the colour camera, in
     units of ``depth_scale_m`` metres (0 = no depth), ``timestamp_ms`` librealsense's milliseconds;
-    ``remap_maps`` (OpenCV's remap maps, ``base.undistort_maps``) undistort both images."""
+    ``undistort`` (``base.undistort_maps``' maps) undistorts both images."""
     order = _COLOUR_ORDER.get(colour_format)
     if order is None:
         raise DatasetError(
@@ -127,10 +127,7 @@ def frame_from_images(
                 f"depth must be aligned to colour"
             )
         depth = depth_raw.astype(np.float32) * np.float32(depth_scale_m)
-    if remap_maps is not None:
-        rgb = cv2.remap(rgb, *remap_maps, cv2.INTER_LINEAR)
-        if depth is not None:  # nearest: no depth between two surfaces
-            depth = cv2.remap(depth, *remap_maps, cv2.INTER_NEAREST)
+    rgb, depth = undistort_frame(undistort, rgb, depth)
     return Frame(rgb, depth, None, float(timestamp_ms) / 1000.0, index)
 
 
@@ -208,7 +205,7 @@ class RealSenseSource(CallbackSource):
                 None,
                 1.0,
                 colour.get_timestamp(),
-                remap_maps=self._undistort_maps,
+                undistort=self._undistort_maps,
             )
             frame.depth = self._recording.registered_depth(depth, self.camera)
             return frame
@@ -230,7 +227,7 @@ class RealSenseSource(CallbackSource):
                 np.asanyarray(depth.get_data()),
                 self.depth_scale_m,
                 colour.get_timestamp(),
-                remap_maps=self._undistort_maps,
+                undistort=self._undistort_maps,
             )
 
     def close(self) -> None:

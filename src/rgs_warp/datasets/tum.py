@@ -6,10 +6,17 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from rgs_warp.datasets.base import DatasetError, RGBDDataset, check_pose, read_depth, read_rgb, undistort_maps
+from rgs_warp.datasets.base import (
+    DatasetError,
+    RGBDDataset,
+    check_pose,
+    read_depth,
+    read_rgb,
+    undistort_frame,
+    undistort_maps,
+)
 from rgs_warp.datasets.replica import read_cam_params
 from rgs_warp.geometry import pose_from_tq
 from rgs_warp.types import Camera, Frame
@@ -176,12 +183,7 @@ class TUMDataset(RGBDDataset):
             raise DatasetError(
                 f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is {cam.width}x{cam.height}"
             )
-        if self._undistort_maps is not None:
-            mx, my = self._undistort_maps
-            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            if depth is not None:
-                # Nearest: interpolating depth across an edge would invent points between surfaces.
-                depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        rgb, depth = undistort_frame(self._undistort_maps, rgb, depth)
         return Frame(rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t), index=0)
 
     def _gt_pose(self, item):
