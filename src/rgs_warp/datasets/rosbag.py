@@ -481,7 +481,7 @@ def bag_camera(bag: BagReader, topics: BagTopics) -> tuple[Camera, tuple | None,
     notes, maps = [], None
     if camera.distortion:
         model = str(getattr(msg, "distortion_model", "") or "plumb_bob")
-        if model in PINHOLE_DISTORTION_MODELS and len(camera.distortion) in (4, 5, 8):
+        if model in PINHOLE_DISTORTION_MODELS:
             maps = undistort_maps(camera, camera.distortion, f"{bag.path}: {topics.info.name} distortion")
         else:
             notes.append(
