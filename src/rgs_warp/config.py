@@ -239,13 +239,11 @@ class MappingConfig:
     init_wait: Literal["window", "first", "seeds"] = "window"  # asynchronous: what of the first window tracking awaits
     min_iters: NonNegInt = 0  # asynchronous: a keyframe's mapping ends after this many once the next waits; 0: off
     final_iters: NonNegInt = 0  # iterations over windows of all keyframes after the last frame; 0: off
-    finish_window: bool = False  # after the last frame, the window mapped as a new keyframe's (fills joined)
     window: Count = 5  # keyframes in the sliding window
     views_per_iter: NonNegInt = 1  # window views rendered an iteration, a fresh random subset; 0: all
     graph: Switch = "auto"  # one-view mapping steps as captured graphs; auto: on on CUDA
     history: Fraction = 0.7  # probability that a view rendered is an older keyframe instead of a window view
     history_size: NonNegInt = 32  # older keyframes kept on the device for it (a uniform sample)
-    history_by_loss: NonNegative = 0.0  # older views drawn by (colour L1 when last rendered)^this; 0: uniformly
     frame_views: NonNegInt = 8  # recent frames between keyframes that views may also be (as older keyframes); 0: off
     frame_view_every: Count = 3  # ... one kept every this many frames after a keyframe
     init_iters: Count = 1050  # mapping iterations of the initialization

@@ -129,8 +129,6 @@ class Mapper:
             gmap.add_column(f"grad.{name}", dtype, inner, scratch=True)
         gmap.add_column("grad.opacity_before", wp.float32, scratch=True)
         self.rng = np.random.default_rng(seed)
-        # mapping.history_by_loss: each view's colour L1 when an iteration last rendered it, by frame id
-        self.view_l1: dict[int, float] = {}
         dev = self.device
         shape = (camera.height, camera.width)
         self.dssim = DSSIMLoss(camera.height, camera.width, dev)
@@ -154,21 +152,12 @@ class Mapper:
         """The optimiser's clocks besides the map's columns: Adam's step count (bias correction), the
         view-order generator and the cumulative iterations; ``load_state_dict`` restores them."""
         rng = json.dumps(self.rng.bit_generator.state)
-        ids, l1 = np.array(list(self.view_l1), dtype=np.int64), np.array(list(self.view_l1.values()))
-        return {
-            "adam_t": np.array(self.adam.t),
-            "rng": np.array(rng),
-            "total_iters": np.array(self.total_iters),
-            "view_l1_ids": ids,
-            "view_l1": l1,
-        }
+        return {"adam_t": np.array(self.adam.t), "rng": np.array(rng), "total_iters": np.array(self.total_iters)}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.adam.t = int(state["adam_t"])
         self.rng.bit_generator.state = json.loads(str(state["rng"]))
         self.total_iters = int(state["total_iters"])
-        if "view_l1_ids" in state:
-            self.view_l1 = dict(zip(state["view_l1_ids"].tolist(), state["view_l1"].tolist(), strict=True))
 
     def grads(self) -> GaussianGrads:
         """The gradient columns of the map (valid until it grows)."""
@@ -268,17 +257,14 @@ class Mapper:
         self._overflows.zero_()
         self.adam.schedule([cosine_factor(it, iters, self.cfg.lr_final_factor) for it in range(iters)])
         graphs = _StepGraphs(self) if self._graphs_apply() else None
-        frame_ids = [int(b.frame_ids[s]) for b, s in zip(buffers, slots, strict=True)]
-        rendered: list[list[int]] = []  # the views (positions j) each iteration rendered
         for it in range(iters):
             views = list(self.rng.permutation(k_win))[::-1]  # every view, in a fresh order each iteration
             if 0 < self.cfg.views_per_iter < k_win:
                 views = views[: self.cfg.views_per_iter]  # or a fresh random subset of them
             if history:
                 older = self.rng.random(len(views)) < self.cfg.history
-                picks = self._history_picks(frame_ids[k_win:], len(views))
+                picks = self.rng.integers(len(history), size=len(views))
                 views = [k_win + int(p) if o else v for v, o, p in zip(views, older, picks, strict=True)]
-            rendered.append(views)
             if graphs is not None:
                 graphs.step(buffers, slots, views[0], use_depth, blocks, result)
             else:
@@ -308,22 +294,7 @@ class Mapper:
         result.loss_history = loss[:, km.L_LOSS].copy()
         result.l1_history = loss[:, km.L_ABS] / pixels
         result.depth_l1_history = np.where(depth_px > 0, loss[:, km.L_DEPTH] / np.maximum(depth_px, 1.0), np.nan)
-        for views, l1 in zip(rendered, result.l1_history, strict=False):
-            for j in views:
-                self.view_l1[frame_ids[j]] = float(l1)
         return result
-
-    def _history_picks(self, frame_ids: list[int], n: int) -> np.ndarray:
-        """``n`` draws among the older views (their frame ids): uniform, or with ``mapping.history_by_loss``
-        > 0 in proportion to (the view's colour L1 when last rendered) to that power, a view never rendered
-        weighing as the largest."""
-        power = self.cfg.history_by_loss
-        if power <= 0.0:
-            return self.rng.integers(len(frame_ids), size=n)
-        seen = [self.view_l1[i] for i in frame_ids if i in self.view_l1]
-        top = max(seen) if seen else 1.0
-        w = np.array([self.view_l1.get(i, top) for i in frame_ids]) ** power
-        return self.rng.choice(len(frame_ids), size=n, p=w / w.sum())
 
     def _graphs_apply(self) -> bool:
         """Whether this call's steps run as captured graphs (``mapping.graph``): one view per step, and

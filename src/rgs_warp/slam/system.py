@@ -483,17 +483,6 @@ class SLAM:
             result.pruned = result.mapping.pruned
         jobs.publish()
 
-    def _finish_window(self) -> None:
-        """After the last frame (``mapping.finish_window``): the window mapped as a new keyframe's would be,
-        with the frame fills since the last keyframe joined, so the last frames' map is fitted too."""
-        t0 = time.perf_counter()
-        b = self.budget
-        iters = max(1, round(b.keyframe_share * b.per_frame * b.gap))
-        window = self.keyframes.slots()[-self.cfg.mapping.window :]
-        done = self.mapper.optimize(self.keyframes, window, iters, history=self._older(window))
-        self.mapping_iterations["refine"] += done.iters
-        self.stats["refine_s"] += time.perf_counter() - t0
-
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
         """The views besides ``window`` that mapping may render (``mapping.history``): the buffer's keyframes
         outside the window, those the history kept, and the frames between keyframes kept as views."""
@@ -545,8 +534,6 @@ class SLAM:
         after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
-        if refine and self.cfg.mapping.finish_window and self.keyframe_indices and len(self.map):
-            self._finish_window()
         if refine and self.archive is not None and len(self.archive) and len(self.map):
             t0 = time.perf_counter()
             cfg = self.cfg.mapping
