@@ -243,7 +243,7 @@ class MappingConfig:
     views_per_iter: NonNegInt = 1  # window views rendered an iteration, a fresh random subset; 0: all
     graph: Switch = "auto"  # one-view mapping steps as captured graphs; auto: on on CUDA
     history: Fraction = 0.7  # probability that a view rendered is an older keyframe instead of a window view
-    history_size: NonNegInt = 32  # older keyframes kept on the device for it (a uniform sample)
+    history_size: NonNegInt = 64  # older keyframes kept on the device for it (a uniform sample once more were evicted)
     frame_views: NonNegInt = 8  # recent frames between keyframes that views may also be (as older keyframes); 0: off
     frame_view_every: Count = 3  # ... one kept every this many frames after a keyframe
     init_iters: Count = 1050  # mapping iterations of the initialization
