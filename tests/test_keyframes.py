@@ -237,6 +237,17 @@ def test_history_keeps_evicted_keyframes_then_a_uniform_sample(device):
     assert counts[:15].sum() == pytest.approx(counts[15:].sum(), rel=0.25), counts
 
 
+def test_history_holds_device_memory_for_the_keyframes_it_keeps(device):
+    # mapping.history_size 64 of 1200x680 frames would be 0.8 GiB held from the start; it grows as it keeps
+    history = KeyframeHistory(64, 4, 2, device, seed=0)
+    assert history.buffer.rgb.allocated == history.buffer.depth.allocated == 0
+    _evict_into(history, 4, device)
+    assert len(history) == history.buffer.rgb.allocated == history.buffer.depth.allocated == 3
+    for _, s in history.views():  # each slot its own image
+        k = int(history.buffer.frame_ids[s])
+        np.testing.assert_array_equal(history.buffer.rgb[s].numpy(), np.full((2, 4, 3), k))
+
+
 def test_history_state_round_trip(device):
     history = KeyframeHistory(2, 4, 2, device, seed=1)
     _evict_into(history, 6, device)

@@ -134,13 +134,17 @@ class KeyframeBuffer:
     long-range revisits are the map's job, not the buffer's.
     """
 
-    def __init__(self, capacity: int, width: int, height: int, device: str):
+    def __init__(self, capacity: int, width: int, height: int, device: str, lazy: bool = False):
+        """``lazy``: each slot's images are allocated when a keyframe is first stored there, and ``rgb`` /
+        ``depth`` are indexable by slot only (a buffer that may never fill: the history); else one array
+        of all slots each, which kernels index by slot."""
         if not 1 <= capacity:
             raise ValueError(f"keyframe buffer capacity must be >= 1, got {capacity}")
         self.capacity = capacity
         self.device = device
-        self.rgb = wp.zeros((capacity, height, width), dtype=wp.vec3, device=device)
-        self.depth = wp.zeros((capacity, height, width), dtype=wp.float32, device=device)
+        images = _SlotImages if lazy else _slot_array
+        self.rgb = images((capacity, height, width), wp.vec3, device)
+        self.depth = images((capacity, height, width), wp.float32, device)
         self.poses = np.tile(np.eye(4), (capacity, 1, 1))  # camera-to-world, as tracked
         self.exposure = np.tile(np.array([1.0, 0.0]), (capacity, 1))  # (g, b) of Eq. 3
         self.frame_ids = np.full(capacity, -1, dtype=np.int64)
@@ -184,6 +188,30 @@ class KeyframeBuffer:
         self._order.remove(slot)
 
 
+def _slot_array(shape: tuple[int, int, int], dtype, device) -> wp.array:
+    return wp.zeros(shape, dtype=dtype, device=device)
+
+
+class _SlotImages:
+    """A lazy buffer's images: ``[slot]`` gives slot's (height, width) array, allocated at its first use."""
+
+    def __init__(self, shape: tuple[int, int, int], dtype, device):
+        self.shape, self.dtype, self.device = shape, dtype, device
+        self._slots: dict[int, wp.array] = {}
+
+    def __getitem__(self, slot: int) -> wp.array:
+        if slot not in self._slots:
+            if not 0 <= slot < self.shape[0]:
+                raise IndexError(f"slot {slot} of a buffer of {self.shape[0]}")
+            self._slots[slot] = wp.zeros(self.shape[1:], dtype=self.dtype, device=self.device)
+        return self._slots[slot]
+
+    @property
+    def allocated(self) -> int:
+        """Slots whose images exist on the device."""
+        return len(self._slots)
+
+
 class KeyframeHistory:
     """Older keyframes on the device for mapping (``mapping.history``): those the keyframe buffer
     evicts, up to ``capacity``; when full, each newly evicted keyframe replaces a random one with
@@ -191,7 +219,8 @@ class KeyframeHistory:
     sample of the whole run rather than its latest part."""
 
     def __init__(self, capacity: int, width: int, height: int, device: str, seed: int = 0):
-        self.buffer = KeyframeBuffer(capacity, width, height, device)
+        # device memory for the keyframes kept, not for all it could keep (64 office frames: 0.8 GiB)
+        self.buffer = KeyframeBuffer(capacity, width, height, device, lazy=True)
         self.evicted = 0
         self.rng = np.random.default_rng(seed)
 
@@ -287,7 +316,7 @@ def _load_buffer(buf: KeyframeBuffer, state: dict[str, np.ndarray]) -> None:
         )
 
 
-def _copy_into(dst: wp.array, slot: int, src, dtype) -> None:
+def _copy_into(dst: wp.array | _SlotImages, slot: int, src, dtype) -> None:
     if isinstance(src, np.ndarray):
         src = wp.array(np.ascontiguousarray(src, dtype=np.float32), dtype=dtype, device=dst.device)
     if src.shape != dst.shape[1:]:  # wp.copy would copy the overlap of any two sizes silently
