@@ -1,5 +1,7 @@
 """The run's progress bar phases and the record of the Warp kernel modules a run loads."""
 
+import time
+
 import numpy as np
 import warp as wp
 
@@ -45,6 +47,18 @@ def test_progress_bar_is_silent_at_first(capsys):
     bar.phase("opening the dataset")
     bar.close()
     assert "synthetic/room0 [opening the dataset]" in capsys.readouterr().err
+
+
+def test_a_closed_bar_ends_its_line(capsys):
+    # what is printed after the bar (a run's error) starts on a line of its own, also when the frames
+    # started within the bar's quiet time (its clock restarts with them)
+    bar = RunProgress("synthetic/room0", quiet_s=0.05)
+    time.sleep(0.1)
+    bar.start_frames(10)
+    bar.set_postfix(fps="1.00")
+    bar.close()
+    err = capsys.readouterr().err
+    assert "synthetic/room0 [tracking]" in err and err.endswith("\n"), repr(err[-80:])
 
 
 def test_progress_bar_names_the_phase_and_the_module_compiling():

@@ -56,6 +56,29 @@ RESUMED = [
 
 
 @pytest.mark.slow
+def test_a_frame_that_cannot_be_read_stops_the_run_saying_what_was_saved(tmp_path, capsys, device):
+    # a damaged file in the middle of a recording: the frames before it are saved, and the command says so
+    # before the error that names the file (the run had ended with the error alone)
+    from rgs_warp.datasets.synthetic import SyntheticConfig, write_sequence
+
+    data = tmp_path / "rec"
+    write_sequence(
+        SyntheticConfig(scene="office0", width=64, height=48, n_frames=8), data, "tum", device=device, progress=False
+    )
+    bad = data / (data / "depth.txt").read_text().split()[-1]  # the last frame's depth image
+    bad.write_bytes(bad.read_bytes()[:100])
+    argv = ["dataset.type=tum", f"dataset.path={data}", "dataset.prefetch=0", "mapping.init_iters=10"]
+    argv += ["mapping.iters_per_frame=1", f"device={device}", f"output_dir={tmp_path / 'runs'}", "run_name=cut"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    run_dir = tmp_path / "runs" / "cut"
+    assert f"stopped at frame 7 by the error below: what was tracked is saved in {run_dir}" in err, err
+    assert f"error: {bad}: not a readable depth image" in err, err
+    assert err.index("stopped at frame 7") < err.index(f"error: {bad}")
+    _, poses = read_tum_trajectory(run_dir / "trajectory.txt")
+    assert len(poses) == 7
+
+
 def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, device):
     """``kill -9`` four frames after the checkpoint at the 6th keyframe (read from the uninterrupted
     run's log), ``resume=``, and the run ends where an uninterrupted run without checkpoints ends.

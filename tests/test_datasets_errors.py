@@ -53,6 +53,39 @@ def test_sevenscenes_intrinsics_are_checked(tmp_path):
         SevenScenesDataset(tmp_path, colour_intrinsics=(526.0, 526.0, 900.0, 238.0))
 
 
+def test_a_frame_of_another_size_names_its_file(tmp_path):
+    """The lens's remap and 7-Scenes' depth registration produce the calibration's size whatever they are
+    given: a 320x240 colour image in a 640x480 7-Scenes sequence had been resampled into a 640x480 frame
+    of the wrong content without a word (one frame lost later), a TUM depth image of another size with a lens
+    likewise."""
+    import cv2
+
+    from rgs_warp.datasets import DatasetError, SevenScenesDataset, TUMDataset
+
+    seven = tmp_path / "seven"
+    seven.mkdir()
+    for i, (w, h) in enumerate([(640, 480), (320, 240)]):
+        cv2.imwrite(str(seven / f"frame-{i:06d}.color.png"), np.full((h, w, 3), 128, np.uint8))
+        cv2.imwrite(str(seven / f"frame-{i:06d}.depth.png"), np.full((480, 640), 2000, np.uint16))
+        (seven / f"frame-{i:06d}.pose.txt").write_text(" ".join(map(str, np.eye(4).ravel())))
+    ds = SevenScenesDataset(seven)
+    assert ds[0].rgb.shape == (480, 640, 3)
+    with pytest.raises(
+        DatasetError, match=r"frame-000001.color.png: colour image is 320x240, the calibration says 640x480"
+    ):
+        ds[1]
+    cv2.imwrite(str(seven / "frame-000000.depth.png"), np.full((240, 320), 2000, np.uint16))
+    with pytest.raises(
+        DatasetError, match=r"frame-000000.depth.png: depth image is 320x240, the calibration says 640x480"
+    ):
+        ds[0]
+    root = tiny_tum(tmp_path / "mine", camera={"distortion": [-0.1, 0.0, 0.0, 0.0]})
+    depth_file = sorted((root / "depth").iterdir())[1]
+    cv2.imwrite(str(depth_file), np.full((24, 32), 2000, np.uint16))
+    with pytest.raises(DatasetError, match=r"rgb/.*\.png: depth image is 32x24, the calibration says 64x48"):
+        TUMDataset(root, require_pose=False)[1]
+
+
 def test_downscale_of_a_loaded_dataset_is_checked(tmp_path):
     """The native size of a real dataset is known once it is open: still before any run folder."""
     from rgs_warp.datasets import open_dataset

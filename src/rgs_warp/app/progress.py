@@ -149,4 +149,8 @@ class RunProgress:
         self.bar.write(message, file=file)
 
     def close(self) -> None:
+        """The bar's last state on a line of its own, once it has been shown (tqdm leaves the line open, and an
+        error after it on the same line, when the frames began within its quiet time)."""
+        if time.monotonic() >= self._shown_after:
+            self.bar.delay = 0
         self.bar.close()

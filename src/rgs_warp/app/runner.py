@@ -284,17 +284,15 @@ def _run_frames(
             save_run(cfg, slam, run_dir, refine=False).write()  # a stopped run saves at once
         except Exception as e:  # noqa: BLE001 (the error that stopped the run is the one raised)
             print(f"error: the run stopped, and saving what it tracked failed: {e}", file=sys.stderr)
-        else:
-            if isinstance(stop, KeyboardInterrupt | SystemExit):
-                again = (
-                    f"; python -m rgs_warp.slam resume={run_dir} continues it"
-                    if (run_dir / CHECKPOINT).is_file()
-                    else ""
-                )
-                print(
-                    f"stopped at frame {state.next_frame}: what was tracked is saved in {run_dir}{again}",
-                    file=sys.stderr,
-                )
+        else:  # said for an error too (a frame that cannot be read): the error follows
+            again = (
+                f"; python -m rgs_warp.slam resume={run_dir} continues it" if (run_dir / CHECKPOINT).is_file() else ""
+            )
+            why = "" if isinstance(stop, KeyboardInterrupt | SystemExit) else " by the error below"
+            print(
+                f"stopped at frame {state.next_frame}{why}: what was tracked is saved in {run_dir}{again}",
+                file=sys.stderr,
+            )
         raise
     log.close()
     writer.close()

@@ -167,6 +167,17 @@ def checked_distortion(distortion, what: str) -> tuple[float, ...]:
     return d if any(d) else ()
 
 
+def check_frame_size(shape: tuple[int, int], source: str, **images: np.ndarray | None) -> None:
+    """A ``DatasetError`` naming ``source`` when one of ``images`` (by name) is not ``shape`` (rows, columns): the
+    calibration's size, which a remap or a reprojection would otherwise force on it."""
+    h, w = shape
+    for name, image in images.items():
+        if image is not None and image.shape[:2] != (h, w):
+            raise DatasetError(
+                f"{source}: {name} image is {image.shape[1]}x{image.shape[0]}, the calibration says {w}x{h}"
+            )
+
+
 def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, np.ndarray] | None:
     """OpenCV's remap maps that undistort an image of ``camera`` with ``distortion`` (``checked_distortion``)
     onto the same pinhole intrinsics; None when there is nothing to undo."""
@@ -177,11 +188,15 @@ def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, n
     return cv2.initUndistortRectifyMap(camera.K, np.array(d), None, camera.K, size, cv2.CV_32FC1)
 
 
-def undistort_frame(maps, rgb: np.ndarray, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def undistort_frame(
+    maps, rgb: np.ndarray, depth: np.ndarray | None = None, source: str = "frame"
+) -> tuple[np.ndarray, np.ndarray | None]:
     """``rgb`` (linear) and ``depth`` (nearest: no depth between two surfaces; 0 outside) remapped by
-    ``undistort_maps``' ``maps``; as they are when ``maps`` is None."""
+    ``undistort_maps``' ``maps``; as they are when ``maps`` is None.  An image of another size than the
+    maps' (which the remap would silently resample to their size) is a ``DatasetError`` naming ``source``."""
     if maps is None:
         return rgb, depth
+    check_frame_size(maps[0].shape[:2], source, colour=rgb, depth=depth)
     rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     if depth is not None:
         depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)

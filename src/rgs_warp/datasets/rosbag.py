@@ -173,7 +173,7 @@ def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: s
                 f"{where}: depth is {dw}x{dh}, colour {w}x{h}: depth must be registered to the colour camera "
                 f"(realsense-ros: aligned_depth_to_color/image_raw)"
             )
-    rgb, depth = undistort_frame(undistort, rgb, depth)
+    rgb, depth = undistort_frame(undistort, rgb, depth, source=where)
     return Frame(rgb, depth, None if pose is None else pose.copy(), stamp_s(colour_msg), 0)
 
 

@@ -22,6 +22,7 @@ from rgs_warp.config import DatasetConfig
 from rgs_warp.datasets.base import (
     DatasetError,
     RGBDDataset,
+    check_frame_size,
     check_pose,
     read_depth,
     read_rgb,
@@ -124,12 +125,16 @@ class SevenScenesDataset(RGBDDataset):
 
     def _load_full(self, item) -> Frame:
         colour_path, pose = item
-        depth = read_depth(self._sibling(colour_path, ".depth.png"), self.depth_scale)
+        depth_path = self._sibling(colour_path, ".depth.png")
+        depth = read_depth(depth_path, self.depth_scale)
         depth[depth >= 65.535] = 0.0  # 65535 marks missing depth in 7-Scenes
         if self._offset is not None:
-            depth = reproject_depth(depth, self._depth_camera, self._native_camera, self._offset)
+            dc = self._depth_camera
+            check_frame_size((dc.height, dc.width), str(depth_path), depth=depth)
+            depth = reproject_depth(depth, dc, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
-        rgb, _ = undistort_frame(self._undistort_maps, read_rgb(colour_path))  # depth is registered on the pinhole
+        # depth is registered on the pinhole
+        rgb, _ = undistort_frame(self._undistort_maps, read_rgb(colour_path), source=str(colour_path))
         return Frame(rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
 
     def _gt_pose(self, item) -> np.ndarray:

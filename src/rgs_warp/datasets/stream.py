@@ -127,7 +127,7 @@ def frame_from_images(
                 f"depth must be aligned to colour"
             )
         depth = depth_raw.astype(np.float32) * np.float32(depth_scale_m)
-    rgb, depth = undistort_frame(undistort, rgb, depth)
+    rgb, depth = undistort_frame(undistort, rgb, depth, source=f"RealSense frame {index}")
     return Frame(rgb, depth, None, float(timestamp_ms) / 1000.0, index)
 
 

@@ -183,7 +183,7 @@ class TUMDataset(RGBDDataset):
             raise DatasetError(
                 f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is {cam.width}x{cam.height}"
             )
-        rgb, depth = undistort_frame(self._undistort_maps, rgb, depth)
+        rgb, depth = undistort_frame(self._undistort_maps, rgb, depth, source=str(rgb_path))
         return Frame(rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t), index=0)
 
     def _gt_pose(self, item):
