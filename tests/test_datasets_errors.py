@@ -86,6 +86,31 @@ def test_a_frame_of_another_size_names_its_file(tmp_path):
         TUMDataset(root, require_pose=False)[1]
 
 
+def test_missing_files_are_named_when_the_dataset_opens(tmp_path):
+    """A frame file listed (TUM) or implied (7-Scenes' depth beside its colour image) but absent: an incomplete
+    download had stopped the run at that frame, minutes in; now the dataset refuses to open, naming them, unless
+    the selection leaves them out."""
+    import cv2
+
+    from rgs_warp.datasets import DatasetError, SevenScenesDataset, TUMDataset
+
+    root = tiny_tum(tmp_path / "mine")
+    gone = sorted((root / "rgb").iterdir())[2]
+    gone.unlink()
+    with pytest.raises(DatasetError, match=rf"1 files of the selected frames are missing: {gone} \(an incomplete"):
+        TUMDataset(root, require_pose=False)
+    assert len(TUMDataset(root, require_pose=False, max_frames=2)) == 2  # not selected: not needed
+    seven = tmp_path / "seven"
+    seven.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(seven / f"frame-{i:06d}.color.png"), np.full((480, 640, 3), 128, np.uint8))
+        cv2.imwrite(str(seven / f"frame-{i:06d}.depth.png"), np.full((480, 640), 2000, np.uint16))
+        (seven / f"frame-{i:06d}.pose.txt").write_text(" ".join(map(str, np.eye(4).ravel())))
+    (seven / "frame-000001.depth.png").unlink()
+    with pytest.raises(DatasetError, match=r"1 files .* missing: .*frame-000001.depth.png"):
+        SevenScenesDataset(seven)
+
+
 def test_downscale_of_a_loaded_dataset_is_checked(tmp_path):
     """The native size of a real dataset is known once it is open: still before any run folder."""
     from rgs_warp.datasets import open_dataset

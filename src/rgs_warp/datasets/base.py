@@ -288,6 +288,18 @@ class RGBDDataset:
             self._indices = self._indices[: self.max_frames]
         if not self._indices:
             raise DatasetError(f"{self.root}: start={self.start} is past the last of {n_all} frames")
+        # at open, not at the frame that needs it minutes into a run
+        missing = [p for j in self._indices for p in self._files(self._items[j]) if not p.is_file()]
+        if missing:
+            shown = ", ".join(str(p) for p in missing[:3]) + (", ..." if len(missing) > 3 else "")
+            raise DatasetError(
+                f"{self.root}: {len(missing)} files of the selected frames are missing: {shown} (an incomplete "
+                f"download or copy?)"
+            )
+
+    def _files(self, item) -> tuple[Path, ...]:
+        """The files frame ``item`` reads that listing the folder did not already find (checked at open)."""
+        return ()
 
     @property
     def native_camera(self) -> Camera:

@@ -105,6 +105,9 @@ class ReplicaDataset(RGBDDataset):
                 self.cam_params_path = cand
                 return
 
+    def _files(self, j: int) -> tuple[Path, ...]:
+        return (self.root / "results" / f"depth{j:06d}.png",)
+
     def _load_full(self, j: int) -> Frame:
         res = self.root / "results"
         return Frame(

@@ -15,6 +15,7 @@ undone on load, onto the same intrinsics."""
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 
@@ -122,6 +123,9 @@ class SevenScenesDataset(RGBDDataset):
         if vals.size != 16:
             raise DatasetError(f"{path}: expected 16 numbers (a 4x4 matrix), found {vals.size}")
         return check_pose(vals.reshape(4, 4), str(path))
+
+    def _files(self, item) -> tuple[Path, ...]:
+        return (self._sibling(item[0], ".depth.png"),)
 
     def _load_full(self, item) -> Frame:
         colour_path, pose = item

@@ -174,6 +174,9 @@ class TUMDataset(RGBDDataset):
             )
         self._select()
 
+    def _files(self, item) -> tuple[Path, ...]:
+        return (item[1],) if item[2] is None else (item[1], item[2])
+
     def _load_full(self, item) -> Frame:
         t, rgb_path, depth_path, pose = item
         rgb = read_rgb(rgb_path)
