@@ -98,6 +98,21 @@ def test_a_snapshot_keeps_the_slam_as_it_was(tmp_path, device):
     np.testing.assert_array_equal(np.load(tmp_path / "state.npz")["map.adam_m.means"], np.ones((n, 3)))
 
 
+def test_a_frame_stopped_in_its_keyframe_mapping_leaves_a_loadable_save(tmp_path, device):
+    """Ctrl-C (or an error) while a keyframe's window is mapped, most of a synchronous run's time: the frame is
+    in the keyframe buffer and ``keyframe_indices``, its pose not yet in the trajectory.  The run's save of what
+    was tracked had then failed to load ("3 poses, but frame 3 is a keyframe (truncated?)"); the frame is left
+    out of the saved keyframes."""
+    slam = _slam(device, frames=3, keyframes=2)
+    rng = np.random.default_rng(1)
+    slam.keyframes.add(3, np.eye(4), rng.random((90, 160, 3)), rng.random((90, 160)))
+    slam.keyframe_indices.append(3)
+    slam.save(tmp_path)
+    loaded = SLAM.load(tmp_path, device=device)
+    assert len(loaded.poses) == 3 and loaded.keyframe_indices == [0, 1]
+    assert sorted(int(loaded.keyframes.frame_ids[s]) for s in loaded.keyframes.slots()) == [0, 1]
+
+
 def test_a_failed_rename_keeps_the_previous_file_whole(tmp_path, device, monkeypatch):
     """A full disk while a newer map is written (here: at its rename) leaves the previous map.ply
     whole, and every other file is updated; 8dc16f7 writes in place, so it raises nothing here."""

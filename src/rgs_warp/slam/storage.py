@@ -108,9 +108,11 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray], compress: bool) -> Non
 
 
 def _keyframe_arrays(slam) -> dict[str, np.ndarray]:
-    """The keyframe buffer's arrays, each a new array (index arrays, stacks): no view of live memory."""
-    kf = slam.keyframes
-    slots = kf.slots()
+    """The keyframe buffer's arrays, each a new array (index arrays, stacks): no view of live memory.  A frame
+    that an interrupt stopped in its keyframe's mapping has its keyframe but not yet its pose: it is left out, so
+    that what was tracked loads."""
+    kf, n = slam.keyframes, len(slam.poses)
+    slots = [s for s in kf.slots() if kf.frame_ids[s] < n]
     return dict(
         frame_ids=kf.frame_ids[slots],
         poses=kf.poses[slots],
@@ -118,8 +120,8 @@ def _keyframe_arrays(slam) -> dict[str, np.ndarray]:
         rgb=np.stack([kf.rgb[s].numpy() for s in slots]) if slots else np.zeros((0,)),
         depth=np.stack([kf.depth[s].numpy() for s in slots]) if slots else np.zeros((0,)),
         slots=np.array(slots, dtype=np.int64),  # load puts each keyframe back in its slot
-        keyframe_indices=np.array(slam.keyframe_indices, dtype=np.int64),
-        frames=np.array(len(slam.poses)),  # trajectory.txt's length: load tells a truncated one
+        keyframe_indices=np.array([i for i in slam.keyframe_indices if i < n], dtype=np.int64),
+        frames=np.array(n),  # trajectory.txt's length: load tells a truncated one
         mapping_iters=np.array(slam.mapper.total_iters),  # the densification schedule's clock
         camera=np.array([slam.camera.fx, slam.camera.fy, slam.camera.cx, slam.camera.cy]),
         size=np.array([slam.camera.width, slam.camera.height]),
