@@ -243,6 +243,9 @@ def test_the_command_lists_names_and_refuses_unknown_ones(tmp_path, capsys):
     assert main(["tum/fr1_dsk", "--data-root", str(tmp_path)]) == 2
     assert "Did you mean 'tum/fr1_desk'?" in capsys.readouterr().err
     assert main(["--data-root", str(tmp_path)]) == 2
+    (tmp_path / "a_file").write_text("")  # a data root that is a file: said so, before any request
+    assert main(["tum/fr1_desk", "--data-root", str(tmp_path / "a_file")]) == 1
+    assert f"error: data root {tmp_path / 'a_file'} is a file, not a folder" in capsys.readouterr().err
 
 
 def test_a_missing_dataset_names_the_download_command(tmp_path):

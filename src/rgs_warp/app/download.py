@@ -72,6 +72,8 @@ def download(
     file names).  Raises ``DownloadError``."""
     datasets = resolve(names, catalogue)
     data_root = Path(data_root).expanduser()
+    if data_root.exists() and not data_root.is_dir():
+        raise DownloadError(f"data root {data_root} is a file, not a folder")
     missing = [d for d in datasets if not is_present(data_root, d)]
     for d in datasets:
         if d not in missing:
