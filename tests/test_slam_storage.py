@@ -154,6 +154,17 @@ def test_load_names_a_truncated_file(tmp_path, device, name):
     assert str(path) in str(e.value) and "truncated" in str(e.value)
 
 
+def test_load_says_what_is_missing(tmp_path, device):
+    """A folder that is not there, and one without a saved run's files, each said so (the first had been
+    reported as a missing map.ply)."""
+    from rgs_warp.slam.storage import LoadError
+
+    with pytest.raises(LoadError, match=rf"^{tmp_path / 'nothere'}: no such folder$"):
+        SLAM.load(tmp_path / "nothere", device=device)
+    with pytest.raises(LoadError, match=r"map.ply: missing \(not a folder written by SLAM.save\)"):
+        SLAM.load(tmp_path, device=device)
+
+
 def test_load_of_a_checkpoint_restores_every_state(tmp_path, device):
     """``save(..., state=True)``: the optimiser's columns and clocks, the selector's reference and the
     motion model come back exactly (what makes a resumed run equal to an uninterrupted one)."""

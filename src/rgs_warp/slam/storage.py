@@ -203,6 +203,8 @@ def load_slam(cls, directory: str | Path, device=None):
     the reader's own ``PlyFormatError``, ``TrajectoryFormatError``, ``ConfigError``), naming the
     file and what is wrong."""
     directory = Path(directory)
+    if not directory.is_dir():
+        raise LoadError(f"{directory}: no such folder")
     for name in ("map.ply", "trajectory.txt", "keyframes.npz", "config.yaml"):
         if not (directory / name).is_file():
             raise LoadError(f"{directory / name}: missing (not a folder written by SLAM.save)")
