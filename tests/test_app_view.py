@@ -372,3 +372,16 @@ def test_open_viewer_says_when_its_port_was_taken(capsys):
         with open_viewer(port) as viewer:
             assert viewer.port != port
             assert f"viewer: port {port} is in use; serving on port {viewer.port} instead" in capsys.readouterr().err
+
+
+def test_the_command_prints_its_error_alone(tmp_path):
+    # a folder that is not there, said so on one line; Warp's start-up banner not printed before it
+    import subprocess
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "rgs_warp.view", str(tmp_path / "nothere")], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 1
+    assert f"error: {tmp_path / 'nothere'}: no such folder" in proc.stderr
+    printed = proc.stdout + proc.stderr
+    assert "initialized" not in printed and "Kernel cache" not in printed, printed

@@ -11,6 +11,7 @@ from pathlib import Path
 import warp as wp
 
 from rgs_warp.app.cpu_size import cpu_sized_overrides
+from rgs_warp.app.progress import quiet_warp
 from rgs_warp.app.runner import ResumeError, resume, resume_config, run
 from rgs_warp.config import DEFAULTS, GROUPS, Config, ConfigError, group_options, leaves, load_config, resolve_device
 from rgs_warp.datasets import DatasetError, DatasetWarning
@@ -57,8 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         print(help_text())
         return 0
     resume_dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
-    # the progress bar names the kernel modules as Warp compiles them, instead of Warp's line for each
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    quiet_warp()
     try:
         cfg = None if resume_dirs else load_config(argv)
         if cfg is not None:

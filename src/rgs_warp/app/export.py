@@ -74,7 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-depth-m", type=float, default=5.0, help="rendered depth beyond this is not fused")
     ap.add_argument("--device", default=None, help="Warp device (default: the run's)")
     args = ap.parse_args(argv)
+    from rgs_warp.app.progress import quiet_warp
     from rgs_warp.slam import SLAM
+
+    quiet_warp()
 
     try:
         slam = SLAM.load(args.run_dir, device=args.device)

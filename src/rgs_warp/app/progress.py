@@ -20,6 +20,12 @@ import warp as wp
 from tqdm import tqdm
 
 
+def quiet_warp() -> None:
+    """Warp's own lines off (its banner at start-up, a line per kernel module loaded): the commands say what
+    happens (the progress bar names the modules as they compile); its warnings stay."""
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+
 @dataclass
 class KernelLoads:
     """The kernel modules loaded while ``watch_kernel_loads`` watched: ``compiled`` (name, start, end;

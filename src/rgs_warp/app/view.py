@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rgs_warp.app.progress import quiet_warp
 from rgs_warp.geometry import matrix_to_quat, quat_to_matrix
 from rgs_warp.types import Camera
 
@@ -580,6 +581,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--data-root", help="where the run's dataset is, as data_root= of the run")
     args = ap.parse_args(argv)
+    quiet_warp()
     from rgs_warp.config import resolve_device
     from rgs_warp.slam import SLAM
 
