@@ -197,9 +197,12 @@ def test_resume_may_turn_the_viewer_on(tmp_path):
 def test_view_command_refuses_what_is_not_a_run(tmp_path, capsys):
     from rgs_warp.app.view import main
 
-    assert main([str(tmp_path / "nothing"), "--port", "0", "--device", "cpu"]) == 1
+    (tmp_path / "empty").mkdir()
+    assert main([str(tmp_path / "empty"), "--port", "0", "--device", "cpu"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "map.ply: missing" in err and len(err.strip().splitlines()) == 1
+    assert main([str(tmp_path / "nothing"), "--port", "0", "--device", "cpu"]) == 1
+    assert capsys.readouterr().err == f"error: {tmp_path / 'nothing'}: no such folder\n"
 
 
 @pytest.mark.slow
@@ -375,7 +378,7 @@ def test_open_viewer_says_when_its_port_was_taken(capsys):
 
 
 def test_the_command_prints_its_error_alone(tmp_path):
-    # a folder that is not there, said so on one line; Warp's start-up banner not printed before it
+    # in a process of its own (Warp starts there): its start-up banner is not printed before the error
     import subprocess
 
     proc = subprocess.run(
