@@ -56,6 +56,7 @@ RESUMED = [
 
 
 @pytest.mark.slow
+@pytest.mark.slow
 def test_a_frame_that_cannot_be_read_stops_the_run_saying_what_was_saved(tmp_path, capsys, device):
     # a damaged file in the middle of a recording: the frames before it are saved, and the command says so
     # before the error that names the file (the run had ended with the error alone)
