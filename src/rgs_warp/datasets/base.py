@@ -292,10 +292,8 @@ class RGBDDataset:
         missing = [p for j in self._indices for p in self._files(self._items[j]) if not p.is_file()]
         if missing:
             shown = ", ".join(str(p) for p in missing[:3]) + (", ..." if len(missing) > 3 else "")
-            raise DatasetError(
-                f"{self.root}: {len(missing)} files of the selected frames are missing: {shown} (an incomplete "
-                f"download or copy?)"
-            )
+            files = f"{len(missing)} files of the selected frames are" if len(missing) > 1 else "a file of a frame is"
+            raise DatasetError(f"{self.root}: {files} missing: {shown} (an incomplete download or copy?)")
 
     def _files(self, item) -> tuple[Path, ...]:
         """The files frame ``item`` reads that listing the folder did not already find (checked at open)."""

@@ -137,7 +137,7 @@ class SevenScenesDataset(RGBDDataset):
             check_frame_size((dc.height, dc.width), str(depth_path), depth=depth)
             depth = reproject_depth(depth, dc, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
-        # depth is registered on the pinhole
+        # the colour only: depth is registered onto the pinhole camera above
         rgb, _ = undistort_frame(self._undistort_maps, read_rgb(colour_path), source=str(colour_path))
         return Frame(rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
 
