@@ -111,6 +111,18 @@ def test_missing_files_are_named_when_the_dataset_opens(tmp_path):
         SevenScenesDataset(seven)
 
 
+def test_colour_only_data_in_an_rgbd_run_names_the_monocular_mode(tmp_path):
+    from rgs_warp.datasets import DatasetError, TUMDataset
+
+    root = tiny_tum(tmp_path / "mine")
+    (root / "depth.txt").unlink()
+    with pytest.raises(
+        DatasetError, match=r"depth.txt: file not found: an RGB-D run reads depth images \(colour only: mode=mono\)"
+    ):
+        TUMDataset(root, require_pose=False)
+    assert len(TUMDataset(root, require_pose=False, require_depth=False)) == 4
+
+
 def test_downscale_of_a_loaded_dataset_is_checked(tmp_path):
     """The native size of a real dataset is known once it is open: still before any run folder."""
     from rgs_warp.datasets import open_dataset

@@ -122,8 +122,12 @@ class TUMDataset(RGBDDataset):
         self._native_camera = cam
 
         t_rgb, rgb_rows = read_tum_list(self.root / "rgb.txt", 1)
-        if require_depth or (self.root / "depth.txt").is_file():
+        if (self.root / "depth.txt").is_file():
             t_dep, dep_rows = read_tum_list(self.root / "depth.txt", 1)
+        elif require_depth:
+            raise DatasetError(
+                f"{self.root / 'depth.txt'}: file not found: an RGB-D run reads depth images (colour only: mode=mono)"
+            )
         else:  # monocular without depth images
             t_dep, dep_rows = np.zeros(0), []
         gt_path = self.root / "groundtruth.txt"
