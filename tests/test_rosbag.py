@@ -15,7 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from rgs_warp.config import load_config
 from rgs_warp.datasets import DatasetError, DatasetWarning, RosbagDataset, RosbagSource, open_dataset
-from rgs_warp.datasets.rosbag import StampPairing, camera_from_info, decode_image
+from rgs_warp.datasets.rosbag import StampPairing, camera_from_info, decode_image, frame_from_messages
 from rgs_warp.geometry import matrix_to_quat
 from rgs_warp.types import Camera, Frame
 
@@ -201,6 +201,8 @@ def test_decode_image_reads_each_encoding():
         decode_image(image(rgb, "yuv422"))
     with pytest.raises(DatasetError, match="a row needs"):
         decode_image(SimpleNamespace(height=2, width=3, encoding="rgb8", is_bigendian=0, step=9, data=b"\0" * 10))
+    with pytest.raises(DatasetError, match=r"^run.bag: frame at 1.5 s: colour: image encoding 'yuv422' is not"):
+        frame_from_messages(image(rgb, "yuv422"), None, None, "run.bag: frame at 1.5 s")  # a message mid-bag
 
     def compressed(data, fmt):
         return SimpleNamespace(format=fmt, data=np.frombuffer(data, np.uint8))
@@ -388,6 +390,16 @@ def test_rosbag_errors_name_the_bag_and_the_problem(tmp_path, monkeypatch):
         ds = RosbagDataset(tmp_path / "distorted.bag")
     with pytest.raises(DatasetError, match="depth is 16x12, colour 32x24: depth must be registered to the colour"):
         ds[0]
+    # an image topic in an encoding not read (here an infrared camera's) is listed, and used only if named
+    with BagWriter(tmp_path / "ir.bag", ros2=False) as bag:
+        for f in frames:
+            bag.image("/rgb", f.timestamp, np.round(f.rgb * 255).astype(np.uint8), "rgb8")
+            bag.image("/ir", f.timestamp, np.round(f.rgb * 255).astype(np.uint8), "yuv422")
+            bag.camera_info("/camera_info", f.timestamp, CAMERA)
+            bag.image("/depth", f.timestamp, np.round(f.depth * 1000).astype(np.uint16), "16UC1")
+    assert RosbagDataset(tmp_path / "ir.bag")[0].rgb.shape == (CAMERA.height, CAMERA.width, 3)
+    with pytest.raises(DatasetError, match=r"ir.bag: dataset.rgb_topic=/ir: image encoding 'yuv422' is not supp"):
+        RosbagDataset(tmp_path / "ir.bag", rgb_topic="/ir")
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # as if not installed
     with pytest.raises(DatasetError, match=r"pip install 'rgs_warp\[rosbag\]'"):
         RosbagDataset(tmp_path / "distorted.bag")

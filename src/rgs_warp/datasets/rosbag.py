@@ -156,15 +156,23 @@ def poses_from_msg(msg, frame: str = "") -> list[tuple[float, np.ndarray]]:
     return [(stamp_s(msg), check_pose(pose_from_tq(t, q / np.linalg.norm(q)), f"pose at {stamp_s(msg):.6f} s"))]
 
 
+def _decoded(msg, where: str, what: str) -> tuple[str, np.ndarray]:
+    """``decode_image(msg)``, its error naming the frame (``where``) and which of its images (``what``)."""
+    try:
+        return decode_image(msg)
+    except DatasetError as e:
+        raise DatasetError(f"{where}: {what}: {e}") from None
+
+
 def frame_from_messages(colour_msg, depth_msg, pose: np.ndarray | None, where: str, undistort=None) -> Frame:
     """A ``Frame`` from a colour message, its depth message (or None) and pose (or None); ``undistort``
     (``base.undistort_maps``' maps of the camera info) undistorts both images."""
-    kind, rgb = decode_image(colour_msg)
+    kind, rgb = _decoded(colour_msg, where, "colour")
     if kind == "depth":
         raise DatasetError(f"{where}: the colour topic holds a depth image")
     depth = None
     if depth_msg is not None:
-        kind, depth = decode_image(depth_msg)
+        kind, depth = _decoded(depth_msg, where, "depth")
         if kind != "depth":
             raise DatasetError(f"{where}: the depth topic holds a {kind} image, not 16UC1 / 32FC1 depth")
         if depth.shape != rgb.shape[:2]:
@@ -274,8 +282,8 @@ class _Topic:
     msgtype: str
     count: int
     connections: list
-    kind: str = ""  # image topics: colour, grey or depth (what the first message holds)
-    detail: str = ""  # image topics: size and encoding
+    kind: str = ""  # image topics: colour, grey or depth (what the first message holds), or unreadable
+    detail: str = ""  # image topics: size and encoding (unreadable: why)
 
     def line(self) -> str:
         what = f"  ({self.kind} {self.detail})" if self.kind else ""
@@ -381,7 +389,11 @@ def choose_topics(
     for t in topics.values():
         if t.msgtype in IMAGE_TYPES and t.count:
             msg = bag.first(t)
-            kind, px = decode_image(msg)
+            try:
+                kind, px = decode_image(msg)
+            except DatasetError as e:  # listed as unreadable; an error only where it is the topic named
+                t.kind, t.detail = "unreadable", str(e)
+                continue
             t.kind, t.detail = kind, f"{px.shape[1]}x{px.shape[0]} {getattr(msg, 'encoding', None) or msg.format}"
     listing = "\n  the bag's topics:\n" + "\n".join(t.line() for t in topics.values())
 
@@ -394,6 +406,8 @@ def choose_topics(
             fail(f"{key}={name}: the bag has no such topic")
         if t.msgtype not in types:
             fail(f"{key}={name}: a {t.msgtype} topic, expected {' or '.join(types)}")
+        if t.kind == "unreadable":
+            fail(f"{key}={name}: {t.detail}")
         return t
 
     def only(candidates: list[_Topic], what: str, key: str) -> _Topic | None:
