@@ -57,7 +57,7 @@ def test_a_frame_of_another_size_names_its_file(tmp_path):
     """The lens's remap and 7-Scenes' depth registration produce the calibration's size whatever they are
     given: a 320x240 colour image in a 640x480 7-Scenes sequence had been resampled into a 640x480 frame
     of the wrong content without a word (one frame lost later), a TUM depth image of another size with a lens
-    likewise."""
+    likewise.  Each loader checks its images' size where it reads them (``check_frame_size``), naming the file."""
     import cv2
 
     from rgs_warp.datasets import DatasetError, SevenScenesDataset, TUMDataset
@@ -82,7 +82,7 @@ def test_a_frame_of_another_size_names_its_file(tmp_path):
     root = tiny_tum(tmp_path / "mine", camera={"distortion": [-0.1, 0.0, 0.0, 0.0]})
     depth_file = sorted((root / "depth").iterdir())[1]
     cv2.imwrite(str(depth_file), np.full((24, 32), 2000, np.uint16))
-    with pytest.raises(DatasetError, match=r"rgb/.*\.png: depth image is 32x24, the calibration says 64x48"):
+    with pytest.raises(DatasetError, match=r"depth/.*\.png: depth image is 32x24, the calibration says 64x48"):
         TUMDataset(root, require_pose=False)[1]
 
 

@@ -189,7 +189,7 @@ def undistort_maps(camera: Camera, distortion, what: str) -> tuple[np.ndarray, n
 
 
 def undistort_frame(
-    maps, rgb: np.ndarray, depth: np.ndarray | None = None, source: str = "frame"
+    maps, rgb: np.ndarray, depth: np.ndarray | None, source: str
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """``rgb`` (linear) and ``depth`` (nearest: no depth between two surfaces; 0 outside) remapped by
     ``undistort_maps``' ``maps``; as they are when ``maps`` is None.  An image of another size than the

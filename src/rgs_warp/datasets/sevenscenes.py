@@ -138,7 +138,7 @@ class SevenScenesDataset(RGBDDataset):
             depth = reproject_depth(depth, dc, self._native_camera, self._offset)
         idx = int(colour_path.name[6:12])
         # the colour only: depth is registered onto the pinhole camera above
-        rgb, _ = undistort_frame(self._undistort_maps, read_rgb(colour_path), source=str(colour_path))
+        rgb, _ = undistort_frame(self._undistort_maps, read_rgb(colour_path), None, str(colour_path))
         return Frame(rgb=rgb, depth=depth, pose_gt=self._gt_pose(item), timestamp=idx / KINECT_FPS, index=idx)
 
     def _gt_pose(self, item) -> np.ndarray:

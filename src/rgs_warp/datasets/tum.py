@@ -11,6 +11,7 @@ import numpy as np
 from rgs_warp.datasets.base import (
     DatasetError,
     RGBDDataset,
+    check_frame_size,
     check_pose,
     read_depth,
     read_rgb,
@@ -185,11 +186,9 @@ class TUMDataset(RGBDDataset):
         t, rgb_path, depth_path, pose = item
         rgb = read_rgb(rgb_path)
         depth = read_depth(depth_path, self.depth_scale) if depth_path is not None else None
-        cam = self._native_camera
-        if rgb.shape[:2] != (cam.height, cam.width):
-            raise DatasetError(
-                f"{rgb_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the TUM camera is {cam.width}x{cam.height}"
-            )
+        size = (self._native_camera.height, self._native_camera.width)
+        check_frame_size(size, str(rgb_path), colour=rgb)
+        check_frame_size(size, str(depth_path), depth=depth)
         rgb, depth = undistort_frame(self._undistort_maps, rgb, depth, source=str(rgb_path))
         return Frame(rgb=rgb, depth=depth, pose_gt=None if pose is None else pose.copy(), timestamp=float(t), index=0)
 
