@@ -326,7 +326,7 @@ def _copy_into(dst: wp.array | _SlotImages, slot: int, src, dtype) -> None:
 
 class KeyframeArchive:
     """Host copies of every keyframe of a run (colour, depth, pose, exposure, frame index), for the
-    final refinement over all of them (``mapping.final_iters``; the buffer keeps only the newest)."""
+    final refinement over all of them (``mapping.final_share``; the buffer keeps only the newest)."""
 
     FIELDS = ("frame_ids", "poses", "exposure", "rgb", "depth")
 

@@ -20,7 +20,7 @@ CHECKPOINT = "checkpoint.json"  # in the run folder: the latest complete checkpo
 
 def save_run(cfg: Config, slam: SLAM, run_dir: Path, refine: bool = True) -> FinalSave:
     """The end of a run: the waiting frame-fill seeds join the map (and ``refine``: the final
-    refinement of ``mapping.final_iters``), the convergence files, and what ``SLAM.save`` writes
+    refinement of ``mapping.final_share``), the convergence files, and what ``SLAM.save`` writes
     gathered into host memory: the returned ``FinalSave`` writes it (``start`` in a thread, ``write``
     here); one ``SaveError`` names what failed and what was saved."""
     slam.finish(refine)

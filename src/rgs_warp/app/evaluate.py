@@ -180,7 +180,7 @@ def evaluate_run(
         }
     if kernels is not None:
         metrics["kernels"] = kernels
-    if slam.final_refinement is not None:  # mapping.final_iters: reported apart from the run's mapping
+    if slam.final_refinement is not None:  # mapping.final_share: reported apart from the run's mapping
         metrics["final_refinement"] = slam.final_refinement
     if tracking is not None:
         metrics["tracking"] = tracking

@@ -159,8 +159,8 @@ class SLAM:
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
-        # mapping.final_iters: host copies of every keyframe, and what the final refinement did
-        self.archive = KeyframeArchive() if cfg.mapping.final_iters > 0 else None
+        # mapping.final_share: host copies of every keyframe, and what the final refinement did
+        self.archive = KeyframeArchive() if cfg.mapping.final_share > 0 else None
         self.final_refinement: dict | None = None
         # asynchronous: from a keyframe's tracking to the map with its seeds published
         self.keyframe_latency_s: list[float] = []
@@ -528,16 +528,17 @@ class SLAM:
 
     def finish(self, refine: bool = True) -> None:
         """End of the sequence: the frame-fill seeds that wait for the next keyframe join the map
-        (without mapping); then, with ``mapping.final_iters`` and ``refine``, the final refinement
-        over every keyframe of the run (``Mapper.refine_all``; what it did: ``final_refinement``,
-        its time counts as mapping).  ``run`` calls it after the last frame; ``track`` may go on
+        (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement
+        over every keyframe of the run: that share of the mapping iterations spent so far
+        (``Mapper.refine_all``; what it did: ``final_refinement``, its time counts as mapping).  ``run`` calls it after the last frame; ``track`` may go on
         after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
         if refine and self.archive is not None and len(self.archive) and len(self.map):
             t0 = time.perf_counter()
             cfg = self.cfg.mapping
-            self.final_refinement = self.mapper.refine_all(self.archive, cfg.final_iters, cfg.window)
+            iters = max(1, round(cfg.final_share * self.mapper.total_iters))
+            self.final_refinement = self.mapper.refine_all(self.archive, iters, cfg.window)
             self.final_refinement["seconds"] = time.perf_counter() - t0
             self.stats["mapping_s"] += self.final_refinement["seconds"]
         self.mapping_jobs.publish()  # asynchronous: renders after the run show the map as saved
