@@ -138,8 +138,9 @@ class SLAM:
         m = cfg.mapping
         per_frame = m.iters_per_frame or iterations_per_frame(m.rate_fps)
         self.budget = MappingBudget(per_frame, m.keyframe_share)
-        # mapping iterations run: the initial window's, keyframes' window mappings, refinements between keyframes
-        self.mapping_iterations = {"init": 0, "keyframe": 0, "refine": 0}
+        # mapping iterations run: the initial window's, keyframes' window mappings, refinements between
+        # keyframes, the final refinement after the last frame (mapping.final_share)
+        self.mapping_iterations = {"init": 0, "keyframe": 0, "refine": 0, "final": 0}
         # monocular: a two-view start replaces the initial window (None once it built the map), and starts
         # the keypoint odometry, which then gives each frame its pose or where its tracking starts
         self.mono_start = self.odometry = None
@@ -529,9 +530,9 @@ class SLAM:
     def finish(self, refine: bool = True) -> None:
         """End of the sequence: the frame-fill seeds that wait for the next keyframe join the map
         (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement
-        over every keyframe of the run: that share of the mapping iterations spent so far
-        (``Mapper.refine_all``; what it did: ``final_refinement``, its time counts as mapping).  ``run`` calls it after the last frame; ``track`` may go on
-        after it."""
+        over every keyframe of the run, that share of the mapping iterations spent so far
+        (``Mapper.refine_all``; what it did: ``final_refinement``, its time counts as mapping).
+        ``run`` calls it after the last frame; ``track`` may go on after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
         if refine and self.archive is not None and len(self.archive) and len(self.map):
@@ -539,6 +540,7 @@ class SLAM:
             cfg = self.cfg.mapping
             iters = max(1, round(cfg.final_share * self.mapper.total_iters))
             self.final_refinement = self.mapper.refine_all(self.archive, iters, cfg.window)
+            self.mapping_iterations["final"] = iters
             self.final_refinement["seconds"] = time.perf_counter() - t0
             self.stats["mapping_s"] += self.final_refinement["seconds"]
         self.mapping_jobs.publish()  # asynchronous: renders after the run show the map as saved
