@@ -825,7 +825,7 @@ def test_exposure_drift_compensated_scores(tmp_path, device):
 
 @pytest.mark.slow
 def test_final_refinement_over_every_keyframe(finished_run, tmp_path, device):
-    """mapping.final_share (on by default): every keyframe is kept on the host (the buffer holds 3), the
+    """mapping.final_share: every keyframe is kept on the host (the buffer holds 3), the
     refinement after the last frame spends that share of the run's iterations, raises the keyframes'
     mean PSNR, is reported apart, and travels with the state."""
     overrides = [*RUN, "dataset.max_frames=8", "keyframes.buffer_size=3", "mapping.final_share=0.5"]
@@ -835,8 +835,10 @@ def test_final_refinement_over_every_keyframe(finished_run, tmp_path, device):
     run_iters = metrics["mapping_iterations"] - final["iters"]
     assert final["iters"] == round(0.5 * run_iters) and final["keyframes"] == metrics["keyframes"] > 3, final
     assert final["keyframe_psnr_after_db"] > final["keyframe_psnr_before_db"] + 0.2, final
+    assert metrics["mapping_budget"]["iterations"]["final"] == final["iters"]
     assert "## final_refinement" in (run_dir / "metrics.md").read_text()
-    assert finished_run[2]["final_refinement"]["iters"] > 0  # on by default
+    assert "final_refinement" not in finished_run[2]  # off by default
+    assert finished_run[2]["mapping_budget"]["iterations"]["final"] == 0
     # a checkpoint (state.npz) carries the archive: a resumed run refines over every keyframe too
     ds = open_dataset(cfg, device=device)
     archived = load_config([*overrides, "mapping.init_iters=5", f"device={device}"])  # what is kept, not the fit
