@@ -7,7 +7,7 @@ import warp as wp
 from rgs_warp.config import KeyframeConfig
 from rgs_warp.geometry import se3_exp
 from rgs_warp.kernels.covisibility import reprojected_iou, visibility_iou
-from rgs_warp.keyframes import FrameViews, KeyframeArchive, KeyframeBuffer, KeyframeHistory, KeyframeSelector
+from rgs_warp.keyframes import FrameViews, KeyframeBuffer, KeyframeHistory, KeyframeSelector
 from rgs_warp.types import Camera
 
 
@@ -177,32 +177,6 @@ def test_buffer_fifo(device):
     assert [buf.frame_ids[s] for s in slots] == [20, 30, 40]
     np.testing.assert_array_equal(buf.rgb.numpy()[slots[-1]], np.full((2, 4, 3), 4))
     np.testing.assert_array_equal(buf.depth.numpy()[slots[0]], np.full((2, 4), 2))
-
-
-def test_archive_keeps_what_the_buffer_evicts(device):
-    rng = np.random.default_rng(4)
-    buffer = KeyframeBuffer(2, 8, 6, device)
-    archive = KeyframeArchive()
-    frames = [
-        (rng.uniform(0, 1, (6, 8, 3)), rng.uniform(1, 3, (6, 8)), se3_exp(rng.normal(0, 0.3, 6))) for _ in range(4)
-    ]
-    for i, (rgb, depth, T) in enumerate(frames):
-        archive.add_from(buffer, buffer.add(10 + i, T, rgb, depth, (1.0 + 0.1 * i, 0.01 * i)))
-    assert len(buffer) == 2 and len(archive) == 4 and archive.frame_ids == [10, 11, 12, 13]
-    np.testing.assert_allclose(archive.exposure[0], [1.0, 0.0])
-    other = KeyframeBuffer(2, 8, 6, device)
-    slot = archive.load_into(other, 0)  # the evicted first keyframe, whole
-    np.testing.assert_allclose(other.rgb[slot].numpy(), frames[0][0], atol=1e-7)
-    np.testing.assert_allclose(other.depth[slot].numpy(), frames[0][1], atol=1e-6)
-    np.testing.assert_array_equal(other.poses[slot], frames[0][2])
-    assert int(other.frame_ids[slot]) == 10
-    restored = KeyframeArchive()
-    restored.load_state_dict(archive.state_dict())
-    for name in KeyframeArchive.FIELDS:
-        np.testing.assert_array_equal(np.asarray(getattr(restored, name)), np.asarray(getattr(archive, name)))
-    empty = KeyframeArchive()
-    empty.load_state_dict(KeyframeArchive().state_dict())
-    assert len(empty) == 0
 
 
 def _evict_into(history: KeyframeHistory, n: int, device) -> None:

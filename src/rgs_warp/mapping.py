@@ -31,7 +31,7 @@ from rgs_warp.densification import Densifier
 from rgs_warp.kernels import mapping as km
 from rgs_warp.kernels.math import REDUCE_BLOCK, reduce_blocks
 from rgs_warp.kernels.tracking import advance_step
-from rgs_warp.keyframes import KeyframeArchive, KeyframeBuffer
+from rgs_warp.keyframes import KeyframeBuffer
 from rgs_warp.losses import DSSIMLoss
 from rgs_warp.optim import MapAdam, MapLearningRates, cosine_factor
 from rgs_warp.render import GRAPH_HEADROOM, GaussianGrads, Renderer, RenderResult
@@ -219,6 +219,7 @@ class Mapper:
         pause: Callable[[], None] | None = None,
         history: Sequence[tuple[KeyframeBuffer, int]] = (),
         stop: Callable[[int], bool] | None = None,
+        history_share: float | None = None,
     ) -> MappingResult:
         """``iters`` mapping iterations over the keyframe ``window`` (buffer slots), each keyframe's render
         at its exposure (g, b) from tracking.  ``psnr_every`` > 0: after every iteration whose cumulative
@@ -231,7 +232,8 @@ class Mapper:
         fitted.
         ``stop``: called with the iterations done after every iteration but the last; True ends the call
         there (asynchronous mapping keeping pace with the camera: ``mapping.min_iters``), and the result
-        then holds the iterations that ran."""
+        then holds the iterations that ran.  ``history_share``: that probability instead of
+        ``mapping.history``."""
         dev, gmap = self.device, self.gmap
         window = list(window)
         if not window:
@@ -241,7 +243,8 @@ class Mapper:
         iters = int(iters)
         if iters <= 0 or len(gmap) == 0:
             return MappingResult(0, np.zeros(0), np.zeros(0), np.zeros(0))
-        k_win, history = len(window), list(history) if self.cfg.history > 0.0 else []
+        share = self.cfg.history if history_share is None else history_share
+        k_win, history = len(window), list(history) if share > 0.0 else []
         self._upload_window(keyframes, window, history)
         buffers = [keyframes] * k_win + [b for b, _ in history]
         slots = window + [s for _, s in history]
@@ -262,7 +265,7 @@ class Mapper:
             if 0 < self.cfg.views_per_iter < k_win:
                 views = views[: self.cfg.views_per_iter]  # or a fresh random subset of them
             if history:
-                older = self.rng.random(len(views)) < self.cfg.history
+                older = self.rng.random(len(views)) < share
                 picks = self.rng.integers(len(history), size=len(views))
                 views = [k_win + int(p) if o else v for v, o, p in zip(views, older, picks, strict=True)]
             if graphs is not None:
@@ -362,29 +365,38 @@ class Mapper:
         result.split += step.split
         result.pruned += before - len(self.gmap) - step.split
 
-    def refine_all(self, archive: KeyframeArchive, iters: int, window: int, round_iters: int = 10) -> dict:
-        """``iters`` iterations over every keyframe of ``archive``: rounds of ``round_iters`` over a
-        window of ``window`` keyframes drawn at random (``rng``).  Returns iterations,
-        keyframes and the mean keyframe PSNR (``window_psnr``) over all of them before and after."""
-        n, cam = len(archive), self.camera
-        buffer = KeyframeBuffer(max(1, min(window, n)), cam.width, cam.height, str(self.device))
+    def refine_all(
+        self,
+        keyframes: KeyframeBuffer,
+        window: Sequence[int],
+        history: Sequence[tuple[KeyframeBuffer, int]],
+        iters: int,
+        scored: Sequence[tuple[KeyframeBuffer, int]],
+    ) -> dict:
+        """``iters`` iterations in one call over the keyframes ``window`` (slots of ``keyframes``) and the
+        ``history`` views (buffer, slot), each iteration's view drawn alike from all of them (so the
+        call's steps replay as captured graphs, as a keyframe's mapping does).  Returns iterations,
+        the views it drew from, the keyframes ``scored`` (buffer, slot) and their mean PSNR
+        (``window_psnr``) before and after."""
+        window, history = list(window), list(history)
+        before = self.views_psnr(scored)
+        share = len(history) / (len(history) + len(window))
+        result = self.optimize(keyframes, window, iters, history=history, history_share=share)
+        return {
+            "iters": result.iters,
+            "views": len(window) + len(history),
+            "keyframes": len(scored),
+            "keyframe_psnr_before_db": before,
+            "keyframe_psnr_after_db": self.views_psnr(scored),
+        }
 
-        def mean_psnr() -> float:
-            total = 0.0
-            for start in range(0, n, buffer.capacity):
-                chunk = range(start, min(start + buffer.capacity, n))
-                total += self.window_psnr(buffer, [archive.load_into(buffer, i) for i in chunk]) * len(chunk)
-            return total / n
-
-        before = mean_psnr()
-        done = 0
-        while done < iters:
-            chosen = self.rng.choice(n, size=buffer.capacity, replace=False)
-            slots = [archive.load_into(buffer, int(i)) for i in chosen]
-            step = min(round_iters, iters - done)
-            self.optimize(buffer, slots, step)
-            done += step
-        return {"iters": done, "keyframes": n, "keyframe_psnr_before_db": before, "keyframe_psnr_after_db": mean_psnr()}
+    def views_psnr(self, views: Sequence[tuple[KeyframeBuffer, int]]) -> float:
+        """``window_psnr`` over views (buffer, slot) that may lie in several buffers: their mean."""
+        groups: dict[int, tuple[KeyframeBuffer, list[int]]] = {}
+        for buffer, slot in views:
+            groups.setdefault(id(buffer), (buffer, []))[1].append(slot)
+        total = sum(self.window_psnr(buffer, slots) * len(slots) for buffer, slots in groups.values())
+        return total / max(1, len(views))
 
     # ---- convergence ---------------------------------------------------------------------------
     def convergence(

@@ -66,12 +66,10 @@ class MonoStart:
         slam.mono_start, slam._init_window_end = None, 0  # the start replaces the initial window
         tb = time.perf_counter()
         slot0 = kf.add(0, T0, frames[0], None)
-        slam._archive(slot0)
         slam.keyframe_indices.append(0)
         if boot is not None:
             result.T_WC = T0 @ boot.T_0k
             slot_k = kf.add(i, result.T_WC, frames[i], None)
-            slam._archive(slot_k)
             slam.keyframe_indices.append(i)
             confidence = wp.array(boot.confidence, dtype=wp.float32, device=slam.device)
             points = to_triangulated_points(boot, T0, slam.device)

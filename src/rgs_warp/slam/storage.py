@@ -138,8 +138,6 @@ def _state_arrays(slam) -> dict[str, np.ndarray]:
     for prefix, stage in (("selector.", slam.selector), ("tracker.", slam.tracker), ("mapper.", slam.mapper)):
         state.update({prefix + k: v for k, v in stage.state_dict().items()})
     state.update({f"seeder.{k}": v for k, v in slam.seeder.state_dict().items()})
-    if slam.archive is not None:
-        state.update({f"archive.{k}": v for k, v in slam.archive.state_dict().items()})
     if slam.history is not None:
         state.update({f"history.{k}": v for k, v in slam.history.state_dict().items()})
     if slam.frame_views is not None:
@@ -181,8 +179,6 @@ def _load_state(slam, path: Path) -> None:
     for prefix, stage in (("selector.", slam.selector), ("tracker.", slam.tracker), ("mapper.", slam.mapper)):
         stage.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
     slam.seeder.load_state_dict({k[len("seeder.") :]: v for k, v in state.items() if k.startswith("seeder.")})
-    if slam.archive is not None:
-        slam.archive.load_state_dict({k[len("archive.") :]: v for k, v in state.items() if k.startswith("archive.")})
     if slam.history is not None and "history.evicted" in state:
         slam.history.load_state_dict({k[len("history.") :]: v for k, v in state.items() if k.startswith("history.")})
     if slam.frame_views is not None and "frame_views.kept" in state:

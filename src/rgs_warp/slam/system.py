@@ -34,7 +34,6 @@ from rgs_warp.config import Config, check_config, check_image_size, resolve_devi
 from rgs_warp.frame_check import CheckedFrame, FrameChecker, checked_pose
 from rgs_warp.keyframes import (
     FrameViews,
-    KeyframeArchive,
     KeyframeBuffer,
     KeyframeDecision,
     KeyframeHistory,
@@ -160,8 +159,7 @@ class SLAM:
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
         # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
-        # mapping.final_share: host copies of every keyframe, and what the final refinement did
-        self.archive = KeyframeArchive() if cfg.mapping.final_share > 0 else None
+        # what the final refinement (mapping.final_share) did
         self.final_refinement: dict | None = None
         # asynchronous: from a keyframe's tracking to the map with its seeds published
         self.keyframe_latency_s: list[float] = []
@@ -417,7 +415,6 @@ class SLAM:
         if self.history is not None and len(kf) == kf.capacity:
             self.history.keep(kf, kf.slots()[0])  # the buffer evicts its oldest keyframe next
         slot = kf.add(i, T, rgb, depth, exposure)
-        self._archive(slot)
         t0 = time.perf_counter()
         self.seeder.join_pending(self.map)
         # baseline: the one dense start is the first keyframe's; later the densifier grows the map
@@ -493,10 +490,6 @@ class SLAM:
         older += self.history.views() if self.history is not None else []
         return older + (self.frame_views.views() if self.frame_views is not None else [])
 
-    def _archive(self, slot: int) -> None:
-        if self.archive is not None:
-            self.archive.add_from(self.keyframes, slot)
-
     # ---- outputs -------------------------------------------------------------------------------
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """(timestamps (N,), camera-to-world poses (N, 4, 4)) of the processed frames."""
@@ -535,13 +528,17 @@ class SLAM:
         ``run`` calls it after the last frame; ``track`` may go on after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
-        if refine and self.archive is not None and len(self.archive) and len(self.map):
+        cfg = self.cfg.mapping
+        if refine and cfg.final_share > 0 and len(self.keyframes) and len(self.map):
             t0 = time.perf_counter()
-            cfg = self.cfg.mapping
+            window = self.keyframes.slots()
+            older = self._older(window)  # the history's keyframes and the frames kept as views
+            history = self.history.views() if self.history is not None and cfg.history > 0 else []
+            scored = [(self.keyframes, s) for s in window] + history
             iters = max(1, round(cfg.final_share * self.mapper.total_iters))
-            self.final_refinement = self.mapper.refine_all(self.archive, iters, cfg.window)
-            self.mapping_iterations["final"] = iters
+            self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored)
             self.final_refinement["seconds"] = time.perf_counter() - t0
+            self.mapping_iterations["final"] = self.final_refinement["iters"]
             self.stats["mapping_s"] += self.final_refinement["seconds"]
         self.mapping_jobs.publish()  # asynchronous: renders after the run show the map as saved
 
