@@ -522,9 +522,10 @@ class SLAM:
 
     def finish(self, refine: bool = True) -> None:
         """End of the sequence: the frame-fill seeds that wait for the next keyframe join the map
-        (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement
-        over every keyframe of the run, that share of the mapping iterations spent so far
-        (``Mapper.refine_all``; what it did: ``final_refinement``, its time counts as mapping).
+        (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement:
+        that share of the mapping iterations spent so far, over the keyframes on the device (the
+        buffer's and the history's: every keyframe while the history has room) and the frames kept
+        as views (``Mapper.refine_all``; what it did: ``final_refinement``, its time counts as mapping).
         ``run`` calls it after the last frame; ``track`` may go on after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
