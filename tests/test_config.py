@@ -163,6 +163,8 @@ def test_cpu_sized_run_only_on_the_cpu_without_sizes():
     assert (cfg.dataset.width, cfg.dataset.height, cfg.dataset.max_frames, cfg.mapping.window) == (120, 68, 25, 3)
     office = ["dataset=synthetic/office0", "seed=3"]  # neither is a size
     assert cpu_sized_overrides(load_config(office), office, "cpu")[0] == extra
+    final = ["mapping.final_share=0.5"]  # a share of the run's iterations: it scales with the CPU-sized run
+    assert cpu_sized_overrides(load_config(final), final, "cpu")[0] == extra
     for overrides in (
         ["dataset.max_frames=10"],
         ["dataset.n_frames=50"],

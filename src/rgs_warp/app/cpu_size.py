@@ -20,7 +20,7 @@ CPU_SIZED = {
 CPU_SIZE_KEYS = (
     *CPU_SIZED,
     *("dataset.n_frames", "dataset.stride", "dataset.start", "dataset.downscale", "tracking.iters"),
-    *("tracking.downscale", "mapping.init_window", "mapping.rate_fps", "mapping.final_share"),
+    *("tracking.downscale", "mapping.init_window", "mapping.rate_fps"),
 )
 
 
