@@ -840,3 +840,20 @@ def test_final_refinement_over_every_keyframe(finished_run, tmp_path, device):
     assert "## final_refinement" in (run_dir / "metrics.md").read_text()
     assert "final_refinement" not in finished_run[2]  # off by default
     assert finished_run[2]["mapping_budget"]["iterations"]["final"] == 0
+
+
+@pytest.mark.slow
+def test_live_run_catches_up_with_an_offline_runs_iterations(tmp_path, device):
+    """timing=live: after the last frame, mapping.catch_up maps until the run has had the iterations an
+    offline run of the same config spends (the initial window's and the budget of the frames after it);
+    with catch_up=false the map stays as the camera's pace left it."""
+    frames, per_frame = 10, 40  # more than the CPU's worker maps beside tracking
+    base = [*RUN, f"dataset.max_frames={frames}", "timing=live", f"mapping.iters_per_frame={per_frame}"]
+    base += [f"device={device}", f"output_dir={tmp_path}", "mapping.init_iters=60"]
+    _, caught = run(load_config([*base, "run_name=on"]), progress=False)
+    _, left = run(load_config([*base, "run_name=off", "mapping.catch_up=false"]), progress=False)
+    offline = 60 + per_frame * (frames - 5)  # mapping.init_window: 5
+    assert "final_refinement" not in left and left["mapping_iterations"] < offline, left["mapping_iterations"]
+    final = caught["final_refinement"]["iters"]
+    assert caught["mapping_iterations"] == offline and final == offline - (caught["mapping_iterations"] - final)
+    assert caught["final_refinement"]["keyframe_psnr_after_db"] > caught["final_refinement"]["keyframe_psnr_before_db"]

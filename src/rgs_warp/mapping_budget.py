@@ -43,6 +43,7 @@ class MappingBudget:
     def __init__(self, per_frame: float, keyframe_share: float):
         self.per_frame, self.keyframe_share = float(per_frame), float(keyframe_share)
         self.balance = 0.0
+        self.frames = 0  # frames the budget was given (after the initial window)
         self.gap = FIRST_GAP  # mean frames between keyframes so far
         self.gaps = 0  # gaps measured (keyframes after the first that the budget mapped, less one)
         self.keyframes = 0  # keyframes the budget mapped
@@ -54,7 +55,12 @@ class MappingBudget:
         self.last_keyframe = index
 
     def frame(self) -> None:
+        self.frames += 1
         self.balance += self.per_frame
+
+    def given(self) -> float:
+        """The iterations the frames so far were given: what an offline run spends on them."""
+        return self.per_frame * self.frames
 
     def keyframe(self, index: int) -> int:
         if self.last_keyframe >= 0:
@@ -72,9 +78,10 @@ class MappingBudget:
         return iters
 
     def state_dict(self) -> dict:
-        names = ("balance", "gap", "gaps", "keyframes", "last_keyframe")
+        names = ("balance", "frames", "gap", "gaps", "keyframes", "last_keyframe")
         return {name: getattr(self, name) for name in names}
 
     def load_state_dict(self, state: dict) -> None:
         self.balance, self.gap = float(state["balance"]), float(state["gap"])
-        self.gaps, self.keyframes, self.last_keyframe = (int(state[k]) for k in ("gaps", "keyframes", "last_keyframe"))
+        names = ("frames", "gaps", "keyframes", "last_keyframe")
+        self.frames, self.gaps, self.keyframes, self.last_keyframe = (int(state[k]) for k in names)

@@ -298,7 +298,7 @@ def _run_frames(
     writer.close()
     save = None
     try:
-        bar.phase("saving" if cfg.mapping.final_share <= 0 else "final refinement, saving")
+        bar.phase("saving" if slam.final_iters() <= 0 else "final refinement, saving")
         # the map and keyframes are copied to the host now and written while the run is evaluated
         save = save_run(cfg, slam, run_dir)
         wall = time.perf_counter() - t_start

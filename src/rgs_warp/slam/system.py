@@ -530,18 +530,29 @@ class SLAM:
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
         cfg = self.cfg.mapping
-        if refine and cfg.final_share > 0 and len(self.keyframes) and len(self.map):
+        iters = self.final_iters()
+        if refine and iters > 0 and len(self.keyframes) and len(self.map):
             t0 = time.perf_counter()
             window = self.keyframes.slots()
             older = self._older(window)  # the history's keyframes and the frames kept as views
             history = self.history.views() if self.history is not None and cfg.history > 0 else []
             scored = [(self.keyframes, s) for s in window] + history
-            iters = max(1, round(cfg.final_share * self.mapper.total_iters))
             self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored)
             self.final_refinement["seconds"] = time.perf_counter() - t0
             self.mapping_iterations["final"] = self.final_refinement["iters"]
             self.stats["mapping_s"] += self.final_refinement["seconds"]
         self.mapping_jobs.publish()  # asynchronous: renders after the run show the map as saved
+
+    def final_iters(self) -> int:
+        """The final refinement's iterations: ``mapping.final_share`` x the run's; live
+        (``mapping.asynchronous`` with ``mapping.catch_up``) at least what makes the run's count an
+        offline run's (its budget for the frames so far, and its final share)."""
+        cfg, done = self.cfg.mapping, self.mapper.total_iters
+        iters = round(cfg.final_share * done)
+        if cfg.asynchronous and cfg.catch_up:
+            offline = cfg.init_iters + self.budget.given()
+            iters = max(iters, round((1.0 + cfg.final_share) * offline) - done)
+        return iters
 
     def save(self, directory: str | Path, state: bool = False) -> Path:
         """Write ``trajectory.txt``, ``keyframes.npz``, ``map.ply``, ``config.yaml`` (each atomically;
