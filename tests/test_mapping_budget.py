@@ -16,6 +16,8 @@ def test_iterations_per_frame_fall_with_the_rate():
     # 10 frames/s at 640x480: 100 ms a frame, 26 of it the frame's other work, 1.6 ms an iteration
     assert at[1] == pytest.approx((100.0 - 26.0) / (1.0 + 1.96 * 0.3072))
     assert iterations_per_frame(1000.0) == 1.0  # never less than one
+    # the rate covers the final refinement: the frames get 1 / (1 + mapping.final_share) of it
+    assert iterations_per_frame(10.0, 0.12) == pytest.approx(at[1] / 1.12)
 
 
 def test_budget_spends_per_frame_iterations_on_keyframes_first():

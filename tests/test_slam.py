@@ -838,22 +838,25 @@ def test_final_refinement_over_every_keyframe(finished_run, tmp_path, device):
     assert final["keyframe_psnr_after_db"] > final["keyframe_psnr_before_db"] + 0.2, final
     assert metrics["mapping_budget"]["iterations"]["final"] == final["iters"]
     assert "## final_refinement" in (run_dir / "metrics.md").read_text()
-    assert "final_refinement" not in finished_run[2]  # off by default
-    assert finished_run[2]["mapping_budget"]["iterations"]["final"] == 0
+    default = finished_run[2]  # on by default, 0.12 of the run's iterations
+    default_final = default["final_refinement"]["iters"]
+    assert default_final == round(0.12 * (default["mapping_iterations"] - default_final)) > 0
+    assert default["mapping_budget"]["iterations"]["final"] == default_final
 
 
 @pytest.mark.slow
 def test_live_run_catches_up_with_an_offline_runs_iterations(tmp_path, device):
     """timing=live: after the last frame, mapping.catch_up maps until the run has had the iterations an
-    offline run of the same config spends (the initial window's and the budget of the frames after it);
-    with catch_up=false the map stays as the camera's pace left it."""
+    offline run of the same config spends (the initial window's and the budget of the frames after it, and
+    its final refinement's share of them); with catch_up=false only that share of its own."""
     frames, per_frame = 10, 40  # more than the CPU's worker maps beside tracking
     base = [*RUN, f"dataset.max_frames={frames}", "timing=live", f"mapping.iters_per_frame={per_frame}"]
     base += [f"device={device}", f"output_dir={tmp_path}", "mapping.init_iters=60"]
     _, caught = run(load_config([*base, "run_name=on"]), progress=False)
     _, left = run(load_config([*base, "run_name=off", "mapping.catch_up=false"]), progress=False)
-    offline = 60 + per_frame * (frames - 5)  # mapping.init_window: 5
-    assert "final_refinement" not in left and left["mapping_iterations"] < offline, left["mapping_iterations"]
+    offline = round(1.12 * (60 + per_frame * (frames - 5)))  # mapping.init_window 5, mapping.final_share 0.12
+    left_final = left["final_refinement"]["iters"]
+    assert left["mapping_iterations"] < offline and left_final == round(0.12 * (left["mapping_iterations"] - left_final))
     final = caught["final_refinement"]["iters"]
     assert caught["mapping_iterations"] == offline and final == offline - (caught["mapping_iterations"] - final)
     assert caught["final_refinement"]["keyframe_psnr_after_db"] > caught["final_refinement"]["keyframe_psnr_before_db"]

@@ -238,7 +238,7 @@ class MappingConfig:
     publish_after: Annotated[int, Bound(lo=-1)] = -1  # asynchronous: publish again after this many iterations; -1: off
     init_wait: Literal["window", "first", "seeds"] = "window"  # asynchronous: what of the first window tracking awaits
     min_iters: NonNegInt = 0  # asynchronous: a keyframe's mapping ends after this many once the next waits; 0: off
-    final_share: NonNegative = 0.0  # after the last frame, this x the run's iterations over all keyframes; 0: off
+    final_share: NonNegative = 0.12  # after the last frame, this x the run's iterations over all keyframes; 0: off
     catch_up: bool = True  # asynchronous: after the last frame, mapping until the run had an offline run's iterations
     window: Count = 5  # keyframes in the sliding window
     views_per_iter: NonNegInt = 1  # window views rendered an iteration, a fresh random subset; 0: all

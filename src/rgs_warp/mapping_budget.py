@@ -2,7 +2,8 @@
 
 The user gives a rate (``mapping.rate_fps``: frames/s of a 640x480 run on one H100; a larger frame spends the
 same iterations, each costing more, so its run is slower about in proportion to its pixels) or asks for the best
-map (``0``); ``mapping.iters_per_frame`` gives the iterations directly.  A cost model of the renderer turns the
+map (``0``); ``mapping.iters_per_frame`` gives the iterations directly.  The rate covers the final refinement
+after the last frame (``mapping.final_share`` of the run's iterations) too.  A cost model of the renderer turns the
 rate into mapping iterations per frame, so an offline run does the same iterations on any machine (the same config
 gives the same map); live, the worker's stop policies end a job early when a keyframe waits, and between keyframes
 it refines whenever it would idle (``WorkerMapping.refine_iters``).
@@ -28,12 +29,14 @@ BEST_RATE_FPS = 1.0  # rate_fps = 0, the best map: the budget of a 1 frame/s run
 FIRST_GAP = 8.0  # frames between keyframes expected before the second keyframe comes
 
 
-def iterations_per_frame(rate_fps: float) -> float:
+def iterations_per_frame(rate_fps: float, final_share: float = 0.0) -> float:
     """The mapping iterations a frame may spend at ``rate_fps`` (0: the best map) by the cost model: what a
-    640x480 frame at that rate leaves after its other work, over an iteration's cost at that size; at least
-    one.  A frame of another size spends as many (the rate scales with its pixel count)."""
+    640x480 frame at that rate leaves after its other work, over an iteration's cost at that size, of which
+    the frames get 1 / (1 + ``final_share``) and the final refinement after the last frame the rest
+    (``mapping.final_share``); at least one.  A frame of another size spends as many (the rate scales with its
+    pixel count)."""
     mapping_ms = 1000.0 / (rate_fps or BEST_RATE_FPS) - REFERENCE_FRAME_MS
-    return max(1.0, mapping_ms / (ITERATION_MS[0] + ITERATION_MS[1] * REFERENCE_PX / 1e6))
+    return max(1.0, mapping_ms / (ITERATION_MS[0] + ITERATION_MS[1] * REFERENCE_PX / 1e6) / (1.0 + final_share))
 
 
 class MappingBudget:

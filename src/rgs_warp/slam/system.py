@@ -135,7 +135,7 @@ class SLAM:
         self.maintainer = None if baseline else Maintainer(cfg.mapping, camera, dev)
         # the mapping iterations each frame may spend (mapping.rate_fps by the renderer's cost model, or given)
         m = cfg.mapping
-        per_frame = m.iters_per_frame or iterations_per_frame(m.rate_fps)
+        per_frame = m.iters_per_frame or iterations_per_frame(m.rate_fps, m.final_share)
         self.budget = MappingBudget(per_frame, m.keyframe_share)
         # mapping iterations run: the initial window's, keyframes' window mappings, refinements between
         # keyframes, the final refinement after the last frame (mapping.final_share)
