@@ -78,7 +78,8 @@ def tracking_section(
 def write_convergence(run_dir: Path, points: list[dict], title: str) -> None:
     """``convergence.json`` (the points of ``SLAM.convergence``) and ``convergence.png``: the window's
     PSNR against the cumulative mapping iterations (initialization samples joined by a line, one
-    marker per keyframe's mapping after it) with the number of Gaussians on a second axis."""
+    marker per keyframe's mapping after it, and the keyframes' mean after the final refinement) with the
+    number of Gaussians on a second axis."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,9 +88,13 @@ def write_convergence(run_dir: Path, points: list[dict], title: str) -> None:
     (run_dir / "convergence.json").write_text(json.dumps(points, indent=1) + "\n", encoding="utf-8")
     fig, ax = plt.subplots(figsize=(7.0, 4.0), dpi=150)
     count_ax = ax.twinx()
-    for phase, style in (("init", "-o"), ("keyframe", "s")):
+    labels = {
+        "init": ("-o", "initialization window"),
+        "keyframe": ("s", "window after a keyframe's mapping"),
+        "final": ("D", "every keyframe after the final refinement"),
+    }
+    for phase, (style, label) in labels.items():
         shown = [p for p in points if p["phase"] == phase and p["psnr_db"] is not None]
-        label = "initialization window" if phase == "init" else "window after a keyframe's mapping"
         ax.plot([p["iteration"] for p in shown], [p["psnr_db"] for p in shown], style, markersize=3, label=label)
     count_ax.plot([p["iteration"] for p in points], [p["gaussians"] for p in points], color="gray", linewidth=0.8)
     count_ax.set_ylabel("Gaussians", color="gray")

@@ -541,6 +541,16 @@ class SLAM:
             self.final_refinement["seconds"] = time.perf_counter() - t0
             self.mapping_iterations["final"] = self.final_refinement["iters"]
             self.stats["mapping_s"] += self.final_refinement["seconds"]
+            after = self.final_refinement["keyframe_psnr_after_db"]
+            self.convergence.append(
+                {
+                    "iteration": self.mapper.total_iters,
+                    "frame": len(self.poses) - 1,
+                    "phase": "final",
+                    "psnr_db": float(after) if np.isfinite(after) else None,
+                    "gaussians": len(self.map),
+                }
+            )
         self.mapping_jobs.publish()  # asynchronous: renders after the run show the map as saved
 
     def final_iters(self) -> int:

@@ -113,7 +113,7 @@ def _finished_record(run_dir: Path, overrides: list[str]) -> dict | None:
 
 def _read_convergence(run_dir: Path) -> list[dict] | None:
     """``convergence.json`` of a run (``rgs_warp.app.evaluate.write_convergence``): a list of
-    ``{"iteration", "frame", "phase" ("init" | "keyframe"), "psnr_db", "gaussians"}``; points without
+    ``{"iteration", "frame", "phase" ("init" | "keyframe" | "final"), "psnr_db", "gaussians"}``; points without
     a PSNR (an empty map) are left out."""
     path = run_dir / "convergence.json"
     if not path.is_file():
