@@ -188,7 +188,11 @@ def _check_convergence(run_dir, cfg, metrics):
     log = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
     last_kf = max(i for i, e in enumerate(log) if e["keyframe"])
     late_fill = sum(e.get("seeded", 0) for e in log[last_kf + 1 :])
-    assert points[-1]["gaussians"] + late_fill == metrics["gaussians"]
+    mapped = [p for p in points if p["phase"] != "final"]
+    assert mapped[-1]["gaussians"] + late_fill == metrics["gaussians"]
+    # then the final refinement (mapping.final_share): every keyframe's mean PSNR, the map as saved
+    assert points[-1]["phase"] == "final" and points[-1]["iteration"] == metrics["mapping_iterations"]
+    assert points[-1]["gaussians"] == metrics["gaussians"]
 
 
 # The baseline at a smaller size: densification from iteration 0 every 8 (the GPU runs use Table 2's

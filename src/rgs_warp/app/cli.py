@@ -149,8 +149,9 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
             print(f"PSNR      {held_out:.2f} dB held out{protocol}, at the tracked exposure")
     final = metrics.get("final_refinement")
     if final:
+        seconds = metrics["time_s"]["final_s"]
         print(
-            f"final     {final['iters']} iterations over {final['keyframes']} keyframes in {final['seconds']:.1f} s: "
+            f"final     {final['iters']} iterations over {final['keyframes']} keyframes in {seconds:.1f} s: "
             f"keyframe PSNR {final['keyframe_psnr_before_db']:.2f} -> {final['keyframe_psnr_after_db']:.2f} dB"
         )
     kernels = metrics.get("kernels") or {}

@@ -186,7 +186,7 @@ def _load_state(slam, path: Path) -> None:
         slam.frame_views.load_state_dict(views)
     slam.poses, slam.timestamps = list(state["slam.poses"]), [float(t) for t in state["slam.timestamps"]]
     slam._init_window_end = int(meta["init_window_end"])
-    slam.stats, slam.convergence = dict(meta["stats"]), list(meta["convergence"])
+    slam.stats, slam.convergence = {**slam.stats, **meta["stats"]}, list(meta["convergence"])
     slam.budget.load_state_dict(meta["budget"])
     slam.mapping_iterations = dict(meta["mapping_iterations"])
 

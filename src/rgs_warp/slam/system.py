@@ -153,11 +153,12 @@ class SLAM:
         self.poses: list[np.ndarray] = []  # camera-to-world of every processed frame
         self.timestamps: list[float] = []
         self.keyframe_indices: list[int] = []
-        # mapping_s: keyframes' window mappings (and the final refinement), refine_s: between keyframes
-        stats = ("tracking_s", "mapping_s", "refine_s", "seeding_s", "maintenance_s")
+        # mapping_s: keyframes' window mappings, refine_s: between keyframes, final_s: the final refinement
+        stats = ("tracking_s", "mapping_s", "refine_s", "final_s", "seeding_s", "maintenance_s")
         self.stats = {**dict.fromkeys(stats, 0.0), "frames": 0}
         # PSNR against the cumulative mapping iterations: {"iteration", "frame", "phase" ("init" |
-        # "keyframe"), "psnr_db" (mean over the mapping window, None for an empty map), "gaussians"}
+        # "keyframe" | "final"), "psnr_db" (mean over the mapping window, after the final refinement over
+        # every keyframe; None for an empty map), "gaussians"}
         self.convergence: list[dict] = []
         # what the final refinement (mapping.final_share) did
         self.final_refinement: dict | None = None
@@ -525,7 +526,7 @@ class SLAM:
         (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement:
         that share of the mapping iterations spent so far, over the keyframes on the device (the
         buffer's and the history's: every keyframe while the history has room) and the frames kept
-        as views (``Mapper.refine_all``; what it did: ``final_refinement``, its time counts as mapping).
+        as views (``Mapper.refine_all``; what it did: ``final_refinement``, its time ``stats["final_s"]``).
         ``run`` calls it after the last frame; ``track`` may go on after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
@@ -538,9 +539,8 @@ class SLAM:
             history = self.history.views() if self.history is not None and cfg.history > 0 else []
             scored = [(self.keyframes, s) for s in window] + history
             self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored)
-            self.final_refinement["seconds"] = time.perf_counter() - t0
             self.mapping_iterations["final"] = self.final_refinement["iters"]
-            self.stats["mapping_s"] += self.final_refinement["seconds"]
+            self.stats["final_s"] += time.perf_counter() - t0
             after = self.final_refinement["keyframe_psnr_after_db"]
             self.convergence.append(
                 {
