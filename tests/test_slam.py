@@ -860,7 +860,9 @@ def test_live_run_catches_up_with_an_offline_runs_iterations(tmp_path, device):
     _, left = run(load_config([*base, "run_name=off", "mapping.catch_up=false"]), progress=False)
     offline = round(1.12 * (60 + per_frame * (frames - 5)))  # mapping.init_window 5, mapping.final_share 0.12
     left_final = left["final_refinement"]["iters"]
-    assert left["mapping_iterations"] < offline and left_final == round(0.12 * (left["mapping_iterations"] - left_final))
+    assert left["mapping_iterations"] < offline and left_final == round(
+        0.12 * (left["mapping_iterations"] - left_final)
+    )
     final = caught["final_refinement"]["iters"]
     assert caught["mapping_iterations"] == offline and final == offline - (caught["mapping_iterations"] - final)
     assert caught["final_refinement"]["keyframe_psnr_after_db"] > caught["final_refinement"]["keyframe_psnr_before_db"]

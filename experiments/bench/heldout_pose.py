@@ -3,10 +3,11 @@ after tracking it once more against the saved map (from that pose; the keyframes
 
     python experiments/bench/heldout_pose.py RUN_DIR [--rounds 3] [--out FILE.json]
 
-RUN_DIR is a run folder (``SLAM.save``'s files); its ``config.yaml`` names the dataset.  Held out: every 5th frame that is no keyframe.  A frame is tracked
-``--rounds`` times (the direct alignment and the tracker's steps each time, from the last round's pose);
-PSNR compensated (one gain and bias fitted, ``rgs_warp.eval.photometric``).  If the held-out frames gain
-much more than the keyframes, their poses, not the map, hold their PSNR down.
+RUN_DIR is a run folder (``SLAM.save``'s files); its ``config.yaml`` names the dataset.  Held out: every 5th
+frame that is no keyframe.  A frame is tracked ``--rounds`` times (the direct alignment and the tracker's
+steps each time, from the last round's pose); PSNR compensated (one gain and bias fitted,
+``rgs_warp.eval.photometric``).  If the held-out frames gain much more than the keyframes, their poses, not
+the map, hold their PSNR down.
 """
 
 from __future__ import annotations
