@@ -1,6 +1,6 @@
 """A run and its resumption (``rgs_warp.app.runner``): ``resume=`` refuses what it cannot continue, a
-killed run resumes to exactly the uninterrupted result (CPU), and ``mapping.max_gaussians`` bounds a
-run's map."""
+killed run resumes to exactly the uninterrupted result (CPU), Ctrl-C ends the final refinement and the run
+saves, and ``mapping.max_gaussians`` bounds a run's map."""
 
 import json
 import os
@@ -56,7 +56,6 @@ RESUMED = [
 
 
 @pytest.mark.slow
-@pytest.mark.slow
 def test_a_frame_that_cannot_be_read_stops_the_run_saying_what_was_saved(tmp_path, capsys, device):
     # a damaged file in the middle of a recording: the frames before it are saved, and the command says so
     # before the error that names the file (the run had ended with the error alone)
@@ -78,6 +77,36 @@ def test_a_frame_that_cannot_be_read_stops_the_run_saying_what_was_saved(tmp_pat
     assert err.index("stopped at frame 7") < err.index(f"error: {bad}")
     _, poses = read_tum_trajectory(run_dir / "trajectory.txt")
     assert len(poses) == 7
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_the_final_refinement_and_the_run_saves(tmp_path, capsys, monkeypatch, device):
+    """Ctrl-C during the final refinement (a live run's catch-up can be long) ends it at its next
+    iteration; the run saves and scores the map as it stands, and Ctrl-C's handler is restored."""
+    from rgs_warp.mapping import Mapper
+
+    refine_all = Mapper.refine_all
+
+    def interrupted(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # the user presses Ctrl-C as the refinement starts
+        return refine_all(self, *args, **kwargs)
+
+    monkeypatch.setattr(Mapper, "refine_all", interrupted)
+    argv = [*SMALL, "dataset.max_frames=8", "mapping.init_iters=20", "mapping.iters_per_frame=2"]
+    argv += ["mapping.final_share=2", f"device={device}", f"output_dir={tmp_path}", "run_name=c"]
+    before = signal.getsignal(signal.SIGINT)
+    run_dir, metrics = run(load_config(argv), progress=False)
+    final = metrics["final_refinement"]
+    assert 1 <= final["iters"] < 5 < final["iters_planned"], final
+    assert metrics["mapping_budget"]["iterations"]["final"] == final["iters"]
+    assert (run_dir / "map.ply").is_file() and (run_dir / "metrics.json").is_file()
+    assert "Ctrl-C: the final refinement ends here" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is before
+    from rgs_warp.app.cli import print_summary
+
+    print_summary(run_dir, metrics)
+    said = f"final     {final['iters']} iterations (of {final['iters_planned']}: ended by Ctrl-C) over"
+    assert said in capsys.readouterr().out
 
 
 def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, device):

@@ -372,18 +372,20 @@ class Mapper:
         history: Sequence[tuple[KeyframeBuffer, int]],
         iters: int,
         scored: Sequence[tuple[KeyframeBuffer, int]],
+        stop: Callable[[int], bool] | None = None,
     ) -> dict:
         """``iters`` iterations in one call over the keyframes ``window`` (slots of ``keyframes``) and the
         ``history`` views (buffer, slot), each iteration's view drawn alike from all of them (so the
-        call's steps replay as captured graphs, as a keyframe's mapping does).  Returns iterations,
-        the views it drew from, the keyframes ``scored`` (buffer, slot) and their mean PSNR
-        (``window_psnr``) before and after."""
+        call's steps replay as captured graphs, as a keyframe's mapping does); ``stop`` as ``optimize``'s.
+        Returns the iterations run and planned, the views it drew from, the keyframes ``scored`` (buffer,
+        slot) and their mean PSNR (``window_psnr``) before and after."""
         window, history = list(window), list(history)
         before = self.views_psnr(scored)
         share = len(history) / (len(history) + len(window))
-        result = self.optimize(keyframes, window, iters, history=history, history_share=share)
+        result = self.optimize(keyframes, window, iters, history=history, stop=stop, history_share=share)
         return {
             "iters": result.iters,
+            "iters_planned": int(iters),
             "views": len(window) + len(history),
             "keyframes": len(scored),
             "keyframe_psnr_before_db": before,

@@ -6,6 +6,7 @@ import json
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -18,12 +19,14 @@ from rgs_warp.slam import SLAM
 CHECKPOINT = "checkpoint.json"  # in the run folder: the latest complete checkpoint's folder
 
 
-def save_run(cfg: Config, slam: SLAM, run_dir: Path, refine: bool = True) -> FinalSave:
+def save_run(
+    cfg: Config, slam: SLAM, run_dir: Path, refine: bool = True, stop: Callable[[int], bool] | None = None
+) -> FinalSave:
     """The end of a run: the waiting frame-fill seeds join the map (and ``refine``: the final
-    refinement of ``mapping.final_share``), the convergence files, and what ``SLAM.save`` writes
-    gathered into host memory: the returned ``FinalSave`` writes it (``start`` in a thread, ``write``
-    here); one ``SaveError`` names what failed and what was saved."""
-    slam.finish(refine)
+    refinement, ``stop`` ending it early as ``SLAM.finish``'s), the convergence files, and what
+    ``SLAM.save`` writes gathered into host memory: the returned ``FinalSave`` writes it (``start`` in a
+    thread, ``write`` here); one ``SaveError`` names what failed and what was saved."""
+    slam.finish(refine, stop)
     failed = {}
     try:
         write_convergence(run_dir, slam.convergence, title=f"{cfg.dataset.type}/{cfg.dataset.name} ({cfg.method})")

@@ -150,8 +150,9 @@ def print_summary(run_dir: Path, metrics: dict) -> None:
     final = metrics.get("final_refinement")
     if final:
         seconds = metrics["time_s"]["final_s"]
+        ended = f" (of {final['iters_planned']}: ended by Ctrl-C)" if final["iters"] < final["iters_planned"] else ""
         print(
-            f"final     {final['iters']} iterations over {final['keyframes']} keyframes in {seconds:.1f} s: "
+            f"final     {final['iters']} iterations{ended} over {final['keyframes']} keyframes in {seconds:.1f} s: "
             f"keyframe PSNR {final['keyframe_psnr_before_db']:.2f} -> {final['keyframe_psnr_after_db']:.2f} dB"
         )
     kernels = metrics.get("kernels") or {}

@@ -5,11 +5,15 @@ stopped run from its last checkpoint.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import json
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -298,9 +302,11 @@ def _run_frames(
     writer.close()
     save = None
     try:
-        bar.phase("saving" if slam.final_iters() <= 0 else "final refinement, saving")
+        final = slam.final_iters()
+        bar.phase("saving" if final <= 0 else f"final refinement ({final} iterations; Ctrl-C ends it), saving")
         # the map and keyframes are copied to the host now and written while the run is evaluated
-        save = save_run(cfg, slam, run_dir)
+        with _ctrl_c_ends() as ended:
+            save = save_run(cfg, slam, run_dir, stop=lambda done: ended.is_set())
         wall = time.perf_counter() - t_start
         save.start()
         bar.phase("evaluating")
@@ -350,6 +356,29 @@ def _run_frames(
         bar.close()
     remove_checkpoints(run_dir)
     return run_dir, metrics
+
+
+@contextlib.contextmanager
+def _ctrl_c_ends() -> Iterator[threading.Event]:
+    """An event that the first Ctrl-C sets instead of stopping the run (the final refinement ends at its
+    next iteration, and the map is saved and scored as it is); a second Ctrl-C stops the run.  Only in
+    the main thread, where signal handlers can be set (elsewhere the event stays clear)."""
+    ended = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield ended
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def end(signum, frame):
+        ended.set()
+        signal.signal(signal.SIGINT, previous)
+        print("Ctrl-C: the final refinement ends here; the map is saved as it is (again: stop)", file=sys.stderr)
+
+    signal.signal(signal.SIGINT, end)
+    try:
+        yield ended
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _log_entry(cfg: Config, slam: SLAM, result, state: RunState) -> dict:

@@ -23,6 +23,7 @@ densification cannot reach regions no Gaussian sees.  Everything else is shared.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -521,13 +522,14 @@ class SLAM:
         ``mapping.min_iters`` (when set) instead of its budget, as when the next keyframe waits."""
         self.mapping_jobs.drain(check, hurry)
 
-    def finish(self, refine: bool = True) -> None:
+    def finish(self, refine: bool = True, stop: Callable[[int], bool] | None = None) -> None:
         """End of the sequence: the frame-fill seeds that wait for the next keyframe join the map
-        (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement:
-        that share of the mapping iterations spent so far, over the keyframes on the device (the
-        buffer's and the history's: every keyframe while the history has room) and the frames kept
-        as views (``Mapper.refine_all``; what it did: ``final_refinement``, its time ``stats["final_s"]``).
-        ``run`` calls it after the last frame; ``track`` may go on after it."""
+        (without mapping); then, with ``mapping.final_share`` and ``refine``, the final refinement
+        (``final_iters()`` iterations) over the keyframes on the device (the buffer's and the history's:
+        every keyframe while the history has room) and the frames kept as views (``Mapper.refine_all``;
+        what it did: ``final_refinement``, its time ``stats["final_s"]``).  ``stop``: called with the
+        iterations done after each; True ends the refinement there (``run``: Ctrl-C).  ``run`` calls it
+        after the last frame; ``track`` may go on after it."""
         self.wait_for_mapping()
         self.seeder.join_pending(self.map)
         cfg = self.cfg.mapping
@@ -538,7 +540,7 @@ class SLAM:
             older = self._older(window)  # the history's keyframes and the frames kept as views
             history = self.history.views() if self.history is not None and cfg.history > 0 else []
             scored = [(self.keyframes, s) for s in window] + history
-            self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored)
+            self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored, stop)
             self.mapping_iterations["final"] = self.final_refinement["iters"]
             self.stats["final_s"] += time.perf_counter() - t0
             after = self.final_refinement["keyframe_psnr_after_db"]
