@@ -841,7 +841,8 @@ def test_final_refinement_over_every_keyframe(finished_run, tmp_path, device):
     assert final["views"] >= final["keyframes"], final
     assert final["keyframe_psnr_after_db"] > final["keyframe_psnr_before_db"] + 0.2, final
     assert metrics["mapping_budget"]["iterations"]["final"] == final["iters"]
-    assert "## final_refinement" in (run_dir / "metrics.md").read_text()
+    report = (run_dir / "metrics.md").read_text()
+    assert "## final_refinement" in report and "After the last frame: mapping.final_share" in report
     default = finished_run[2]  # on by default, 0.12 of the run's iterations
     default_final = default["final_refinement"]["iters"]
     assert default_final == round(0.12 * (default["mapping_iterations"] - default_final)) > 0

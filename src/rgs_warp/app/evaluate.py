@@ -43,6 +43,11 @@ PSNR_LEGEND = (
     "keyframe: the fit to trained views; row photometric: every eval.every-th frame, trained views left out; "
     "row every_5th_with_keyframes: every 5th frame, keyframes included (SplaTAM's protocol)."
 )
+FINAL_LEGEND = (
+    "After the last frame: mapping.final_share x the run's iterations (live, mapping.catch_up: at least up to an "
+    "offline run's count) over every view on the device; iters_planned > iters: Ctrl-C ended it; keyframe PSNR: "
+    "the mean over every keyframe, before and after."
+)
 
 
 def check_evaluation_imports() -> None:
@@ -270,7 +275,7 @@ def evaluate_run(
         save.write()
         metrics["time_s"]["save_s"] = save.seconds
     title = f"rgs_warp {metrics['dataset']} ({cfg.method}, {cfg.mode})"
-    write_report(run_dir, metrics, title=title, notes={"photometric": PSNR_LEGEND})
+    write_report(run_dir, metrics, title=title, notes={"photometric": PSNR_LEGEND, "final_refinement": FINAL_LEGEND})
     return metrics
 
 
