@@ -303,10 +303,16 @@ def _run_frames(
     save = None
     try:
         final = slam.final_iters()
-        bar.phase("saving" if final <= 0 else f"final refinement ({final} iterations; Ctrl-C ends it), saving")
+        bar.phase("saving" if final <= 0 else f"final refinement 0/{final} (Ctrl-C ends it)")
         # the map and keyframes are copied to the host now and written while the run is evaluated
         with _ctrl_c_ends() as ended:
-            save = save_run(cfg, slam, run_dir, stop=lambda done: ended.is_set())
+
+            def stop(done: int) -> bool:  # after each iteration of the final refinement
+                if done % 100 == 0:
+                    bar.phase(f"final refinement {done}/{final} (Ctrl-C ends it)")
+                return ended.is_set()
+
+            save = save_run(cfg, slam, run_dir, stop=stop)
         wall = time.perf_counter() - t_start
         save.start()
         bar.phase("evaluating")
