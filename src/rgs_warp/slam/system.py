@@ -541,7 +541,7 @@ class SLAM:
             history = self.history.views() if self.history is not None and cfg.history > 0 else []
             scored = [(self.keyframes, s) for s in window] + history
             self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored, stop)
-            self.mapping_iterations["final"] = self.final_refinement["iters"]
+            self.mapping_iterations["final"] += self.final_refinement["iters"]
             self.stats["final_s"] += time.perf_counter() - t0
             after = self.final_refinement["keyframe_psnr_after_db"]
             self.convergence.append(
