@@ -375,8 +375,9 @@ class Mapper:
         stop: Callable[[int], bool] | None = None,
     ) -> dict:
         """``iters`` iterations in one call over the keyframes ``window`` (slots of ``keyframes``) and the
-        ``history`` views (buffer, slot), each iteration's view drawn alike from all of them (so the
-        call's steps replay as captured graphs, as a keyframe's mapping does); ``stop`` as ``optimize``'s.
+        ``history`` views (buffer, slot), each view an iteration renders (``mapping.views_per_iter`` of the
+        window's) drawn alike from all of them (so the call's steps replay as captured graphs, as a
+        keyframe's mapping does); ``stop`` as ``optimize``'s.
         Returns the iterations run and planned, the views it drew from, the keyframes ``scored`` (buffer,
         slot) and their mean PSNR (``window_psnr``) before and after."""
         window, history = list(window), list(history)

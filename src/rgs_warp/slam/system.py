@@ -536,10 +536,14 @@ class SLAM:
         iters = self.final_iters()
         if refine and iters > 0 and len(self.keyframes) and len(self.map):
             t0 = time.perf_counter()
-            window = self.keyframes.slots()
-            older = self._older(window)  # the history's keyframes and the frames kept as views
-            history = self.history.views() if self.history is not None and cfg.history > 0 else []
-            scored = [(self.keyframes, s) for s in window] + history
+            slots = self.keyframes.slots()
+            # an iteration renders as a keyframe's mapping does (mapping.views_per_iter of a window), each view
+            # drawn from the buffer's keyframes, the history's and the frames kept as views alike
+            window = slots[-cfg.window :]
+            history = self.history.views() if self.history is not None else []
+            older = [(self.keyframes, s) for s in slots if s not in window] + history
+            older += self.frame_views.views() if self.frame_views is not None else []
+            scored = [(self.keyframes, s) for s in slots] + history
             self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored, stop)
             self.mapping_iterations["final"] += self.final_refinement["iters"]
             self.stats["final_s"] += time.perf_counter() - t0
