@@ -484,10 +484,9 @@ class SLAM:
         jobs.publish()
 
     def _older(self, window: list[int]) -> list[tuple[KeyframeBuffer, int]]:
-        """The views besides ``window`` that mapping may render (``mapping.history``): the buffer's keyframes
-        outside the window, those the history kept, and the frames between keyframes kept as views."""
-        if self.cfg.mapping.history <= 0.0:
-            return []
+        """The views besides ``window`` that mapping may render (``mapping.history``; ``optimize`` renders
+        none with 0): the buffer's keyframes outside the window, those the history kept, and the frames
+        between keyframes kept as views."""
         older = [(self.keyframes, s) for s in self.keyframes.slots() if s not in window]
         older += self.history.views() if self.history is not None else []
         return older + (self.frame_views.views() if self.frame_views is not None else [])
@@ -541,10 +540,10 @@ class SLAM:
             # drawn from the buffer's keyframes, the history's and the frames kept as views alike
             window = slots[-cfg.window :]
             history = self.history.views() if self.history is not None else []
-            older = [(self.keyframes, s) for s in slots if s not in window] + history
-            older += self.frame_views.views() if self.frame_views is not None else []
             scored = [(self.keyframes, s) for s in slots] + history
-            self.final_refinement = self.mapper.refine_all(self.keyframes, window, older, iters, scored, stop)
+            self.final_refinement = self.mapper.refine_all(
+                self.keyframes, window, self._older(window), iters, scored, stop
+            )
             self.mapping_iterations["final"] += self.final_refinement["iters"]
             self.stats["final_s"] += time.perf_counter() - t0
             after = self.final_refinement["keyframe_psnr_after_db"]
