@@ -193,7 +193,7 @@ def test_history_keeps_evicted_keyframes_then_a_uniform_sample(device):
     history = KeyframeHistory(3, 4, 2, device, seed=0)
     _evict_into(history, 4, device)  # 3 evicted: all kept, whole
     kept = {int(history.buffer.frame_ids[s]): s for _, s in history.views()}
-    assert sorted(kept) == [0, 1, 2] and history.evicted == 3
+    assert sorted(kept) == [0, 1, 2] and history.offered == 3
     for k, s in kept.items():
         np.testing.assert_array_equal(history.buffer.rgb[s].numpy(), np.full((2, 4, 3), k))
         np.testing.assert_array_equal(history.buffer.depth[s].numpy(), np.full((2, 4), k))
@@ -227,7 +227,7 @@ def test_history_state_round_trip(device):
     _evict_into(history, 6, device)
     restored = KeyframeHistory(2, 4, 2, device, seed=99)
     restored.load_state_dict(history.state_dict())
-    assert restored.evicted == history.evicted == 5
+    assert restored.offered == history.offered == 5
     assert [int(restored.buffer.frame_ids[s]) for _, s in restored.views()] == [
         int(history.buffer.frame_ids[s]) for _, s in history.views()
     ]
@@ -236,24 +236,54 @@ def test_history_state_round_trip(device):
     # the same draws afterwards
     _evict_into(history, 3, device)
     _evict_into(restored, 3, device)
-    assert history.evicted == restored.evicted
+    assert history.offered == restored.offered
     assert sorted(int(history.buffer.frame_ids[s]) for _, s in history.views()) == sorted(
         int(restored.buffer.frame_ids[s]) for _, s in restored.views()
     )
 
 
-def test_frame_views_keep_every_nth_frame_after_a_keyframe_the_latest_on_the_device(device):
-    views = FrameViews(2, 3, 4, 2, device)
+def test_frame_views_keep_every_nth_frame_after_a_keyframe_a_sample_of_the_run_on_the_device(device):
+    views = FrameViews(2, 3, 4, 2, device, seed=0)
     assert [i for i in range(10, 20) if views.wants(i, 10)] == [13, 16, 19]
     for i in (13, 16, 19):
         views.keep(i, np.eye(4) * i, np.full((2, 4, 3), i, np.float32), np.full((2, 4), i, np.float32), (1.0, 0.1 * i))
     assert views.frame_ids == [13, 16, 19]  # every frame kept, for the evaluation
     on_device = {int(b.frame_ids[s]): s for b, s in views.views()}
-    assert sorted(on_device) == [16, 19]  # the latest two
-    np.testing.assert_array_equal(views.buffer.rgb[on_device[19]].numpy(), np.full((2, 4, 3), 19))
-    restored = FrameViews(2, 3, 4, 2, device)
+    assert len(on_device) == 2 and set(on_device) <= {13, 16, 19} and views.offered == 3
+    for i, s in on_device.items():
+        np.testing.assert_array_equal(views.buffer.rgb[s].numpy(), np.full((2, 4, 3), i))
+    # over many runs each of 30 kept frames is on the device with probability 2/30: the whole run, not its end
+    counts = np.zeros(30)
+    for seed in range(300):
+        v = FrameViews(2, 1, 4, 2, device, seed=seed)
+        for i in range(30):
+            v.keep(i, np.eye(4), np.zeros((2, 4, 3), np.float32), np.zeros((2, 4), np.float32), (1.0, 0.0))
+        counts[[int(b.frame_ids[s]) for b, s in v.views()]] += 1
+    assert counts[:10].sum() > 150 and counts[20:].sum() < 250  # uniform: 200 each third (the latest: 0 and 600)
+    restored = FrameViews(2, 3, 4, 2, device, seed=5)
     restored.load_state_dict(views.state_dict())
     assert restored.frame_ids == views.frame_ids and restored.buffer.slots() == views.buffer.slots()
+    assert restored.offered == 3 and restored.rng.integers(1000) == views.rng.integers(1000)
     for s in views.buffer.slots():
         np.testing.assert_array_equal(restored.buffer.depth[s].numpy(), views.buffer.depth[s].numpy())
         np.testing.assert_array_equal(restored.buffer.exposure[s], views.buffer.exposure[s])
+
+
+def test_frame_views_and_history_load_an_earlier_versions_state(device):
+    """Checkpoints written before the views were a sample: the history's count was named "evicted", the
+    frame views saved neither a count nor a generator."""
+    views = FrameViews(4, 3, 4, 2, device)
+    for i in (13, 16):
+        views.keep(i, np.eye(4), np.full((2, 4, 3), i, np.float32), np.full((2, 4), i, np.float32), (1.0, 0.0))
+    earlier = {k: v for k, v in views.state_dict().items() if k not in ("offered", "rng")}
+    restored = FrameViews(4, 3, 4, 2, device)
+    restored.load_state_dict(earlier)
+    assert restored.frame_ids == [13, 16] and restored.offered == 2
+    assert sorted(int(b.frame_ids[s]) for b, s in restored.views()) == [13, 16]
+    history = KeyframeHistory(2, 4, 2, device, seed=1)
+    _evict_into(history, 6, device)
+    state = history.state_dict()
+    state["evicted"] = state.pop("offered")
+    restored_history = KeyframeHistory(2, 4, 2, device, seed=99)
+    restored_history.load_state_dict(state)
+    assert restored_history.offered == history.offered == 5

@@ -245,7 +245,7 @@ class MappingConfig:
     graph: Switch = "auto"  # one-view mapping steps as captured graphs; auto: on on CUDA
     history: Fraction = 0.7  # probability that a view rendered is an older keyframe instead of a window view
     history_size: NonNegInt = 64  # older keyframes kept on the device for it (a uniform sample once more were evicted)
-    frame_views: NonNegInt = 8  # recent frames between keyframes that views may also be (as older keyframes); 0: off
+    frame_views: NonNegInt = 256  # frames between keyframes kept as views like older keyframes (a sample of the run)
     frame_view_every: Count = 3  # ... one kept every this many frames after a keyframe
     init_iters: Count = 1050  # mapping iterations of the initialization
     init_window: Count = 5  # frames of the initial window

@@ -212,62 +212,68 @@ class _SlotImages:
         return len(self._slots)
 
 
-class KeyframeHistory:
-    """Older keyframes on the device for mapping (``mapping.history``): those the keyframe buffer
-    evicts, up to ``capacity``; when full, each newly evicted keyframe replaces a random one with
-    probability capacity / evicted so far (reservoir sampling), so that the kept ones are a uniform
-    sample of the whole run rather than its latest part."""
+class ViewSample:
+    """Views on the device for mapping, up to ``capacity``; when full, each new one replaces a random one
+    with probability capacity / offered so far (reservoir sampling), so that the kept ones are a uniform
+    sample of the whole run rather than its latest part.  Device memory for the views kept, not for all
+    it could keep (a 1200x680 view: 13 MB)."""
 
     def __init__(self, capacity: int, width: int, height: int, device: str, seed: int = 0):
-        # device memory for the keyframes kept, not for all it could keep (64 office frames: 0.8 GiB)
         self.buffer = KeyframeBuffer(capacity, width, height, device, lazy=True)
-        self.evicted = 0
+        self.offered = 0
         self.rng = np.random.default_rng(seed)
 
     def __len__(self) -> int:
         return len(self.buffer)
 
-    def keep(self, source: KeyframeBuffer, slot: int) -> None:
-        """The keyframe in ``source`` slot ``slot`` (about to be evicted), kept or not (see above)."""
-        buf, self.evicted = self.buffer, self.evicted + 1
+    def add(self, frame_id: int, T_WC: np.ndarray, rgb, depth, exposure) -> None:
+        """A view offered: kept or not (see above)."""
+        buf, self.offered = self.buffer, self.offered + 1
         if len(buf) == buf.capacity:
-            j = int(self.rng.integers(self.evicted))
+            j = int(self.rng.integers(self.offered))
             if j >= buf.capacity:
                 return
             target = buf.slots()[j]
             buf.remove(target)
         else:
             target = None
-        buf.add(
-            source.frame_ids[slot],
-            source.poses[slot],
-            source.rgb[slot],
-            source.depth[slot],
-            source.exposure[slot],
-            slot=target,
-        )
+        buf.add(frame_id, T_WC, rgb, depth, exposure, slot=target)
 
     def views(self) -> list[tuple[KeyframeBuffer, int]]:
         return [(self.buffer, s) for s in self.buffer.slots()]
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        state = {"evicted": np.array(self.evicted), "rng": np.array(json.dumps(self.rng.bit_generator.state))}
+        state = {"offered": np.array(self.offered), "rng": np.array(json.dumps(self.rng.bit_generator.state))}
         return state | _buffer_state(self.buffer)
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        self.evicted = int(state["evicted"])
-        self.rng.bit_generator.state = json.loads(str(state["rng"]))
+        """What ``state_dict`` saved; also an earlier version's (the count named "evicted"; frame views that
+        kept the latest, without a count or a generator)."""
+        self.offered = int(state.get("offered", state.get("evicted", len(state["slots"]))))
+        if "rng" in state:
+            self.rng.bit_generator.state = json.loads(str(state["rng"]))
         _load_buffer(self.buffer, state)
 
 
-class FrameViews:
-    """Frames between keyframes kept as mapping views (``mapping.frame_views``): one every
-    ``mapping.frame_view_every`` frames after a keyframe, the latest ``capacity`` on the device, so that mapping
-    also fits the viewpoints between keyframes.  ``frame_ids`` lists every frame ever kept (the evaluation
-    holds them out of its held-out frames, as it does the keyframes)."""
+class KeyframeHistory(ViewSample):
+    """Older keyframes on the device for mapping (``mapping.history``): a sample of those the keyframe
+    buffer evicts (``ViewSample``)."""
 
-    def __init__(self, capacity: int, every: int, width: int, height: int, device: str):
-        self.buffer = KeyframeBuffer(capacity, width, height, device)
+    def keep(self, source: KeyframeBuffer, slot: int) -> None:
+        """The keyframe in ``source`` slot ``slot`` (about to be evicted), kept or not."""
+        self.add(
+            source.frame_ids[slot], source.poses[slot], source.rgb[slot], source.depth[slot], source.exposure[slot]
+        )
+
+
+class FrameViews(ViewSample):
+    """Frames between keyframes kept as mapping views (``mapping.frame_views``): one every
+    ``mapping.frame_view_every`` frames after a keyframe, a sample of the whole run on the device
+    (``ViewSample``), so that mapping also fits the viewpoints between keyframes.  ``frame_ids`` lists every
+    frame ever kept (the evaluation holds them out of its held-out frames, as it does the keyframes)."""
+
+    def __init__(self, capacity: int, every: int, width: int, height: int, device: str, seed: int = 0):
+        super().__init__(capacity, width, height, device, seed)
         self.every = every
         self.frame_ids: list[int] = []
 
@@ -276,18 +282,15 @@ class FrameViews:
         return index > last_keyframe and (index - last_keyframe) % self.every == 0
 
     def keep(self, index: int, T_WC: np.ndarray, rgb, depth, exposure) -> None:
-        self.buffer.add(index, T_WC, rgb, depth, exposure)
+        self.add(index, T_WC, rgb, depth, exposure)
         self.frame_ids.append(int(index))
 
-    def views(self) -> list[tuple[KeyframeBuffer, int]]:
-        return [(self.buffer, s) for s in self.buffer.slots()]
-
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"kept": np.array(self.frame_ids, dtype=np.int64)} | _buffer_state(self.buffer)
+        return {"kept": np.array(self.frame_ids, dtype=np.int64)} | super().state_dict()
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.frame_ids = [int(i) for i in state["kept"]]
-        _load_buffer(self.buffer, state)
+        super().load_state_dict(state)
 
 
 def _buffer_state(buf: KeyframeBuffer) -> dict[str, np.ndarray]:

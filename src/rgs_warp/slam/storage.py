@@ -179,7 +179,7 @@ def _load_state(slam, path: Path) -> None:
     for prefix, stage in (("selector.", slam.selector), ("tracker.", slam.tracker), ("mapper.", slam.mapper)):
         stage.load_state_dict({k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)})
     slam.seeder.load_state_dict({k[len("seeder.") :]: v for k, v in state.items() if k.startswith("seeder.")})
-    if slam.history is not None and "history.evicted" in state:
+    if slam.history is not None and "history.slots" in state:
         slam.history.load_state_dict({k[len("history.") :]: v for k, v in state.items() if k.startswith("history.")})
     if slam.frame_views is not None and "frame_views.kept" in state:
         views = {k[len("frame_views.") :]: v for k, v in state.items() if k.startswith("frame_views.")}

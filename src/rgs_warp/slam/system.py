@@ -115,7 +115,7 @@ class SLAM:
         self.frame_views = None
         views, every = cfg.mapping.frame_views, cfg.mapping.frame_view_every
         if cfg.mapping.history > 0.0 and views > 0:
-            self.frame_views = FrameViews(views, every, camera.width, camera.height, dev)
+            self.frame_views = FrameViews(views, every, camera.width, camera.height, dev, cfg.seed)
         self.matcher = DenseMatcher(cfg.matching, camera, dev)
         self.triangulator = Triangulator(cfg.triangulation, dev)
         self.seeder = Seeder(
