@@ -713,3 +713,23 @@ def test_stop_ends_the_call_after_the_iterations_it_asked_for(device, room):
     mapper = Mapper(MappingConfig(graph="off"), cam, gmap, device)
     assert mapper.optimize(kf, slots, 1, stop=lambda done: pytest.fail("asked after the last")).iters == 1
     assert mapper.optimize(kf, slots, 5, stop=lambda done: True).iters == 1
+
+
+def test_window_psnr_of_a_view_after_one_that_saw_little_of_the_map(device, room):
+    # the renderer's intersection buffers are sized by the render before: after a view that saw little of the
+    # map a dense one would drop intersections; the PSNR is of the whole render
+    cam = room["camera"]
+    gmap = _room_map(room, device)
+    kf, slots = _keyframes(room, room["frames"], device)
+    renderer = Renderer(device)
+    mapper = Mapper(MappingConfig(), cam, gmap, device, renderer=renderer)
+    expected = psnr(
+        np.clip(Renderer(device).forward(gmap, cam, kf.poses[slots[0]]).color.numpy(), 0, 1), kf.rgb[slots[0]].numpy()
+    )
+    away = kf.poses[slots[0]].copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned round: the room's far side, barely covered
+    few = renderer.forward(gmap, cam, away).num_intersections
+    many = renderer.forward(gmap, cam, kf.poses[slots[0]]).num_intersections
+    assert few * 2 < many  # the case: sized by the render before, the dense view would overflow
+    renderer.forward(gmap, cam, away)
+    assert mapper.window_psnr(kf, [slots[0]]) == pytest.approx(expected, abs=1e-3)

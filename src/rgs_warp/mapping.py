@@ -444,7 +444,11 @@ class Mapper:
         n_pixels = self.camera.width * self.camera.height
         blocks = [reduce_blocks(n_pixels)]
         for j, slot in enumerate(window):
-            res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1])
+            # sized by this view's last render; one that still overflowed (dropping intersections) is rendered again
+            view = int(keyframes.frame_ids[slot])
+            res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1], view=view)
+            if res.overflowed:
+                res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1], view=view)
             wp.launch_tiled(
                 km.exposed_squared_error,
                 dim=blocks,
