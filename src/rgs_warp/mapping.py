@@ -444,11 +444,9 @@ class Mapper:
         n_pixels = self.camera.width * self.camera.height
         blocks = [reduce_blocks(n_pixels)]
         for j, slot in enumerate(window):
-            # sized by this view's last render; one that still overflowed (dropping intersections) is rendered again
+            # sized by its own count (the view before may have seen far less of the map: dropped intersections)
             view = int(keyframes.frame_ids[slot])
-            res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1], view=view)
-            if res.overflowed:
-                res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1], view=view)
+            res = self.renderer.forward(self.gmap, self.camera, T_WC[j : j + 1], view=view, fit=True)
             wp.launch_tiled(
                 km.exposed_squared_error,
                 dim=blocks,
