@@ -288,6 +288,20 @@ def test_scores_at_the_tracked_exposure(frames):
         photometric_metrics([render, b], [a, b], tracked_exposures=[(1.0, 0.0)])
 
 
+def test_the_camera_clips_after_the_exposure(frames):
+    # a map of a scene whose exposure changes holds colours above 1 (what a darker frame shows of a surface
+    # a brighter one saw saturated): the frame at (g, b) is clip(g render + b), not g clip(render) + b
+    a = frames[0][:120, :160]
+    mapped = a / 0.8  # up to 1.25; the frame saw it at g = 0.8
+    assert (mapped > 1.0).mean() > 0.01
+    for device in (None, "cpu"):
+        row = frame_scores(mapped, a, None, (0.8, 0.0), device, psnr_only=True)
+        assert row["psnr_tracked"] > 100.0  # the frame itself
+        assert row["psnr_compensated"] > 100.0
+        assert row["psnr"] == pytest.approx(psnr(np.clip(mapped, 0, 1), a), abs=1e-10)  # raw: the render clipped
+        assert psnr(0.8 * np.clip(mapped, 0, 1), a) < 60.0  # clipping first would have lost the bright pixels
+
+
 def test_lpips_at_the_tracked_exposure_and_means_of_frame_rows(frames, tmp_path):
     # LPIPS of the render as tracking exposed it; mean_scores of rows from different passes (SplaTAM's
     # protocol joins held-out frames and keyframes) is the mean over all of them

@@ -213,7 +213,7 @@ def evaluate_run(
     renders, refs, alphas, depths, ref_depths = [], [], [], [], []
     for i, frame in zip(idx, read_frames(ds, idx), strict=True):
         res = slam.render(est[i])
-        renders.append(np.clip(res.color.numpy(), 0.0, 1.0))
+        renders.append(res.color.numpy().copy())  # as rendered: frame_scores clips after the exposure
         refs.append(frame.rgb)
         alphas.append(res.alpha.numpy().copy())
         if frame.depth is not None and cfg.mode == "rgbd":  # monocular depth has the map's own scale
@@ -329,7 +329,7 @@ def keyframe_fit(
     frames = [i for i in trained_frames(slam) if i in keyframes or (every is not None and i % every == 0)]
     for i, frame in zip(frames, read_frames(ds, frames), strict=True):
         res = slam.render(est[i])
-        render = np.clip(res.color.numpy(), 0.0, 1.0)
+        render = res.color.numpy().copy()
         at = None if tracked is None else tracked[i]
         full = every is not None and i % every == 0
         row = frame_scores(render, frame.rgb, res.alpha.numpy(), at, device, lpips_model, psnr_only=not full)

@@ -367,22 +367,27 @@ def frame_scores(
     the frame's fitted exposure (``fit_exposure`` where ``alpha`` >= 0.5) and its ``gain``, ``psnr_tracked``
     at the ``tracked`` (g, b) (absent without); unless ``psnr_only``, the same for SSIM (``ssim``,
     ``ssim_compensated``, ``ssim_tracked``), ``ssim_3dgs`` and ``ms_ssim``, and with an available
-    ``lpips_model`` ``lpips`` and ``lpips_tracked``.  ``device``: a torch device (``metric_device``), where
-    each image is copied once and PSNR and the SSIMs computed (the host's numbers to rounding)."""
+    ``lpips_model`` ``lpips`` and ``lpips_tracked``.  ``render``: the map's colour as rendered, not clipped:
+    a frame at exposure (g, b) shows clip(g render + b, 0, 1), as the camera clips (a map of a scene whose
+    exposure changes holds colours above 1 that darker frames show), the raw render clip(render, 0, 1).
+    ``device``: a torch device (``metric_device``), where each image is copied once and PSNR and the SSIMs
+    computed (the host's numbers to rounding)."""
     _check_shapes(render, ref)
     if not psnr_only and min(np.shape(render)[:2]) < SSIM_WINDOW:
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {np.shape(render)[:2]}")
     if device is None:
-        x, y = _check_pair(render, ref)
-        g, b = fit_exposure(x, y, alpha)
-        compensated = np.clip(g * x + b, 0.0, 1.0)
-        at_tracked = None if tracked is None else np.clip(tracked[0] * x + tracked[1], 0.0, 1.0)
+        mapped, y = _check_pair(render, ref)
+        x = np.clip(mapped, 0.0, 1.0)
+        g, b = fit_exposure(mapped, y, alpha)
+        compensated = np.clip(g * mapped + b, 0.0, 1.0)
+        at_tracked = None if tracked is None else np.clip(tracked[0] * mapped + tracked[1], 0.0, 1.0)
         psnr_of, ssim_of, ssim_3dgs_of, ms_ssim_of = psnr, ssim, ssim_3dgs, ms_ssim
     else:
-        x, y = _to_torch(render, device), _to_torch(ref, device)
-        g, b = _fit_exposure_torch(x, y, alpha)
-        compensated = (g * x + b).clamp(0.0, 1.0)
-        at_tracked = None if tracked is None else (tracked[0] * x + tracked[1]).clamp(0.0, 1.0)
+        mapped, y = _to_torch(render, device), _to_torch(ref, device)
+        x = mapped.clamp(0.0, 1.0)
+        g, b = _fit_exposure_torch(mapped, y, alpha)
+        compensated = (g * mapped + b).clamp(0.0, 1.0)
+        at_tracked = None if tracked is None else (tracked[0] * mapped + tracked[1]).clamp(0.0, 1.0)
         radius = (SSIM_WINDOW - 1) // 2
         psnr_of = _psnr_torch
 
@@ -405,7 +410,7 @@ def frame_scores(
     if at_tracked is not None:
         row["ssim_tracked"] = ssim_of(at_tracked, y)
     if lpips_model is not None and lpips_model.available:
-        row["lpips"] = lpips_model(render, ref)
+        row["lpips"] = lpips_model(np.clip(render, 0.0, 1.0), ref)
         if tracked is not None:
             row["lpips_tracked"] = lpips_model(np.clip(tracked[0] * np.asarray(render) + tracked[1], 0.0, 1.0), ref)
     return row
