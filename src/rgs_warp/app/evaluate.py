@@ -39,7 +39,8 @@ SPLATAM_EVERY = 5
 # metrics.md's line under the photometric table: what each PSNR means
 PSNR_LEGEND = (
     "PSNR raw: the render as is; compensated: one gain and bias fitted to the frame (MonoGS's protocol); "
-    "tracked exposure: rendered at the SLAM's own gain/bias estimate, the primary number; "
+    "tracked exposure: rendered at the SLAM's own gain/bias estimate, the primary number (both clip(g render + b), "
+    "clipped after the exposure as a camera clips); "
     "keyframe: the fit to trained views; row photometric: every eval.every-th frame, trained views left out; "
     "row every_5th_with_keyframes: every 5th frame, keyframes included (SplaTAM's protocol)."
 )
