@@ -49,14 +49,10 @@ def _huber(e: float) -> float:
     return 0.5 * a * a if a <= dk.HUBER else dk.HUBER * (a - 0.5 * dk.HUBER)
 
 
-def _reference_sums(
-    ref_rgb, ref_depth, rgb, depth, depth_mode, K, T_rel, affine, sigma_colour=dk.SIGMA_COLOUR, clip=True
-):
+def _reference_sums(ref_rgb, ref_depth, rgb, depth, depth_mode, K, T_rel, affine, sigma_colour=dk.SIGMA_COLOUR):
     """The 46 sums of ``normal_equations`` in float64, their sums of absolute contributions (the scale
     of float32 rounding) and counts of the branches taken (``stats``, with the colour residuals under
-    "residuals"); ``sigma_colour``: the colour residuals' noise scale.  ``clip``: no colour residual where
-    a frame pixel the sample reads has a channel >= 0.98 (the camera clipped it) and the prediction is
-    brighter."""
+    "residuals"); ``sigma_colour``: the colour residuals' noise scale."""
     fx, fy, cx, cy = K
     h, w = ref_depth.shape
     grey = rgb.astype(np.float64).mean(axis=2)
@@ -64,7 +60,7 @@ def _reference_sums(
     g, b = affine
     sums, scale = np.zeros(dk.N_COLUMNS), np.zeros(dk.N_COLUMNS)
     upper = np.triu_indices(dk.N_PARAMS)  # row-major, i <= j
-    stats = dict.fromkeys(("colour", "depth", "occluded", "colour_huber", "depth_huber", "no_depth_grad", "clipped"), 0)
+    stats = dict.fromkeys(("colour", "depth", "occluded", "colour_huber", "depth_huber", "no_depth_grad"), 0)
     # the closest any discontinuous test (image border, occlusion, depth edge) came to its threshold,
     # relative: float32 rounding in the kernel must not decide a pixel differently
     margins = []
@@ -114,12 +110,8 @@ def _reference_sums(
             i_ref = ref_grey[y, x]
             J = np.concatenate([a, np.cross(q, a), [-i_ref, -1.0]])
             r = _bilinear(grey, u, v) - (g * i_ref + b)
-            x0, y0 = min(int(u), w - 2), min(int(v), h - 2)
-            if clip and r < 0 and (rgb[y0 : y0 + 2, x0 : x0 + 2] >= 0.98).any():
-                stats["clipped"] += 1
-            else:
-                add(J, r, sigma_colour, "colour")
-                residuals.append(r)
+            add(J, r, sigma_colour, "colour")
+            residuals.append(r)
             stats["colour"] += 1
             sums[dk.S_COUNT] += 1
     stats["margin"] = min(margins)
@@ -219,8 +211,6 @@ def _normal_equation_inputs():
     ref_depth[[3, 9, 12], [5, 14, 2]] = 0.0  # no reference
     rgb = 1.05 * _pattern(NE_SHAPE, (0.15, -0.1)) + 0.01
     rgb[10:13, 4:8] += 0.15  # colour outliers
-    ref_rgb[2:6, 18:24] = 1.2  # the map brighter than the camera shows: the frame clipped there
-    rgb[2:6, 18:24] = 1.0
     depth = ref_depth + 0.06 * np.sin(x / 2.0 + y / 3.0)  # the ripple's peaks are depth outliers
     depth[4:7, 8:12] *= 0.7  # an occluder
     depth[[2, 7, 13, 14], [3, 18, 10, 11]] = 0.0  # no measurement
@@ -272,7 +262,6 @@ def test_normal_equations_match_numpy(device, depth_mode):
     else:
         assert stats["depth"] == 0
     assert stats["margin"] > 1e-3, stats
-    assert stats["clipped"] > 10, stats
     assert got[dk.S_COUNT] == ref[dk.S_COUNT] == stats["colour"]
     # float32 in the kernel: errors relative to the column's sum of absolute contributions
     np.testing.assert_array_less(np.abs(got - ref)[: dk.S_COUNT], 1e-4 * scale[: dk.S_COUNT])
@@ -283,9 +272,6 @@ def test_normal_equations_match_numpy(device, depth_mode):
     wrong[: dk.N_UPPER] *= np.outer(flip, flip)[upper]
     wrong[dk.S_GRAD : dk.S_COST] *= flip
     assert np.any(np.abs(got - wrong)[: dk.S_COUNT] > 1e-2 * scale[: dk.S_COUNT])
-    # and the clipped pixels' residuals would count
-    unclipped, _, _ = _reference_sums(ref_rgb, ref_depth, rgb, depth, depth_mode, NE_K, NE_T_REL, affine, sigma, False)
-    assert np.any(np.abs(got - unclipped)[: dk.S_COUNT] > 1e-2 * scale[: dk.S_COUNT])
     counts = histogram.numpy()
     if geometric:
         _assert_same_histogram(counts[TERM_COLOUR], _histogram(stats["residuals"]))
