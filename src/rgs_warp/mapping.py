@@ -203,7 +203,7 @@ class Mapper:
         wp.launch(
             km.scale_image_grad,
             dim=self._x.shape,
-            inputs=[self._grad_x, keyframes.rgb[slot], res.color, self._exposure, j],
+            inputs=[self._grad_x, self._exposure, j],
             outputs=[self._d_color],
             device=dev,
         )

@@ -26,7 +26,6 @@ from rgs_warp.kernels.math import (
     TERM_COLOUR,
     TERM_GEOMETRIC,
     block_sum,
-    clipped_near,
     depth_sigma,
     grey_bilinear,
     grey_level,
@@ -231,12 +230,10 @@ def normal_equations(
                         b = wp.cross(q, a)
                         J = vec8(a[0], a[1], a[2], b[0], b[1], b[2], -i_ref, -1.0)
                         r = grey_bilinear(rgb, u, v) - (g * i_ref + bias)
-                        # where the camera clipped the frame, a brighter prediction agrees with it
-                        if r >= 0.0 or not clipped_near(rgb, u, v):
-                            s = add_residual(s, J, r, scales[TERM_COLOUR], 1.0)
-                            if depth_mode == DEPTH_GEOMETRIC:
-                                count_residual(histogram_out, TERM_COLOUR, r)
+                        s = add_residual(s, J, r, scales[TERM_COLOUR], 1.0)
                         s[S_COUNT] = 1.0
+                        if depth_mode == DEPTH_GEOMETRIC:
+                            count_residual(histogram_out, TERM_COLOUR, r)
     total = block_sum(s)
     if lane == 0:
         for c in range(N_COLUMNS):

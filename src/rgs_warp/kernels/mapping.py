@@ -9,7 +9,7 @@ so nothing is read back to the host inside the mapping loop.
 
 import warp as wp
 
-from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum, unclipped
+from rgs_warp.kernels.math import REDUCE_BLOCK, block_sum
 
 wp.set_module_options({"enable_backward": False})
 
@@ -63,18 +63,15 @@ def mapping_loss(
         x = i - y * width
         inv_n = 1.0 / float(height * width)
         xv = exposure[view][0] * rendered[y, x] + wp.vec3(exposure[view][1])
-        # a channel the camera clipped agrees with any brighter prediction: no residual or gradient there,
-        # and the frame's own value for SSIM
-        keep = unclipped(observed[y, x], xv)
-        r = wp.cw_mul(observed[y, x] - xv, keep)
-        x_out[y, x] = observed[y, x] - r
+        x_out[y, x] = xv
+        r = observed[y, x] - xv
         mean_abs = (wp.abs(r[0]) + wp.abs(r[1]) + wp.abs(r[2])) / 3.0
         w = float(1.0)
         if robust_scale > 0.0:
             q = mean_abs / robust_scale
             w = 1.0 / (1.0 + q * q)
         k = -inv_n * l1_weight * w
-        grad_x_out[y, x] = k * wp.cw_mul(wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2])), keep)
+        grad_x_out[y, x] = k * wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2]))
         loss = l1_weight * w * 3.0 * mean_abs * inv_n
         d_depth = float(0.0)
         if use_depth != 0:
@@ -98,20 +95,15 @@ def mapping_loss(
 
 @wp.kernel
 def scale_image_grad(
-    # in: dL/dx of x = g I_hat + b (mapping_loss's x: a clipped channel held at the frame's value), the
-    # observed keyframe and the render, the window's exposures and this view's position
+    # in: dL/dx of x = g I_hat + b, the window's exposures and this view's position
     grad_x: wp.array2d(dtype=wp.vec3),
-    observed: wp.array2d(dtype=wp.vec3),
-    rendered: wp.array2d(dtype=wp.vec3),
     exposure: wp.array(dtype=wp.vec2),
     view: int,
-    # out: dL/dI_hat, 0 in the channels mapping_loss held
+    # out: dL/dI_hat
     d_color_out: wp.array2d(dtype=wp.vec3),
 ):
     y, x = wp.tid()
-    g = exposure[view][0]
-    keep = unclipped(observed[y, x], g * rendered[y, x] + wp.vec3(exposure[view][1]))
-    d_color_out[y, x] = g * wp.cw_mul(grad_x[y, x], keep)
+    d_color_out[y, x] = exposure[view][0] * grad_x[y, x]
 
 
 @wp.kernel

@@ -33,31 +33,6 @@ TERM_COLOUR = 0
 TERM_GEOMETRIC = 1
 
 
-# ---- the camera's clip ---------------------------------------------------------------------------------
-# A frame shows x = clip(g I + b, 0, 1) of the map's colour I at exposure (g, b): a channel at or above
-# SATURATION (250 of 255: JPEG leaves clipped regions at 250-255) says only that the scene was at least that
-# bright there, so a prediction brighter than it agrees with it (windows and lamps as the exposure rises;
-# experiments/results/tracking.md, "The camera's clip")
-SATURATION = 0.98
-
-
-@wp.func
-def unclipped(observed: wp.vec3, predicted: wp.vec3) -> wp.vec3:
-    """Per channel 0 where the camera clipped the observed channel (>= ``SATURATION``) and the prediction is
-    brighter (the two agree: no residual, no gradient), else 1."""
-    return wp.vec3(
-        wp.where(observed[0] >= SATURATION and predicted[0] > observed[0], 0.0, 1.0),
-        wp.where(observed[1] >= SATURATION and predicted[1] > observed[1], 0.0, 1.0),
-        wp.where(observed[2] >= SATURATION and predicted[2] > observed[2], 0.0, 1.0),
-    )
-
-
-@wp.func
-def is_clipped(c: wp.vec3) -> bool:
-    """A colour with a channel the camera clipped (>= ``SATURATION``)."""
-    return wp.max(wp.max(c[0], c[1]), c[2]) >= SATURATION
-
-
 @wp.func
 def depth_sigma(z: float) -> float:
     """sigma(z) of the depth noise model (``DEPTH_NOISE_*``), metres."""
@@ -220,18 +195,6 @@ def grey_bilinear(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> float:
     """Grey level of the bilinear colour at image point (u, v) (clamped into the image)."""
     x0, y0, fx, fy = bilinear_corner(u, v, rgb.shape[1], rgb.shape[0])
     return grey_level(bilerp(rgb[y0, x0], rgb[y0, x0 + 1], rgb[y0 + 1, x0], rgb[y0 + 1, x0 + 1], fx, fy))
-
-
-@wp.func
-def clipped_near(rgb: wp.array2d(dtype=wp.vec3), u: float, v: float) -> bool:
-    """Whether a pixel ``grey_bilinear`` reads at (u, v) has a channel the camera clipped (``is_clipped``)."""
-    x0, y0, fx, fy = bilinear_corner(u, v, rgb.shape[1], rgb.shape[0])
-    return (
-        is_clipped(rgb[y0, x0])
-        or is_clipped(rgb[y0, x0 + 1])
-        or is_clipped(rgb[y0 + 1, x0])
-        or is_clipped(rgb[y0 + 1, x0 + 1])
-    )
 
 
 @wp.func

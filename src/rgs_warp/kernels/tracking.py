@@ -15,10 +15,8 @@ from rgs_warp.kernels.math import (
     TERM_GEOMETRIC,
     block_sum,
     depth_sigma,
-    is_clipped,
     rigid_inverse_f32,
     se3_exp,
-    unclipped,
     vec6,
 )
 
@@ -148,7 +146,7 @@ def brightness_sums(
     # constrain the gain as well as edges do.  From the second step of a frame on, pixels whose mean
     # |I - g I_hat| per channel under the previous step's gain exceeds max_residual (> 0) are left out
     # too: where the map is wrong (content not yet mapped, a floater) the render says nothing about the
-    # exposure either.  So are pixels the camera clipped (a lower bound, which would pull the gain down).
+    # exposure either.
     block, lane = wp.tid()
     row = row + counter[0]
     i = block * REDUCE_BLOCK + lane
@@ -163,7 +161,6 @@ def brightness_sums(
             w = wp.where(a >= min_alpha, 1.0, 0.0)
         xr = rendered[y, x]
         yo = observed[y, x]
-        w = wp.where(is_clipped(yo), 0.0, w)
         if max_residual > 0.0 and row > 0:
             g = float(history_out[row - 1, H_GAIN])
             r = (wp.abs(yo[0] - g * xr[0]) + wp.abs(yo[1] - g * xr[1]) + wp.abs(yo[2] - g * xr[2])) / 3.0
@@ -290,11 +287,9 @@ def tracking_loss(
         inv_a = float(1.0)
         if per_opacity != 0 and a > ALPHA_DEPTH_MIN:
             inv_a = 1.0 / a
-        predicted = g * inv_a * c + wp.vec3(b)
-        keep = unclipped(observed[y, x], predicted)  # a clipped channel agrees with a brighter prediction
-        r = wp.cw_mul(observed[y, x] - predicted, keep)
+        r = observed[y, x] - (g * inv_a * c + wp.vec3(b))
         photo = w * (wp.abs(r[0]) + wp.abs(r[1]) + wp.abs(r[2]))
-        sign_r = wp.cw_mul(wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2])), keep)
+        sign_r = wp.vec3(wp.sign(r[0]), wp.sign(r[1]), wp.sign(r[2]))
         k_colour = float(1.0)
         if noise_weighted != 0:
             k_colour = 1.0 / scales[TERM_COLOUR]
