@@ -288,10 +288,10 @@ def test_scores_at_the_tracked_exposure(frames):
         photometric_metrics([render, b], [a, b], tracked_exposures=[(1.0, 0.0)])
 
 
-def test_the_camera_clips_after_the_exposure(frames):
+def test_the_camera_clips_after_the_exposure():
     # a map of a scene whose exposure changes holds colours above 1 (what a darker frame shows of a surface
     # a brighter one saw saturated): the frame at (g, b) is clip(g render + b), not g clip(render) + b
-    a = frames[0][:120, :160]
+    a = np.random.default_rng(3).uniform(0.0, 1.0, (40, 50, 3))
     mapped = a / 0.8  # up to 1.25; the frame saw it at g = 0.8
     assert (mapped > 1.0).mean() > 0.01
     for device in (None, "cpu"):
