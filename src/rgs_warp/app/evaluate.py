@@ -330,7 +330,7 @@ def keyframe_fit(
     frames = [i for i in trained_frames(slam) if i in keyframes or (every is not None and i % every == 0)]
     for i, frame in zip(frames, read_frames(ds, frames), strict=True):
         res = slam.render(est[i])
-        render = res.color.numpy().copy()
+        render = res.color.numpy()  # as rendered, scored before the next render
         at = None if tracked is None else tracked[i]
         full = every is not None and i % every == 0
         row = frame_scores(render, frame.rgb, res.alpha.numpy(), at, device, lpips_model, psnr_only=not full)
