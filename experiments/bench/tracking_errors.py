@@ -28,6 +28,15 @@ except the worst 5 % of estimated steps, and of the one that takes all estimated
 and the ATE that each ``--window``-frame stretch's estimated steps alone produce (true steps
 elsewhere), which locates the stretches that carry the error.
 
+With ``--reference FILE``: the estimate and the dataset's ground truth scored against a second reference
+of the same frames, in the pose files of Brachmann et al., "On the Limits of Pseudo Ground Truth in Visual
+Camera Re-localisation" (ICCV 2021; github.com/tsattler/visloc_pseudo_gt_limitations, ``pgt/sfm/7scenes/``:
+Colmap's poses of the colour images, independent of the depth and of KinectFusion), one line a frame,
+``seq-NN/frame-NNNNNN.color.png qw qx qy qz tx ty tz [f]`` (world-to-camera), the lines of
+``--reference-sequence`` matched to the frames by their file's number (7-Scenes: timestamp x 30 Hz):
+SE(3) and Sim(3) ATE, and the ratio of each trajectory's rotations since the first frame (rotation
+vectors, per camera axis) to the reference's.
+
 Writes DIR/per_frame.csv, DIR/summary.json, DIR/summary.txt (also printed) and the figure
 (``--figure``, default DIR/tracking_errors.png).
 """
@@ -38,6 +47,7 @@ import argparse
 import csv
 import dataclasses
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -55,6 +65,60 @@ def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
     T[:, :3, :3] = Rotation.from_quat(d[:, 4:8]).as_matrix()
     T[:, :3, 3] = d[:, 1:4]
     return d[:, 0], T
+
+
+def read_reference(path: Path, sequence: str) -> dict[int, np.ndarray]:
+    """Camera-to-world poses by frame number from a pose file of world-to-camera quaternion and translation
+    lines (``--reference``), the lines of ``sequence`` only."""
+    from scipy.spatial.transform import Rotation
+
+    poses = {}
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        parts = line.split()
+        if not parts or not parts[0].startswith(sequence + "/"):
+            continue
+        match = re.search(r"frame-(\d+)", parts[0])
+        if match is None or len(parts) < 8:
+            raise SystemExit(f"{path}:{number}: expected 'seq-NN/frame-NNNNNN.color.png qw qx qy qz tx ty tz [f]'")
+        qw, qx, qy, qz, tx, ty, tz = map(float, parts[1:8])
+        R_cw = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+        T = np.eye(4)
+        T[:3, :3] = R_cw.T
+        T[:3, 3] = -R_cw.T @ np.array([tx, ty, tz])
+        poses[int(match.group(1))] = T
+    if not poses:
+        raise SystemExit(f"{path}: no line of sequence {sequence!r}")
+    return poses
+
+
+def rotation_ratio(T: np.ndarray, ref: np.ndarray) -> list[float]:
+    """Per camera axis, the least-squares ratio of ``T``'s rotation vectors since its first pose to ``ref``'s."""
+    from scipy.spatial.transform import Rotation
+
+    a = Rotation.from_matrix(np.swapaxes(T[:1, :3, :3], 1, 2) @ T[:, :3, :3]).as_rotvec()
+    b = Rotation.from_matrix(np.swapaxes(ref[:1, :3, :3], 1, 2) @ ref[:, :3, :3]).as_rotvec()
+    return [float(a[:, k] @ b[:, k] / (b[:, k] @ b[:, k])) for k in range(3)]
+
+
+def against_reference(est: np.ndarray, gt: np.ndarray, indices: np.ndarray, path: Path, sequence: str) -> dict:
+    """The estimate and the ground truth scored against the reference (``--reference``) on their common frames."""
+    from rgs_warp.eval.ate import ate
+
+    poses = read_reference(path, sequence)
+    keep = np.array([int(i) in poses for i in indices])
+    if keep.sum() < 3:
+        raise SystemExit(f"{path}: only {int(keep.sum())} of the run's frames in sequence {sequence!r}")
+    ref = np.array([poses[int(i)] for i in indices[keep]])
+    out = {"file": str(path), "sequence": sequence, "frames": int(keep.sum())}
+    for name, T in (("estimate", est[keep]), ("ground_truth", gt[keep])):
+        sim3 = ate(T, ref, "sim3")
+        out[name] = {
+            "ate_cm": ate(T, ref, "se3")["rmse_cm"],
+            "ate_sim3_cm": sim3["rmse_cm"],
+            "sim3_scale": sim3["align_scale"],
+            "rotation_ratio_xyz": rotation_ratio(T, ref),
+        }
+    return out
 
 
 def read_log(path: Path) -> list[dict]:
@@ -190,6 +254,8 @@ def main(argv=None) -> int:
     ap.add_argument("--worst", type=float, default=0.10, help="fraction of steps called worst (default 0.10)")
     ap.add_argument("--window", type=int, default=25, help="frames a stretch for the ATE contributions")
     ap.add_argument("--title", default="", help="figure title (default: the run folder)")
+    ap.add_argument("--reference", type=Path, help="a second reference's pose file (see above)")
+    ap.add_argument("--reference-sequence", default="seq-01", help="its lines of this sequence (default seq-01)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     figure = args.figure or args.out / "tracking_errors.png"
@@ -427,7 +493,13 @@ def main(argv=None) -> int:
         "causes": table,
         "lost_frames": int(col["lost"].sum()),
         "keyframes": [int(f) for f in frames[col["keyframe"] > 0]],
+        "rotation_ratio_xyz": rotation_ratio(est, gt),
     }
+    if args.reference:
+        from rgs_warp.datasets.sevenscenes import KINECT_FPS  # 7-Scenes' timestamps: the file's number / fps
+
+        numbers = np.rint(col["timestamp"] * KINECT_FPS).astype(int)
+        summary["reference"] = against_reference(est, gt, numbers, args.reference, args.reference_sequence)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
 
     names = [
@@ -457,7 +529,8 @@ def format_summary(s: dict, args) -> str:
         f"ATE (SE(3)) rmse {a['rmse_cm']:.2f} cm, median {a['median_cm']:.2f}, max {a['max_cm']:.2f} at frame "
         f"{s['ate_max_frame']}; the alignment turns the estimate by {s['alignment_rotation_deg']:.2f} deg; aligned "
         f"rotation error mean {s['abs_deg']['mean']:.2f} deg, max {s['abs_deg']['max']:.2f}",
-        f"ATE with Sim(3) alignment {s['ate_sim3_cm']:.2f} cm at scale {s['sim3_scale']:.4f}",
+        f"ATE with Sim(3) alignment {s['ate_sim3_cm']:.2f} cm at scale {s['sim3_scale']:.4f}; rotations since the "
+        f"first frame x {', '.join(f'{v:.3f}' for v in s['rotation_ratio_xyz'])} the ground truth's (camera x, y, z)",
         f"ATE against the true poses' point at a fitted offset L in their camera frame {b['ate_cm']:.2f} cm, L = "
         f"({', '.join(f'{v:.1f}' for v in b['offset_cm'])}) cm; cross-validated, each half with the other's L: "
         f"{b['first_half_cm'][0]:.2f} -> {b['first_half_cm'][1]:.2f} cm, {b['second_half_cm'][0]:.2f} -> "
@@ -483,6 +556,15 @@ def format_summary(s: dict, args) -> str:
         f"position second difference median: estimate {s['second_difference_mm_p50']['est']:.2f} mm, ground truth "
         f"{s['second_difference_mm_p50']['gt']:.2f} mm",
     ]
+    if "reference" in s:
+        r = s["reference"]
+        for name in ("estimate", "ground_truth"):
+            v = r[name]
+            lines.append(
+                f"{name.replace('_', ' ')} against {Path(r['file']).name} ({r['sequence']}, {r['frames']} frames): ATE "
+                f"{v['ate_cm']:.2f} cm, Sim(3) {v['ate_sim3_cm']:.2f} cm at scale {v['sim3_scale']:.4f}; rotations x "
+                f"{', '.join(f'{x:.3f}' for x in v['rotation_ratio_xyz'])} the reference's"
+            )
     for name, v in j.items():
         lines.append(
             f"worst 5 % of steps by {name} ({v['steps']}): {100 * v['share_of_summed_error']:.0f} % of the summed "
