@@ -153,7 +153,7 @@ class DirectAlignment:
             wp.launch_tiled(
                 dk.geometric_equations,
                 dim=[self._blocks[level]],
-                inputs=[ref_depth, depth, intrinsics, self._T_rel, self.scales, self.cfg.depth_weight],
+                inputs=[ref_depth, depth, intrinsics, self._T_rel, self.scales],
                 outputs=[self._sums, self._histogram],
                 block_dim=dk.BLOCK,
                 device=dev,

@@ -340,8 +340,6 @@ def geometric_equations(
     T_rel: wp.array(dtype=wp.mat44d),
     # noise scales (math.N_TERMS): the geometric residuals' in units of sigma(z) at TERM_GEOMETRIC
     scales: wp.array(dtype=wp.float32),
-    # the term's weight against the colour's beyond their noise (tracking.depth_weight)
-    depth_weight: float,
     # out: the point-to-plane residuals' share added to the N_COLUMNS sums; their |r| / sigma(z) histogram row
     sums: wp.array(dtype=wp.float64),
     histogram_out: wp.array2d(dtype=wp.int32),
@@ -356,7 +354,7 @@ def geometric_equations(
         x = i - y * width
         r, J, sigma, weight = point_to_plane(ref_depth, depth, x, y, intrinsics, T_rel[0])
         if weight > 0.0:
-            s = add_residual(s, J, r, sigma * scales[TERM_GEOMETRIC], depth_weight * weight)
+            s = add_residual(s, J, r, sigma * scales[TERM_GEOMETRIC], weight)
             s[S_COUNT] = 1.0
             count_residual(histogram_out, TERM_GEOMETRIC, r / sigma)
     total = block_sum(s)

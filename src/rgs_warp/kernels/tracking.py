@@ -309,7 +309,7 @@ def tracking_loss(
                 loss += w_d * wp.abs(e)
                 k_depth = w_d
                 if noise_weighted != 0:
-                    k_depth = depth_weight * w_a * w_slope / (depth_sigma(d_obs) * scales[TERM_GEOMETRIC])
+                    k_depth = w_a * w_slope / (depth_sigma(d_obs) * scales[TERM_GEOMETRIC])
                 k = inv_n * k_depth * wp.sign(e) / a
                 d_depth = k
                 d_alpha -= k * d_hat / a
