@@ -142,8 +142,6 @@ class TrackingConfig:
     tile_stride: NonNegInt = 0  # steps but the last render one 16x16 tile in this many; 0: auto (2 rgbd, 1 mono)
     direct_levels: NonNegInt = 3  # pyramid levels of the direct alignment before the Adam steps; 0: off
     direct_iters: Count = 4  # Gauss-Newton steps a pyramid level
-    direct_passes: Count = 1  # direct alignments before the Adam steps, each against a new render
-    direct_after: bool = False  # one more direct alignment after the Adam steps (the frame's pose)
     geometric: bool = True  # RGB-D: depth point to plane in the direct alignment; all terms weighted by their noise
     min_valid_ratio: NonNegative = 0.2  # lost below this fraction of pixels with opacity >= tau_alpha
     max_residual: Positive = 0.15  # lost above this weighted mean |I - g I_hat - b| per channel

@@ -398,13 +398,10 @@ class Tracker:
         align, (*steps, last), capacity = entry
         self._step.zero_()
         if align is not None:
-            for _ in range(self.cfg.direct_passes):
-                wp.capture_launch(align)
+            wp.capture_launch(align)
         for _ in range(self.cfg.iters - 1):
             wp.capture_launch(steps[0])
         wp.capture_launch(last)
-        if align is not None and self.cfg.direct_after:
-            wp.capture_launch(align)
         self.graph_counts["replayed"] += 1
         if self.renderer.intersection_count() > capacity:
             self.graph_counts["overflowed"] += 1
@@ -455,13 +452,10 @@ class Tracker:
         self._capture(gmap, use_depth)
 
     def _eager_steps(self, gmap: GaussianMap, use_depth: bool) -> None:
-        aligns = self._direct.levels and len(gmap) > 0
-        for _ in range(self.cfg.direct_passes if aligns else 0):
+        if self._direct.levels and len(gmap) > 0:
             self._align(gmap, use_depth)
         for k in range(self.cfg.iters):
             self._iteration(gmap, k, use_depth)
-        if aligns and self.cfg.direct_after:
-            self._align(gmap, use_depth)
         self.graph_counts["eager"] += 1
 
     def _graph_key(self, gmap: GaussianMap, use_depth: bool) -> tuple:
@@ -550,12 +544,8 @@ class Tracker:
         ``exposure`` overwrites the sums."""
         wp.copy(self._history_host, self._history)
         wp.copy(self._pose_history_host, self._pose_history)
-        wp.copy(self._T_CW_host, self._T_CW)
         wp.synchronize_device(self.device)
-        poses = np.array(self._pose_history_host.numpy(), dtype=np.float64)
-        if self.cfg.direct_after:  # the frame's pose is the last alignment's
-            poses[-1] = self._T_CW_host.numpy()[0]
-        return self._history_host.numpy().copy(), poses
+        return self._history_host.numpy().copy(), np.array(self._pose_history_host.numpy(), dtype=np.float64)
 
     def _finish(self, T_init_WC: np.ndarray) -> TrackingResult:
         cfg = self.cfg
