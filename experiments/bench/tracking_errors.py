@@ -72,6 +72,8 @@ def read_reference(path: Path, sequence: str) -> dict[int, np.ndarray]:
     lines (``--reference``), the lines of ``sequence`` only."""
     from scipy.spatial.transform import Rotation
 
+    if not path.is_file():
+        raise SystemExit(f"{path}: no such file (--reference)")
     poses = {}
     for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
         parts = line.split()
