@@ -35,7 +35,7 @@ Colmap's poses of the colour images, independent of the depth and of KinectFusio
 ``seq-NN/frame-NNNNNN.color.png qw qx qy qz tx ty tz [f]`` (world-to-camera), the lines of
 ``--reference-sequence`` matched to the frames by their file's number (7-Scenes: timestamp x 30 Hz):
 SE(3) and Sim(3) ATE, and the ratio of each trajectory's rotations since the first frame (rotation
-vectors, per camera axis) to the reference's.
+vectors, per camera axis) to the reference's; the three trajectories side by side in DIR/reference.png.
 
 Writes DIR/per_frame.csv, DIR/summary.json, DIR/summary.txt (also printed) and the figure
 (``--figure``, default DIR/tracking_errors.png).
@@ -111,7 +111,7 @@ def against_reference(est: np.ndarray, gt: np.ndarray, indices: np.ndarray, path
     if keep.sum() < 3:
         raise SystemExit(f"{path}: only {int(keep.sum())} of the run's frames in sequence {sequence!r}")
     ref = np.array([poses[int(i)] for i in indices[keep]])
-    out = {"file": str(path), "sequence": sequence, "frames": int(keep.sum())}
+    out = {"file": str(path), "sequence": sequence, "frames": int(keep.sum()), "poses": ref, "used": keep}
     for name, T in (("estimate", est[keep]), ("ground_truth", gt[keep])):
         sim3 = ate(T, ref, "sim3")
         out[name] = {
@@ -501,7 +501,9 @@ def main(argv=None) -> int:
         from rgs_warp.datasets.sevenscenes import KINECT_FPS  # 7-Scenes' timestamps: the file's number / fps
 
         numbers = np.rint(col["timestamp"] * KINECT_FPS).astype(int)
-        summary["reference"] = against_reference(est, gt, numbers, args.reference, args.reference_sequence)
+        reference = against_reference(est, gt, numbers, args.reference, args.reference_sequence)
+        plot_reference(args.out / "reference.png", frames, est, gt, reference)
+        summary["reference"] = {k: v for k, v in reference.items() if k not in ("poses", "used")}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
 
     names = [
@@ -604,6 +606,46 @@ def format_summary(s: dict, args) -> str:
             f"{r['worst_mean']:9.3g} {r['rest_mean']:9.3g}"
         )
     return "\n".join(lines) + "\n"
+
+
+def plot_reference(path: Path, frames: np.ndarray, est: np.ndarray, gt: np.ndarray, reference: dict) -> None:
+    """The estimate, the ground truth and the reference (``against_reference``) side by side: their rotations since
+    the first frame about the camera's x and y axes (pitch, yaw; rotation vectors in the first frame's camera), and
+    the positions seen from above, each trajectory SE(3)-aligned onto the reference."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.spatial.transform import Rotation
+
+    from rgs_warp.eval.ate import ate
+
+    keep, ref = reference["used"], reference["poses"]
+    frames = frames[keep]
+    named = (
+        ("estimate", est[keep], "C0", reference["estimate"]["ate_cm"]),
+        ("ground truth", gt[keep], "C3", reference["ground_truth"]["ate_cm"]),
+        (Path(reference["file"]).name, ref, "k", 0.0),
+    )
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), dpi=100, gridspec_kw={"width_ratios": [1.3, 1.3, 1]})
+    for name, T, c, ate_cm in named:
+        turn = np.degrees(Rotation.from_matrix(np.swapaxes(T[:1, :3, :3], 1, 2) @ T[:, :3, :3]).as_rotvec())
+        label = name if T is ref else f"{name} ({ate_cm:.2f} cm from the reference)"
+        for k, ax in enumerate(axes[:2]):
+            ax.plot(frames, turn[:, k], color=c, lw=1.0, label=label)
+        P = T[:, :3, 3] if T is ref else (ate(T, ref, "se3")["align_T"] @ T)[:, :3, 3]
+        axes[2].plot(P[:, 0], P[:, 2], color=c, lw=1.0, label=name)
+    for k, ax in enumerate(axes[:2]):
+        ax.set_title(f"rotation since the first frame about the camera's {'xy'[k]} axis (deg)", fontsize=9)
+        ax.set_xlabel("frame", fontsize=9)
+        ax.tick_params(labelsize=8)
+    axes[0].legend(fontsize=7, frameon=False)
+    axes[2].set_title("positions from above (x, z; m), aligned onto the reference", fontsize=9)
+    axes[2].set_aspect("equal", adjustable="datalim")
+    axes[2].tick_params(labelsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def plot(path: Path, col: dict, frames: np.ndarray, s: dict, args) -> None:
