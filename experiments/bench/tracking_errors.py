@@ -522,7 +522,9 @@ def main(argv=None) -> int:
     (args.out / "summary.txt").write_text(text, encoding="utf-8")
     print(text, end="")
     plot(figure, col, frames, summary, args)
-    print(f"wrote {args.out / 'per_frame.csv'}, {args.out / 'summary.json'}, {args.out / 'summary.txt'}, {figure}")
+    written = [args.out / "per_frame.csv", args.out / "summary.json", args.out / "summary.txt", figure]
+    written += [args.out / "reference.png"] if args.reference else []
+    print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
 
