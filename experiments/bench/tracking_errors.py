@@ -193,28 +193,6 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
     return float(spearmanr(x[ok], y[ok]).statistic)
 
 
-def ate_with_body_offset(
-    est: np.ndarray, gt: np.ndarray, offset_m: np.ndarray | None = None
-) -> tuple[float, np.ndarray]:
-    """The ATE (cm) of the positions against the true poses' point at a fixed offset L in their camera frame,
-    t_gt + R_gt L, under the best rigid alignment, and L (m): fitted with the alignment unless ``offset_m`` is
-    given.  A large ATE drop with a steady L says the estimate's position errors move with the camera's turns:
-    errors of rotation about a point L away, not of translation."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    fit = offset_m is None
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        L = x[6:9] if fit else offset_m
-        moved = est[:, :3, 3] @ Rotation.from_rotvec(x[:3]).as_matrix().T + x[3:6]
-        return (moved - gt[:, :3, 3] - np.einsum("nij,j->ni", gt[:, :3, :3], L)).ravel()
-
-    x = least_squares(residuals, np.zeros(9 if fit else 6)).x
-    error = residuals(x).reshape(-1, 3)
-    return 100.0 * float(np.sqrt((error**2).sum(axis=1).mean())), (x[6:9] if fit else np.asarray(offset_m))
-
-
 def runs_of(frames: np.ndarray, gap: int) -> list[tuple[int, int, int]]:
     """Sorted frame numbers grouped into (first, last, count) where consecutive ones are <= gap apart."""
     out: list[list[int]] = []
@@ -419,24 +397,6 @@ def main(argv=None) -> int:
         )
 
     sim3 = ate(est, gt, "sim3")
-    half = n // 2
-    offset_all, L_all = ate_with_body_offset(est, gt)
-    _, L_first = ate_with_body_offset(est[:half], gt[:half])
-    _, L_second = ate_with_body_offset(est[half:], gt[half:])
-    body_offset = {
-        "ate_cm": offset_all,
-        "offset_cm": (100.0 * L_all).tolist(),
-        # cross-validated: each half scored with the other half's offset (the alignment refitted)
-        "first_half_cm": [
-            ate(est[:half], gt[:half], "se3")["rmse_cm"],
-            ate_with_body_offset(est[:half], gt[:half], L_second)[0],
-        ],
-        "second_half_cm": [
-            ate(est[half:], gt[half:], "se3")["rmse_cm"],
-            ate_with_body_offset(est[half:], gt[half:], L_first)[0],
-        ],
-        "offset_first_second_cm": [(100.0 * L_first).tolist(), (100.0 * L_second).tolist()],
-    }
     colour_only = (col["colour_repeats"] > 0) & (col["depth_repeats"] == 0)
     depth_only = (col["depth_repeats"] > 0) & (col["colour_repeats"] == 0)
     both = (col["colour_repeats"] > 0) & (col["depth_repeats"] > 0)
@@ -453,7 +413,6 @@ def main(argv=None) -> int:
         "frames": n,
         "ate_cm": {k: res[k] for k in ("rmse_cm", "mean_cm", "median_cm", "max_cm")},
         "ate_sim3_cm": sim3["rmse_cm"],
-        "body_offset": body_offset,
         "sim3_scale": sim3["align_scale"],
         # a frame whose colour (depth) repeats the previous frame's exactly: that stream was stale
         "repeated_streams": {"colour": at(colour_only), "depth": at(depth_only), "both": at(both)},
@@ -529,7 +488,7 @@ def main(argv=None) -> int:
 
 
 def format_summary(s: dict, args) -> str:
-    a, d, j, b = s["ate_cm"], s["drift_from_start"], s["worst_5pct_steps"], s["body_offset"]
+    a, d, j = s["ate_cm"], s["drift_from_start"], s["worst_5pct_steps"]
     lines = [
         f"{s['run']}: {s['frames']} frames, {s['lost_frames']} lost, {len(s['keyframes'])} keyframes",
         f"ATE (SE(3)) rmse {a['rmse_cm']:.2f} cm, median {a['median_cm']:.2f}, max {a['max_cm']:.2f} at frame "
@@ -537,10 +496,6 @@ def format_summary(s: dict, args) -> str:
         f"rotation error mean {s['abs_deg']['mean']:.2f} deg, max {s['abs_deg']['max']:.2f}",
         f"ATE with Sim(3) alignment {s['ate_sim3_cm']:.2f} cm at scale {s['sim3_scale']:.4f}; rotations since the "
         f"first frame x {', '.join(f'{v:.3f}' for v in s['rotation_ratio_xyz'])} the ground truth's (camera x, y, z)",
-        f"ATE against the true poses' point at a fitted offset L in their camera frame {b['ate_cm']:.2f} cm, L = "
-        f"({', '.join(f'{v:.1f}' for v in b['offset_cm'])}) cm; cross-validated, each half with the other's L: "
-        f"{b['first_half_cm'][0]:.2f} -> {b['first_half_cm'][1]:.2f} cm, {b['second_half_cm'][0]:.2f} -> "
-        f"{b['second_half_cm'][1]:.2f} cm",
         "frames repeating the previous one's (a stale stream): "
         + "; ".join(
             f"{k} {v['frames']}"
