@@ -515,6 +515,8 @@ def main(argv=None) -> int:
     plot(figure, col, frames, summary, args)
     written = [args.out / "per_frame.csv", args.out / "summary.json", args.out / "summary.txt", figure]
     written += [args.out / "reference.png"] if args.reference else []
+    if show - shown.keys():
+        print(f"note: --show: no matched frame {sorted(show - shown.keys())}", file=sys.stderr)
     if shown:
         plot_frames(args.out / "frames.png", shown, col, frames)
         written.append(args.out / "frames.png")
