@@ -376,8 +376,8 @@ def main(argv=None) -> int:
     within = np.convolve(np.ones(n), kernel, "same")
     slow = np.stack([np.convolve(est_a[:, a, 3] - gt[:, a, 3], kernel, "same") / within for a in range(3)], axis=1)
     step_axes = {
-        "translation_ratio_xyz": [float(t_est[:, a] @ t_gt[:, a] / (t_gt[:, a] @ t_gt[:, a])) for a in range(3)],
-        "rotation_ratio_xyz": [float(r_est[:, a] @ r_gt[:, a] / (r_gt[:, a] @ r_gt[:, a])) for a in range(3)],
+        "step_translation_ratio_xyz": [float(t_est[:, a] @ t_gt[:, a] / (t_gt[:, a] @ t_gt[:, a])) for a in range(3)],
+        "step_rotation_ratio_xyz": [float(r_est[:, a] @ r_gt[:, a] / (r_gt[:, a] @ r_gt[:, a])) for a in range(3)],
         "corr_tx_ry": float(np.corrcoef(e_t[:, 0], e_r[:, 1])[0, 1]),
         "corr_ty_rx": float(np.corrcoef(e_t[:, 1], e_r[:, 0])[0, 1]),
         "slow_cm": float(100.0 * np.sqrt(np.mean(np.sum(slow**2, axis=1)))),
@@ -575,8 +575,8 @@ def format_summary(s: dict, args) -> str:
     )
     x = s["step_axes"]
     lines.append(
-        f"steps (camera axes x, y, z) x {', '.join(f'{v:.3f}' for v in x['translation_ratio_xyz'])} the true ones' "
-        f"translation, x {', '.join(f'{v:.3f}' for v in x['rotation_ratio_xyz'])} their rotation; error "
+        f"steps (camera axes x, y, z) x {', '.join(f'{v:.3f}' for v in x['step_translation_ratio_xyz'])} the true "
+        f"ones' translation, x {', '.join(f'{v:.3f}' for v in x['step_rotation_ratio_xyz'])} their rotation; error "
         f"correlation x translation / y rotation {x['corr_tx_ry']:.2f}, y translation / x rotation "
         f"{x['corr_ty_rx']:.2f}; aligned error slower than 10 frames {x['slow_cm']:.2f} cm"
     )
@@ -620,7 +620,7 @@ def plot_frames(path: Path, shown: dict[int, np.ndarray], col: dict, frames: np.
     fig, axes = plt.subplots(1, len(shown), figsize=(4.0 * len(shown), 3.0), squeeze=False)
     for ax, (f, rgb) in zip(axes[0], sorted(shown.items()), strict=True):
         i = where[f]
-        ax.imshow(np.clip(rgb / (255.0 if rgb.max() > 1.0 + 1e-6 else 1.0), 0.0, 1.0))
+        ax.imshow(np.clip(rgb, 0.0, 1.0))  # the loaders' colour: float in [0, 1]
         ax.set_title(
             f"frame {f}: error {col['abs_cm'][i]:.2f} cm, step {col['rel_mm'][i]:.2f} mm / {col['rel_deg'][i]:.3f} deg",
             fontsize=8,
